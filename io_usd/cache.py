@@ -1,0 +1,283 @@
+"""Time-sampled USD caches: a streaming writer and a reader that loads caches back into arrays.
+
+Layout: /World (defaultPrim) holds one prim per simulated or collider object, each tagged with the
+token attribute `cfx:role` (hair, cloth, cloth_detail, collider, face, hair_card). The writer saves
+the crate file every few frames, so samples already written live on disk rather than in memory,
+and writes under a temporary name that is renamed onto the output only when the run completes.
+"""
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+
+ROLES = ("hair", "cloth", "cloth_detail", "collider", "face", "hair_card")
+ROOT = "/World"
+
+
+def _vec3f(points):
+    return Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
+
+
+def _extent(points, widths=None):
+    """Schema-correct extent: curves are padded by half their widths."""
+    if widths is not None:
+        return UsdGeom.Curves.ComputeExtent(points, widths)
+    return UsdGeom.PointBased.ComputeExtent(points)
+
+
+class CacheWriter:
+    """Streams frames into a USD cache. Use as a context manager; on error nothing is left behind.
+
+    path: .usdc (default binary), .usd or .usda. Frames are time codes; fps sets both
+    timeCodesPerSecond and framesPerSecond.
+    """
+
+    def __init__(self, path, fps, start_frame, end_frame, settings=None, up_axis="Y",
+                 meters_per_unit=1.0, flush_every=8, engine_version=None):
+        self.path = os.fspath(path)
+        ext = os.path.splitext(self.path)[1].lower()
+        if ext not in (".usd", ".usdc", ".usda"):
+            raise ValueError(f"{self.path}: output must end in .usd, .usdc or .usda")
+        self._ascii = ext == ".usda"
+        folder = os.path.dirname(os.path.abspath(self.path))
+        os.makedirs(folder, exist_ok=True)
+        base = os.path.basename(self.path)
+        self._tmp = os.path.join(folder, f".{base}.partial-{os.getpid()}.usdc")
+        if os.path.exists(self._tmp):
+            os.remove(self._tmp)
+        self.stage = Usd.Stage.CreateNew(self._tmp)
+        self.flush_every = max(1, int(flush_every))
+        self._since_flush = 0
+        self._prims = {}
+        self._closed = False
+
+        stage = self.stage
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y if up_axis.upper() == "Y" else UsdGeom.Tokens.z)
+        UsdGeom.SetStageMetersPerUnit(stage, float(meters_per_unit))
+        stage.SetTimeCodesPerSecond(float(fps))
+        stage.SetFramesPerSecond(float(fps))
+        stage.SetStartTimeCode(float(start_frame))
+        stage.SetEndTimeCode(float(end_frame))
+        world = UsdGeom.Xform.Define(stage, ROOT)
+        stage.SetDefaultPrim(world.GetPrim())
+        data = {"cfx:engine": "warp-cfx", "cfx:complete": False}
+        if engine_version:
+            data["cfx:engineVersion"] = str(engine_version)
+        if settings:
+            data["cfx:settings"] = _usd_dict(settings)
+        stage.GetRootLayer().customLayerData = data
+
+    # -- prims -------------------------------------------------------------------------------
+    def _tag(self, prim, name, role, kind, **info):
+        if role not in ROLES:
+            raise ValueError(f"role must be one of {ROLES}, got {role!r}")
+        prim.GetPrim().CreateAttribute("cfx:role", Sdf.ValueTypeNames.Token, custom=False).Set(role)
+        self._prims[name] = dict(prim=prim, kind=kind, **info)
+        return prim
+
+    def add_mesh(self, name, role, points, faces, color=None, animated=True):
+        """A triangle mesh (faces (F, 3)) or polygon mesh (faces a list of index lists)."""
+        mesh = UsdGeom.Mesh.Define(self.stage, f"{ROOT}/{name}")
+        if isinstance(faces, np.ndarray) and faces.ndim == 2:
+            counts, indices = np.full(len(faces), faces.shape[1]), faces.reshape(-1)
+        else:
+            counts, indices = np.array([len(f) for f in faces]), np.concatenate(faces)
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+        if color is not None:
+            mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([Gf.Vec3f(*color)])
+        self._tag(mesh, name, role, "mesh", animated=animated)
+        if not animated:
+            pts = _vec3f(points)
+            mesh.CreatePointsAttr(pts)
+            mesh.CreateExtentAttr(_extent(pts))
+        return mesh
+
+    def add_curves(self, name, role, counts, widths, color=None):
+        """Linear, nonperiodic BasisCurves with per-vertex widths [m]; points come per frame."""
+        curves = UsdGeom.BasisCurves.Define(self.stage, f"{ROOT}/{name}")
+        curves.CreateTypeAttr(UsdGeom.Tokens.linear)
+        curves.CreateBasisAttr(UsdGeom.Tokens.bspline)
+        curves.CreateWrapAttr(UsdGeom.Tokens.nonperiodic)
+        curves.CreateCurveVertexCountsAttr(Vt.IntArray.FromNumpy(np.asarray(counts, np.int32)))
+        widths = np.asarray(widths, np.float32)
+        widths_vt = Vt.FloatArray.FromNumpy(widths)
+        curves.CreateWidthsAttr(widths_vt)
+        curves.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+        if color is not None:
+            curves.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([Gf.Vec3f(*color)])
+        self._tag(curves, name, role, "curves", widths=widths_vt, animated=True)
+        return curves
+
+    # -- frames ------------------------------------------------------------------------------
+    def write_frame(self, frame, points_by_name):
+        """Write time samples of points (and extent) for the named prims at time code `frame`."""
+        t = Usd.TimeCode(float(frame))
+        for name, points in points_by_name.items():
+            info = self._prims[name]
+            geom = info["prim"]
+            pts = _vec3f(points)
+            geom.GetPointsAttr().Set(pts, t)
+            geom.GetExtentAttr().Set(_extent(pts, info.get("widths")), t)
+        self._since_flush += 1
+        if self._since_flush >= self.flush_every:
+            self.stage.GetRootLayer().Save()
+            self._since_flush = 0
+
+    def set_metadata(self, key, value):
+        """Add an entry (dicts allowed) to the root layer's customLayerData."""
+        layer = self.stage.GetRootLayer()
+        data = dict(layer.customLayerData)
+        data[key] = _usd_dict(value) if isinstance(value, dict) else value
+        layer.customLayerData = data
+
+    # -- lifetime ----------------------------------------------------------------------------
+    def close(self):
+        """Mark the cache complete and move it onto the output path."""
+        if self._closed:
+            return
+        self.set_metadata("cfx:complete", True)
+        layer = self.stage.GetRootLayer()
+        layer.Save()
+        if self._ascii:
+            layer.Export(self.path)
+            os.remove(self._tmp)
+        else:
+            os.replace(self._tmp, self.path)
+        self._closed = True
+        self.stage = None
+
+    def abort(self):
+        """Drop the partial cache; the output path is left untouched."""
+        self._closed = True
+        self.stage = None
+        if os.path.exists(self._tmp):
+            os.remove(self._tmp)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+        return False
+
+
+def _usd_dict(d):
+    """customLayerData accepts nested dicts of bool, int, float, str; tuples become float lists."""
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out[k] = _usd_dict(v)
+        elif isinstance(v, (list, tuple)):
+            out[k] = Vt.DoubleArray([float(x) for x in v]) if all(
+                isinstance(x, (int, float)) for x in v) else Vt.StringArray([str(x) for x in v])
+        elif isinstance(v, (bool, int, float, str)):
+            out[k] = v
+        elif v is None:
+            continue
+        else:
+            out[k] = str(v)
+    return out
+
+
+@dataclass
+class CachePrim:
+    name: str
+    path: str
+    role: str
+    kind: str  # "mesh" or "curves"
+    num_points: int
+    counts: np.ndarray  # curveVertexCounts or faceVertexCounts
+    indices: np.ndarray = field(default=None)  # faceVertexIndices (meshes)
+    widths: np.ndarray = field(default=None)  # curves
+    color: tuple = field(default=None)
+
+
+class CacheReader:
+    """Reads a cache written by CacheWriter (or any stage with cfx:role prims) back into arrays."""
+
+    def __init__(self, path):
+        self.path = os.fspath(path)
+        if not os.path.exists(self.path):
+            raise FileNotFoundError(f"{self.path}: no such cache")
+        self.stage = Usd.Stage.Open(self.path)
+        if self.stage is None:
+            raise ValueError(f"{self.path}: not a USD stage")
+        s = self.stage
+        self.fps = s.GetTimeCodesPerSecond()
+        self.start_frame = int(round(s.GetStartTimeCode()))
+        self.end_frame = int(round(s.GetEndTimeCode()))
+        self.up_axis = str(UsdGeom.GetStageUpAxis(s))
+        self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(s)
+        self.metadata = dict(s.GetRootLayer().customLayerData)
+        self.prims = {}
+        for prim in s.Traverse():
+            role_attr = prim.GetAttribute("cfx:role")
+            if not role_attr or not role_attr.HasAuthoredValue():
+                continue
+            name = prim.GetName()
+            role = str(role_attr.Get())
+            color = None
+            gprim = UsdGeom.Gprim(prim)
+            dc = gprim.GetDisplayColorPrimvar()
+            if dc and dc.HasAuthoredValue():
+                color = tuple(float(c) for c in dc.Get()[0])
+            if prim.IsA(UsdGeom.BasisCurves):
+                c = UsdGeom.BasisCurves(prim)
+                counts = np.array(c.GetCurveVertexCountsAttr().Get(), np.int32)
+                widths = np.array(c.GetWidthsAttr().Get(), np.float32)
+                self.prims[name] = CachePrim(name, str(prim.GetPath()), role, "curves", int(counts.sum()),
+                                             counts, widths=widths, color=color)
+            elif prim.IsA(UsdGeom.Mesh):
+                m = UsdGeom.Mesh(prim)
+                counts = np.array(m.GetFaceVertexCountsAttr().Get(), np.int32)
+                indices = np.array(m.GetFaceVertexIndicesAttr().Get(), np.int32)
+                pts = m.GetPointsAttr().Get(Usd.TimeCode(self.start_frame))
+                self.prims[name] = CachePrim(name, str(prim.GetPath()), role, "mesh",
+                                             0 if pts is None else len(pts), counts, indices=indices, color=color)
+
+    @property
+    def complete(self):
+        return bool(self.metadata.get("cfx:complete", True))
+
+    def frames(self, name=None):
+        """Time codes with samples (of `name`, or of the first prim)."""
+        prim = self.prims[name] if name else next(iter(self.prims.values()))
+        attr = UsdGeom.PointBased(self.stage.GetPrimAtPath(prim.path)).GetPointsAttr()
+        samples = attr.GetTimeSamples()
+        return [int(round(t)) for t in samples] if samples else [self.start_frame]
+
+    def points(self, name, frame):
+        attr = UsdGeom.PointBased(self.stage.GetPrimAtPath(self.prims[name].path)).GetPointsAttr()
+        return np.array(attr.Get(Usd.TimeCode(float(frame))), dtype=np.float32)
+
+    def read_points(self, name):
+        """All frames of one prim: (frames, points, 3) float32."""
+        return np.stack([self.points(name, f) for f in self.frames(name)])
+
+    def triangles(self, name):
+        """Triangulated faces (fan) of a mesh prim as (T, 3)."""
+        prim = self.prims[name]
+        tris, at = [], 0
+        for n in prim.counts:
+            f = prim.indices[at:at + n]
+            tris.extend([(f[0], f[k], f[k + 1]) for k in range(1, n - 1)])
+            at += n
+        return np.asarray(tris, np.int64)
+
+
+def read_cache(path):
+    """The whole cache as arrays: {name: {"role", "kind", "points": (F, P, 3), ...}} plus "frames"."""
+    reader = CacheReader(path)
+    out = {"frames": reader.frames(), "fps": reader.fps}
+    for name, prim in reader.prims.items():
+        out[name] = dict(role=prim.role, kind=prim.kind, points=reader.read_points(name), counts=prim.counts,
+                         indices=prim.indices, widths=prim.widths)
+    return out

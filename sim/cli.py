@@ -1,0 +1,193 @@
+"""The `cfx` command: run scenes and the demo to USD caches, preview, view and inspect caches."""
+
+import argparse
+import os
+import sys
+
+EXIT_INPUT = 2
+EXIT_SIMULATION = 3
+
+
+def _fail(message, status):
+    print(f"cfx: error: {message}", file=sys.stderr)
+    return status
+
+
+def _frames(text):
+    """'12' -> [12]; '1:72:12' -> [1, 13, ...] (inclusive end); '1,24,48' -> [1, 24, 48]."""
+    if ":" in text:
+        parts = [int(p) for p in text.split(":")]
+        start, end = parts[0], parts[1]
+        step = parts[2] if len(parts) > 2 else 1
+        return list(range(start, end + 1, step))
+    return [int(p) for p in text.split(",")]
+
+
+def _size(text):
+    w, h = text.lower().split("x")
+    return int(w), int(h)
+
+
+def _overrides(args):
+    scene = {}
+    if getattr(args, "frames", None) is not None:
+        scene["frames"] = args.frames
+    if getattr(args, "device", None):
+        scene["device"] = args.device
+    return {"scene": scene}
+
+
+def _report(result):
+    s = result.stats
+    print(f"wrote {result.path}: {result.frames} frames, {result.strands} strands, "
+          f"{result.particles} particles in {result.seconds:.1f} s", file=sys.stderr)
+    if s:
+        print(f"  max segment stretch {100 * s['max_stretch']:.3f}%, roots within 5 mm of the head "
+              f"{100 * s['root_within_5mm']:.2f}%, hair points >1 mm inside the head "
+              f"{100 * s['inside_1mm']:.3f}%", file=sys.stderr)
+
+
+def cmd_run(args, config=None):
+    import sim
+
+    if config is None:
+        config = sim.load_scene(args.scene, _overrides(args))
+    result = sim.run_scene(config, args.output, progress=not args.quiet)
+    _report(result)
+    if args.preview:
+        _preview(result.path, args.preview, frames=None, quiet=args.quiet)
+    return 0
+
+
+def cmd_demo(args):
+    import sim
+
+    config = sim.demo_scene(_overrides(args))
+    if not args.no_preview and args.preview is None:
+        args.preview = os.path.splitext(args.output)[0] + ".png"
+    return cmd_run(args, config)
+
+
+def _preview(cache, out, frames, quiet, size=(960, 720)):
+    from io_usd.preview import preview
+
+    preview(cache, out, frames=frames, width=size[0], height=size[1])
+    if not quiet:
+        print(f"wrote {out}", file=sys.stderr)
+
+
+def cmd_preview(args):
+    frames = _frames(args.frames) if args.frames else None
+    _preview(args.cache, args.output, frames, args.quiet, _size(args.size))
+    return 0
+
+
+def cmd_view(args):
+    from io_usd.viewer import view
+
+    view(args.cache)
+    return 0
+
+
+def cmd_info(args):
+    from io_usd.cache import CacheReader
+    from io_usd.validate import validation_errors
+
+    reader = CacheReader(args.cache)
+    frames = reader.frames() if reader.prims else []
+    print(f"{args.cache}")
+    print(f"  up axis {reader.up_axis}, {reader.meters_per_unit} m per unit, {reader.fps:g} fps, "
+          f"time codes {reader.start_frame}..{reader.end_frame}, {len(frames)} frames sampled")
+    print(f"  complete: {'yes' if reader.complete else 'NO (interrupted run)'}")
+    version = reader.metadata.get("cfx:engineVersion")
+    if version:
+        print(f"  written by warp-cfx {version}")
+    for name, prim in reader.prims.items():
+        if prim.kind == "curves":
+            detail = f"{len(prim.counts)} curves, {prim.num_points} points"
+        else:
+            detail = f"{len(prim.counts)} faces, {prim.num_points} points"
+        print(f"  {prim.path:24s} role={prim.role:12s} {prim.kind:6s} {detail}")
+    stats = reader.metadata.get("cfx:stats")
+    if stats:
+        print("  stats: " + ", ".join(f"{k}={v:.6g}" for k, v in stats.items()))
+    if args.validate:
+        errors = validation_errors(args.cache)
+        print(f"  UsdValidation: {len(errors)} errors")
+        for e in errors:
+            print(f"    {e}")
+        return 1 if errors else 0
+    return 0
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(prog="cfx", description="Warp CFX: hair simulation to USD caches.")
+    parser.add_argument("--version", action="version", version=_version())
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def sim_options(p):
+        p.add_argument("--frames", type=int, help="override the number of frames")
+        p.add_argument("--device", help="override the device (cpu, cuda, cuda:0)")
+        p.add_argument("--preview", help="also render this preview (.png/.mp4/.gif)")
+        p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+    p = sub.add_parser("run", help="run a TOML scene to a USD cache")
+    p.add_argument("scene")
+    p.add_argument("-o", "--output", required=True, help="cache path (.usdc, .usd or .usda)")
+    sim_options(p)
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("demo", help="run the built-in scene (no files needed) and preview it")
+    p.add_argument("-o", "--output", default="out/demo.usdc")
+    p.add_argument("--no-preview", action="store_true")
+    sim_options(p)
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("preview", help="render a cache offscreen to .png, .mp4 or .gif")
+    p.add_argument("cache")
+    p.add_argument("-o", "--output", required=True)
+    p.add_argument("--frames", help="frame (12), list (1,24,48) or range start:end:step; "
+                                    "several frames in a .png make a contact sheet")
+    p.add_argument("--size", default="960x720", help="WIDTHxHEIGHT in pixels")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=cmd_preview)
+
+    p = sub.add_parser("view", help="open the interactive viewer (needs a display)")
+    p.add_argument("cache")
+    p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("info", help="list a cache's prims, roles, frames and counts")
+    p.add_argument("cache")
+    p.add_argument("--validate", action="store_true", help="also run usd-core's validators")
+    p.set_defaults(func=cmd_info)
+    return parser
+
+
+def _version():
+    from sim import __version__
+
+    return f"warp-cfx {__version__}"
+
+
+def main(argv=None):
+    from .errors import InputError, SimulationError
+
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except InputError as err:
+        return _fail(str(err), EXIT_INPUT)
+    except (FileNotFoundError, IsADirectoryError) as err:
+        return _fail(str(err), EXIT_INPUT)
+    except ValueError as err:
+        return _fail(str(err), EXIT_INPUT)
+    except SimulationError as err:
+        return _fail(f"simulation failed: {err}", EXIT_SIMULATION)
+    except RuntimeError as err:
+        return _fail(str(err), EXIT_INPUT)
+    except KeyboardInterrupt:
+        return _fail("interrupted; no cache was written", 130)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,106 @@
+"""A deforming collider (head, body): skinned triangle mesh, its wp.Mesh BVH and its sphere tree.
+
+Poses are uploaded once per frame for every substep (`set_poses`), and `apply_pose(k)` skins the
+mesh and the sphere-tree centres to pose k with kernels only, so a frame's substeps need no host
+work (the prerequisite for capturing a frame in a CUDA graph).
+"""
+
+import numpy as np
+import warp as wp
+from scipy.spatial import cKDTree
+
+from warp_kernels import collision, skinning
+
+from .sphere_tree import build_sphere_tree, signed_distance
+
+
+class Collider:
+    def __init__(self, name, vertices, faces, skin_indices, skin_weights, num_bones, device="cpu",
+                 sphere_leaves=128):
+        self.name = name
+        self.device = device
+        self.rest_points_np = np.asarray(vertices, np.float32)
+        self.faces_np = np.asarray(faces, np.int32).reshape(-1, 3)
+        self.num_bones = int(num_bones)
+        skin_indices = np.asarray(skin_indices, np.int32).reshape(-1, 4)
+        skin_weights = np.asarray(skin_weights, np.float32).reshape(-1, 4)
+        self.skin_indices_np, self.skin_weights_np = skin_indices, skin_weights
+
+        arr = lambda a, t: wp.array(a, dtype=t, device=device)  # noqa: E731
+        self.rest_points = arr(self.rest_points_np, wp.vec3)
+        self.points = arr(self.rest_points_np, wp.vec3)
+        self.indices = arr(self.faces_np.reshape(-1), wp.int32)
+        self.skin_indices = arr(skin_indices, wp.vec4i)
+        self.skin_weights = arr(skin_weights, wp.vec4)
+        self.mesh = wp.Mesh(points=self.points, indices=self.indices)
+
+        self.tree = build_sphere_tree(self.rest_points_np, self.faces_np, max_leaves=sphere_leaves,
+                                      device=device)
+        # sphere centres move with the skin weights of their nearest surface vertex
+        _, nearest = cKDTree(self.rest_points_np).query(self.tree.centers)
+        self.sphere_rest_centers = arr(self.tree.centers, wp.vec3)
+        self.sphere_centers = arr(self.tree.centers, wp.vec3)
+        self.sphere_radii = arr(self.tree.radii, float)
+        self.sphere_skip = arr(self.tree.skip, wp.int32)
+        self.sphere_is_leaf = arr(self.tree.is_leaf, wp.int32)
+        self.sphere_skin_indices = arr(skin_indices[nearest], wp.vec4i)
+        self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
+        self.bone_matrices = None
+
+    def set_poses(self, matrices):
+        """matrices: (K, num_bones, 4, 4) bone transforms for K upcoming poses (e.g. substeps)."""
+        m = np.ascontiguousarray(np.asarray(matrices, np.float32).reshape(-1, 4, 4))
+        if self.bone_matrices is None or self.bone_matrices.shape[0] != len(m):
+            self.bone_matrices = wp.array(m, dtype=wp.mat44, device=self.device)
+        else:
+            self.bone_matrices.assign(m)
+
+    def apply_pose(self, k):
+        offset = k * self.num_bones
+        wp.launch(skinning.skin_points, len(self.points),
+                  [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
+                   self.points], device=self.device)
+        self.mesh.refit()
+        wp.launch(skinning.skin_points, len(self.sphere_centers),
+                  [self.sphere_rest_centers, self.sphere_skin_indices, self.sphere_skin_weights,
+                   self.bone_matrices, offset, self.sphere_centers], device=self.device)
+        wp.launch(collision.refit_sphere_tree, len(self.sphere_centers),
+                  [self.sphere_centers, self.sphere_radii, self.sphere_skip, self.sphere_is_leaf],
+                  device=self.device)
+
+    def push_out(self, points, margin, mode=collision.COLLIDE_MESH, search=1.0):
+        """Project (N, 3) NumPy points out of the collider in its current pose; returns NumPy."""
+        pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
+        wp.launch(collision.push_points_out, len(pts),
+                  [pts, int(mode), self.mesh.id, self.sphere_centers, self.sphere_radii,
+                   self.sphere_skip, self.sphere_is_leaf, float(margin), float(search)], device=self.device)
+        return pts.numpy()
+
+    def signed_distance(self, points, max_dist=1.0e6):
+        """Signed distance [m] of (N, 3) points to the posed mesh (negative inside).
+
+        Points farther than max_dist from the surface report +max_dist.
+        """
+        return signed_distance(points, self.mesh, self.device, max_dist)[0]
+
+    def closest_points(self, points):
+        """Closest surface points of the posed mesh, their faces and barycentric weights."""
+        pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
+        face = wp.zeros(len(pts), dtype=wp.int32, device=self.device)
+        bary = wp.zeros(len(pts), dtype=wp.vec3, device=self.device)
+        wp.launch(collision.mesh_closest_face, len(pts), [pts, self.mesh.id, 1.0e6, face, bary], device=self.device)
+        face, bary = face.numpy(), bary.numpy().astype(np.float64)
+        tri = self.points.numpy()[self.faces_np[face]].astype(np.float64)
+        return np.einsum("nk,nkj->nj", bary, tri), face, bary
+
+    def sphere_tree_depth(self, points):
+        """Deepest penetration [m] of each point into the posed sphere tree's leaves."""
+        pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
+        depth = wp.zeros(len(pts), dtype=float, device=self.device)
+        wp.launch(collision.sphere_tree_penetration, len(pts),
+                  [pts, self.sphere_centers, self.sphere_radii, self.sphere_skip, self.sphere_is_leaf, depth],
+                  device=self.device)
+        return depth.numpy()
+
+    def posed_points(self):
+        return self.points.numpy()

@@ -1,0 +1,76 @@
+"""Scene files (TOML) read into dataclasses, with errors that name the file, the key and the reason."""
+
+import dataclasses
+import difflib
+import math
+import tomllib
+
+
+def _coerce(value, default, source, key):
+    from .errors import InputError
+
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise InputError(source, key, f"expected a boolean, got {value!r}")
+        return value
+    if isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise InputError(source, key, f"expected an integer, got {value!r}")
+        return value
+    if isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InputError(source, key, f"expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise InputError(source, key, f"expected a finite number, got {value!r}")
+        return float(value)
+    if isinstance(default, tuple):
+        ok = isinstance(value, list) and len(value) == len(default) and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)
+        if not ok:
+            raise InputError(source, key, f"expected a list of {len(default)} finite numbers, got {value!r}")
+        return tuple(float(v) for v in value)
+    if isinstance(default, str) or default is None:
+        if not isinstance(value, str):
+            raise InputError(source, key, f"expected a string, got {value!r}")
+        return value
+    return value
+
+
+def from_table(cls, table, source, section, overrides=None):
+    """Build dataclass `cls` from a TOML table; unknown keys, wrong types and bad values raise InputError."""
+    from .errors import InputError
+
+    if not isinstance(table, dict):
+        raise InputError(source, f"[{section}]", "expected a table")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    defaults = cls()
+    kwargs = {}
+    for key, value in table.items():
+        where = f"{section}.{key}"
+        if key not in fields:
+            close = difflib.get_close_matches(key, fields, n=1)
+            hint = f" (did you mean '{close[0]}'?)" if close else f" (known: {', '.join(fields)})"
+            raise InputError(source, where, f"unknown key{hint}")
+        kwargs[key] = _coerce(value, getattr(defaults, key), source, where)
+    kwargs.update(overrides or {})
+    try:
+        return cls(**kwargs)
+    except ValueError as err:
+        # dataclass checks name their field first: "shape_stiffness must be in (0, 1]"
+        field = str(err).split(" ", 1)[0]
+        where = f"{section}.{field}" if field in fields else f"[{section}]"
+        raise InputError(source, where, str(err)) from None
+
+
+def load_toml(path):
+    from .errors import InputError
+
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except FileNotFoundError:
+        raise InputError(path, None, "no such file") from None
+    except IsADirectoryError:
+        raise InputError(path, None, "is a directory, expected a TOML scene file") from None
+    except tomllib.TOMLDecodeError as err:
+        raise InputError(path, None, f"not valid TOML: {err}") from None

@@ -1,0 +1,159 @@
+"""Hairstyle generators: roots sampled on a scalp, strands grown out of it as straight, wavy or curly.
+
+A strand leaves the scalp along the surface normal and bends toward a fall direction (down and
+away from the head's vertical axis, the fringe swept back) while being pushed out of the head;
+waves or curls are then added around that centre line and the polyline is resampled to evenly spaced
+vertices. Generation runs once per scene: Python loops here walk along the strand, never per frame.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+
+STYLES = ("straight", "wavy", "curly")
+
+
+@dataclass(frozen=True)
+class HairstyleParams:
+    style: str = "wavy"  # "straight", "wavy" or "curly"
+    count: int = 3000  # strands; ignored when density > 0
+    density: float = 0.0  # strands per cm^2 of scalp (0: use count)
+    length: float = 0.22  # m, length of the strand's centre line (curls add to the natural length)
+    length_jitter: float = 0.15  # relative random variation of length per strand
+    vertices: int = 24  # particles per strand
+    bend_length: float = 0.03  # m, how soon a strand turns from the scalp normal to the fall direction
+    wave_amplitude: float = 0.006  # m
+    wavelength: float = 0.07  # m
+    curl_radius: float = 0.008  # m
+    curl_pitch: float = 0.03  # m per turn
+    root_width: float = 1.2e-4  # m
+    tip_width: float = 4.0e-5  # m
+    clearance: float = 0.003  # m, rest shape kept this far off the head
+    seed: int = 1
+
+    def __post_init__(self):
+        if self.style not in STYLES:
+            raise ValueError(f"style must be one of {STYLES}")
+        if self.vertices < 3:
+            raise ValueError("vertices must be at least 3")
+        if self.length <= 0.0:
+            raise ValueError("length must be positive")
+        if self.count < 1 and self.density <= 0.0:
+            raise ValueError("count must be at least 1")
+
+
+def sample_scalp(vertices, faces, face_mask, count, seed=1):
+    """Area-weighted random roots on the masked faces: (points, face index, barycentric, normals)."""
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    candidates = np.flatnonzero(face_mask)
+    if len(candidates) == 0:
+        raise ValueError("the scalp region has no faces")
+    area = mesh.area_faces[candidates]
+    rng = np.random.default_rng(seed)
+    face = candidates[rng.choice(len(candidates), size=count, p=area / area.sum())]
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    bary = np.stack([1.0 - s, s * (1.0 - r2), s * r2], 1)
+    tri = mesh.vertices[mesh.faces[face]]
+    points = np.einsum("nk,nkj->nj", bary, tri)
+    normals = np.einsum("nk,nkj->nj", bary, mesh.vertex_normals[mesh.faces[face]])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return points, face, bary, normals
+
+
+def scalp_area(vertices, faces, face_mask):
+    mesh = trimesh.Trimesh(np.asarray(vertices, np.float64), np.asarray(faces, np.int64), process=False)
+    return float(mesh.area_faces[np.asarray(face_mask, bool)].sum())
+
+
+def grow_hairstyle(params, roots, normals, push_out, axis_point=(0.0, 0.0, 0.0)):
+    """Grow strands from roots (S, 3) with scalp normals (S, 3).
+
+    push_out(points, margin) -> points keeps the rest shape outside the head (a Collider.push_out).
+    Returns (points (S * vertices, 3), counts (S,), widths (S * vertices,)).
+    """
+    p = params
+    rng = np.random.default_rng(p.seed + 7)
+    roots = np.asarray(roots, np.float64)
+    normals = np.asarray(normals, np.float64)
+    n_strands = len(roots)
+    lengths = p.length * (1.0 + p.length_jitter * rng.uniform(-1.0, 1.0, n_strands))
+
+    fine = max(4 * p.vertices, 64)
+    step = lengths / (fine - 1)
+    fall = _fall_direction(roots, np.asarray(axis_point, np.float64))
+    centre = np.empty((n_strands, fine, 3))
+    centre[:, 0] = roots
+    d = normals.copy()
+    for k in range(1, fine):
+        turn = 1.0 - np.exp(-step / p.bend_length)
+        d = _normalize(d + turn[:, None] * (fall - d))
+        prev = centre[:, k - 1]
+        q = push_out(prev + d * step[:, None], p.clearance)
+        d = _normalize(q - prev)
+        centre[:, k] = prev + d * step[:, None]
+
+    shaped = centre + _style_offsets(p, centre, rng)
+    shaped[:, 1:] = push_out(shaped[:, 1:].reshape(-1, 3), p.clearance).reshape(n_strands, fine - 1, 3)
+    points = _resample(shaped, p.vertices)
+    t = np.linspace(0.0, 1.0, p.vertices)
+    widths = np.tile(p.root_width + (p.tip_width - p.root_width) * t, n_strands)
+    return points.reshape(-1, 3), np.full(n_strands, p.vertices), widths
+
+
+def _normalize(v):
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _fall_direction(roots, axis_point):
+    out = roots - axis_point
+    out[:, 1] = 0.0
+    out = _normalize(out)
+    # the fringe is swept back and to the side rather than over the face
+    front = out[:, 2] > 0.0
+    out[front, 2] *= -0.3
+    out = _normalize(out)
+    return _normalize(np.array([0.0, -1.0, 0.0]) + 0.45 * out)
+
+
+def _style_offsets(p, centre, rng):
+    if p.style == "straight":
+        return np.zeros_like(centre)
+    n_strands, fine, _ = centre.shape
+    tangent = _normalize(np.gradient(centre, axis=1))
+    # parallel-transported frame along each centre line
+    n1 = np.empty_like(centre)
+    seed_dir = np.cross(tangent[:, 0], np.array([0.0, 1.0, 0.0]))
+    bad = np.linalg.norm(seed_dir, axis=1) < 1e-6
+    seed_dir[bad] = np.cross(tangent[bad, 0], np.array([1.0, 0.0, 0.0]))
+    n1[:, 0] = _normalize(seed_dir)
+    for k in range(1, fine):
+        v = n1[:, k - 1] - np.sum(n1[:, k - 1] * tangent[:, k], 1, keepdims=True) * tangent[:, k]
+        n1[:, k] = _normalize(v)
+    n2 = np.cross(tangent, n1)
+    arc = np.concatenate([np.zeros((n_strands, 1)),
+                          np.cumsum(np.linalg.norm(np.diff(centre, axis=1), axis=2), axis=1)], axis=1)
+    ramp = np.clip(arc / 0.03, 0.0, 1.0)[..., None]
+    phase = rng.uniform(0.0, 2.0 * np.pi, (n_strands, 1))
+    if p.style == "wavy":
+        wave = np.sin(2.0 * np.pi * arc / p.wavelength + phase)[..., None]
+        return ramp * p.wave_amplitude * wave * n1
+    angle = (2.0 * np.pi * arc / p.curl_pitch + phase)[..., None]
+    return ramp * p.curl_radius * (np.cos(angle) * n1 + np.sin(angle) * n2)
+
+
+def _resample(polylines, count):
+    """Resample each (S, K, 3) polyline to `count` vertices evenly spaced along its arc length."""
+    n_strands, k, _ = polylines.shape
+    seg = np.linalg.norm(np.diff(polylines, axis=1), axis=2)
+    arc = np.concatenate([np.zeros((n_strands, 1)), np.cumsum(seg, axis=1)], axis=1)
+    want = arc[:, -1:] * np.linspace(0.0, 1.0, count)[None, :]
+    # searchsorted on each row at once: offset rows so they never interleave
+    offset = (np.arange(n_strands) * (arc[:, -1].max() + 1.0))[:, None]
+    idx = np.searchsorted((arc + offset).ravel(), (want + offset).ravel(), side="right") - 1
+    idx = np.clip(idx - np.repeat(np.arange(n_strands) * k, count), 0, k - 2).reshape(n_strands, count)
+    rows = np.arange(n_strands)[:, None]
+    a0, a1 = arc[rows, idx], arc[rows, idx + 1]
+    w = ((want - a0) / np.maximum(a1 - a0, 1e-12))[..., None]
+    return (1.0 - w) * polylines[rows, idx] + w * polylines[rows, idx + 1]

@@ -1,0 +1,108 @@
+"""Sphere tree of a closed mesh (Hayashimoto et al. §3.3 uses one around the head for collisions).
+
+Leaves are spheres inside the mesh chosen greedily to cover its surface; inner nodes bound their
+children and are laid out depth first with skip pointers (see warp_kernels.collision).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse
+import warp as wp
+from scipy.spatial import cKDTree
+
+from warp_kernels import collision
+
+
+@dataclass
+class SphereTree:
+    centers: np.ndarray  # (n, 3) [m], depth-first order
+    radii: np.ndarray  # (n,) [m]
+    skip: np.ndarray  # (n,) int32
+    is_leaf: np.ndarray  # (n,) int32
+
+    @property
+    def leaf_count(self):
+        return int(self.is_leaf.sum())
+
+    def leaves(self):
+        mask = self.is_leaf.astype(bool)
+        return self.centers[mask], self.radii[mask]
+
+
+def warp_mesh(vertices, faces, device="cpu"):
+    return wp.Mesh(points=wp.array(np.asarray(vertices, np.float32), dtype=wp.vec3, device=device),
+                   indices=wp.array(np.asarray(faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
+
+
+def signed_distance(points, mesh, device="cpu", max_dist=1.0e6):
+    """Signed distance of points to a closed wp.Mesh (negative inside) and closest surface points."""
+    pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=device)
+    dist = wp.zeros(len(pts), dtype=float, device=device)
+    closest = wp.zeros(len(pts), dtype=wp.vec3, device=device)
+    wp.launch(collision.mesh_signed_distance, len(pts), [pts, mesh.id, float(max_dist), dist, closest], device=device)
+    return dist.numpy(), closest.numpy()
+
+
+def build_sphere_tree(vertices, faces, max_leaves=128, tolerance=None, device="cpu"):
+    """Cover the surface of a closed mesh with at most max_leaves inner spheres, then build the tree.
+
+    tolerance [m]: a surface sample counts as covered when it lies within tolerance of a sphere's
+    surface; defaults to 1.5% of the bounding-box diagonal.
+    """
+    vertices = np.asarray(vertices, np.float64)
+    faces = np.asarray(faces, np.int64)
+    lo, hi = vertices.min(0), vertices.max(0)
+    diag = float(np.linalg.norm(hi - lo))
+    tol = 0.015 * diag if tolerance is None else float(tolerance)
+
+    step = diag / 60.0
+    axes = [np.arange(lo[k] + 0.5 * step, hi[k], step) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    dist, _ = signed_distance(grid, warp_mesh(vertices, faces, device), device)
+    inside = dist < -0.25 * step
+    cand_c, cand_r = grid[inside], -dist[inside]
+
+    samples = np.concatenate([vertices, vertices[faces].mean(1)])
+    tree = cKDTree(samples)
+    rows, cols = [], []
+    for k, hits in enumerate(tree.query_ball_point(cand_c, cand_r + tol)):
+        rows.extend([k] * len(hits))
+        cols.extend(hits)
+    cover = scipy.sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(cand_c), len(samples)))
+    uncovered = np.ones(len(samples))
+    chosen = []
+    while len(chosen) < max_leaves and uncovered.any():
+        gain = cover @ uncovered
+        best = int(np.argmax(gain))
+        if gain[best] <= 0:
+            break
+        chosen.append(best)
+        uncovered[cover[best].indices] = 0.0
+    return _hierarchy(cand_c[chosen], cand_r[chosen])
+
+
+def _hierarchy(leaf_c, leaf_r):
+    centers, radii, skip, is_leaf = [], [], [], []
+
+    def visit(idx):
+        node = len(centers)
+        c = leaf_c[idx].mean(0)
+        r = float(np.max(np.linalg.norm(leaf_c[idx] - c, axis=1) + leaf_r[idx]))
+        centers.append(c)
+        radii.append(r)
+        skip.append(-1)
+        is_leaf.append(int(len(idx) == 1))
+        if len(idx) > 1:
+            axis = int(np.argmax(np.ptp(leaf_c[idx], axis=0)))
+            order = idx[np.argsort(leaf_c[idx, axis], kind="stable")]
+            half = len(order) // 2
+            visit(order[:half])
+            visit(order[half:])
+        else:
+            centers[node], radii[node] = leaf_c[idx[0]], float(leaf_r[idx[0]])
+        skip[node] = len(centers)
+
+    visit(np.arange(len(leaf_c)))
+    return SphereTree(np.asarray(centers, np.float32), np.asarray(radii, np.float32),
+                      np.asarray(skip, np.int32), np.asarray(is_leaf, np.int32))

@@ -1,0 +1,35 @@
+import os
+
+import numpy as np
+import pytest
+import warp as wp
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+wp.config.quiet = True
+wp.init()
+
+
+@pytest.fixture(scope="session")
+def head():
+    from sim.head import procedural_head
+
+    return procedural_head()
+
+
+@pytest.fixture(scope="session")
+def head_collider(head):
+    from sim.collider import Collider
+    from sim.head import HeadAnimation
+
+    c = Collider("head", head.vertices, head.faces, head.skin_indices, head.skin_weights, head.num_bones, "cpu",
+                 sphere_leaves=96)
+    c.set_poses(HeadAnimation.preset("none").bone_matrices([0.0]))
+    c.apply_pose(0)
+    return c
+
+
+def helix(n, radius, pitch, turns, axis_down=True):
+    """A helix hanging along -Y from the origin, sampled with n points."""
+    t = np.linspace(0.0, 2.0 * np.pi * turns, n)
+    pts = np.stack([radius * np.cos(t) - radius, -pitch * t / (2.0 * np.pi), radius * np.sin(t)], 1)
+    return pts if axis_down else pts[:, [1, 0, 2]]

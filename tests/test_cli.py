@@ -1,0 +1,106 @@
+"""The cfx command: runs scenes to caches, reports bad input with file, key and exit status 2."""
+
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from io_usd import CacheReader, validation_errors
+from sim.cli import main
+
+SMALL = """
+[scene]
+fps = 24
+frames = 3
+preroll = 0.0
+
+[head]
+animation = "turn"
+sphere_leaves = 48
+
+[hair]
+style = "straight"
+count = 40
+vertices = 8
+length = 0.12
+
+[solver]
+substeps = 4
+"""
+
+
+def write(tmp_path, text, name="scene.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def test_run_writes_a_valid_cache_and_info_lists_it(tmp_path, capsys):
+    scene = write(tmp_path, SMALL)
+    out = str(tmp_path / "out" / "hair.usdc")
+    assert main(["run", scene, "-o", out, "-q"]) == 0
+    reader = CacheReader(out)
+    assert reader.frames("hair") == [1, 2, 3]
+    assert reader.prims["hair"].role == "hair" and len(reader.prims["hair"].counts) == 40
+    assert reader.prims["head"].role == "collider"
+    assert validation_errors(out) == []
+    capsys.readouterr()
+    assert main(["info", out, "--validate"]) == 0
+    text = capsys.readouterr().out
+    assert "role=hair" in text and "40 curves, 320 points" in text and "0 errors" in text
+
+
+@pytest.mark.parametrize("text,where,reason", [
+    (SMALL.replace("count = 40", "cout = 40"), "hair.cout", "did you mean 'count'"),
+    (SMALL.replace("fps = 24", 'fps = "fast"'), "scene.fps", "expected a number"),
+    (SMALL.replace('style = "straight"', 'style = "afro"'), "hair.style", "must be one of"),
+    (SMALL.replace("substeps = 4", "substeps = 0"), "solver.substeps", "at least 1"),
+    (SMALL + "\n[wind]\nspeed = 3\n", "[wind]", "unknown table"),
+    (SMALL.replace("[head]", '[head]\nmesh = "missing.obj"'), "head.mesh", "file not found"),
+    (SMALL.replace("frames = 3", "frames = [3"), "", "not valid TOML"),
+    (SMALL.replace("[solver]", "[solver]\ngravity = [0, -9.8]"), "solver.gravity", "list of 3"),
+])
+def test_bad_scene_files_exit_2_naming_the_key(tmp_path, capsys, text, where, reason):
+    scene = write(tmp_path, text)
+    out = tmp_path / "never.usdc"
+    assert main(["run", scene, "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert scene in err and where in err and reason in err
+    assert not out.exists()
+
+
+def test_missing_scene_file_exits_2(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "nope.toml"), "-o", str(tmp_path / "x.usdc")]) == 2
+    assert "nope.toml" in capsys.readouterr().err
+
+
+def test_exploding_simulation_is_reported_with_frame_and_prim(tmp_path, capsys):
+    scene = write(tmp_path, SMALL.replace("[solver]", "[solver]\ngravity = [0.0, -1.0e9, 0.0]\nmax_speed = 50.0"))
+    out = tmp_path / "boom.usdc"
+    assert main(["run", scene, "-o", str(out), "-q"]) == 3
+    err = capsys.readouterr().err
+    assert "frame 2" in err and "/World/hair" in err
+    assert os.listdir(tmp_path) == ["scene.toml"]
+
+
+def test_scene_can_use_its_own_head_mesh_and_roots(tmp_path, head):
+    import trimesh
+
+    trimesh.Trimesh(head.vertices, head.faces).export(tmp_path / "bust.obj")
+    top = head.vertices[head.vertices[:, 1] > 0.44]
+    np.save(tmp_path / "roots.npy", top[:12])
+    scene = write(tmp_path, SMALL.replace("[head]", '[head]\nmesh = "bust.obj"\nroots = "roots.npy"'))
+    out = str(tmp_path / "own.usdc")
+    assert main(["run", scene, "-o", out, "-q"]) == 0
+    reader = CacheReader(out)
+    assert len(reader.prims["hair"].counts) == 12
+    first = reader.points("hair", 1).reshape(12, 8, 3)[:, 0]
+    np.testing.assert_allclose(first, top[:12], atol=1e-4)
+
+
+def test_cfx_entry_point_runs_as_a_module():
+    proc = subprocess.run([sys.executable, "-m", "sim.cli", "--version"], capture_output=True, text=True)
+    assert proc.returncode == 0 and "warp-cfx" in proc.stdout

@@ -1,0 +1,87 @@
+"""Head collisions: the sphere tree is inside the head, and settled hair ends outside the head."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from sim.hair_solver import HairParams, HairSolver
+from sim.hairstyle import HairstyleParams, grow_hairstyle, sample_scalp
+from sim.head import HeadAnimation
+from sim.strands import StrandBuilder
+
+
+def test_procedural_head_is_a_closed_outward_mesh(head):
+    mesh = trimesh.Trimesh(head.vertices, head.faces, process=False)
+    assert mesh.is_watertight and mesh.is_winding_consistent
+    assert 0.012 < mesh.volume < 0.025  # m^3: a bust, not a sphere of the wrong scale
+    assert head.scalp_faces.sum() > 1000
+    np.testing.assert_allclose(head.skin_weights.sum(1), 1.0)
+
+
+def test_head_animation_starts_at_rest_and_turns():
+    anim = HeadAnimation()
+    np.testing.assert_allclose(anim.bone_matrices([0.0])[0], np.eye(4)[None].repeat(2, 0), atol=1e-12)
+    yaw, pitch = anim.angles(np.array([anim.turn_period / 4.0]))
+    assert abs(np.degrees(yaw[0]) - anim.turn_degrees) < 1e-6
+    M = anim.bone_matrices([0.6, 1.3])[:, 1]
+    np.testing.assert_allclose(np.einsum("nij,nkj->nik", M[:, :3, :3], M[:, :3, :3]), np.eye(3)[None].repeat(2, 0),
+                               atol=1e-12)  # rotations stay orthonormal
+    np.testing.assert_allclose((M[:, :3, :3] @ anim.pivot) + M[:, :3, 3], np.tile(anim.pivot, (2, 1)), atol=1e-12)
+
+
+def test_sphere_tree_leaves_lie_inside_the_head_and_cover_it(head, head_collider):
+    centers, radii = head_collider.tree.leaves()
+    sdf = head_collider.signed_distance(centers)
+    assert np.all(sdf + radii <= 1e-3)  # every leaf sphere inside the surface (1 mm tolerance)
+    # most of the head's surface is close to some leaf sphere
+    gap = np.min(np.linalg.norm(head.vertices[:, None] - centers[None], axis=2) - radii[None], axis=1)
+    assert np.mean(gap < 0.01) > 0.95
+    # inner nodes bound their subtree (depth-first layout with skip pointers)
+    t = head_collider.tree
+    for i in np.flatnonzero(t.is_leaf == 0):
+        sub = np.arange(i + 1, t.skip[i])
+        leaves = sub[t.is_leaf[sub] == 1]
+        reach = np.linalg.norm(t.centers[leaves] - t.centers[i], axis=1) + t.radii[leaves]
+        assert np.all(reach <= t.radii[i] + 1e-6)
+
+
+@pytest.mark.parametrize("mode", ["sphere_tree", "mesh"])
+def test_settled_hair_ends_outside_the_head(head, head_collider, mode):
+    roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, 150, seed=2)
+    pts, counts, widths = grow_hairstyle(HairstyleParams(style="straight", vertices=12, length=0.2), roots,
+                                         normals, head_collider.push_out)
+    model = StrandBuilder().add_strands(pts, counts, widths).finalize("cpu").bind_to_mesh(
+        head_collider.posed_points(), head.faces)
+    # start the strands pointing into the head: collisions must push them out as they fall
+    solver = HairSolver(model, HairParams(collision=mode))
+    s0, s1 = model.state(), model.state()
+    for _ in range(240):
+        solver.step(s0, s1, head_collider, 1.0 / 240.0)
+        s0, s1 = s1, s0
+    x = s0.x.numpy()
+    free = model.inv_mass_np > 0
+    if mode == "sphere_tree":
+        assert head_collider.sphere_tree_depth(x[free]).max() < 1e-4
+    else:
+        sdf = head_collider.signed_distance(x[free])
+        assert np.mean(sdf < -0.001) < 0.005
+        assert sdf.min() > -0.003
+
+
+def test_groomed_rest_shape_clears_the_head(head, head_collider):
+    roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, 200, seed=9)
+    for style in ("straight", "wavy", "curly"):
+        params = HairstyleParams(style=style, vertices=20, length=0.25)
+        pts, counts, _ = grow_hairstyle(params, roots, normals, head_collider.push_out)
+        assert pts.shape == (200 * 20, 3) and np.all(counts == 20)
+        strands = pts.reshape(200, 20, 3)
+        np.testing.assert_allclose(strands[:, 0], roots, atol=1e-6)
+        sdf = head_collider.signed_distance(strands[:, 2:].reshape(-1, 3))
+        assert sdf.min() > 0.0, style
+        seg = np.linalg.norm(np.diff(strands, axis=1), axis=2)
+        assert np.abs(seg / seg.mean(axis=1, keepdims=True) - 1.0).max() < 0.35  # evenly resampled
+        natural = seg.sum(1)
+        if style == "straight":
+            assert np.all(np.abs(natural / 0.25 - 1.0) < params.length_jitter + 0.02)
+        else:
+            assert np.median(natural) > 0.25  # waves and curls add length to the centre line

@@ -1,0 +1,88 @@
+"""The shape-matching target kernel against a float64 NumPy reference, both variants."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from conftest import helix
+from sim.strands import StrandBuilder
+from warp_kernels import strands as kernels
+
+
+def reference_targets(x, first, size, rest, offsets, variant):
+    """float64 NumPy: simplified g_k = c + d_k u; full g_k = c + R r_k with R = polar(sum (x_k - c) r_k^T)."""
+    out = np.zeros((len(first), size, 3))
+    for w, f in enumerate(first):
+        p = x[f:f + size].astype(np.float64)
+        c = p.mean(0)
+        r = rest[w * size:(w + 1) * size].astype(np.float64)
+        if variant == 0:
+            u = p[-1] - p[0]
+            u /= np.linalg.norm(u)
+            out[w] = c + offsets[w * size:(w + 1) * size, None] * u
+        else:
+            A = (p - c).T @ r
+            U, _, Vt = np.linalg.svd(A)
+            D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+            out[w] = c + r @ (U @ D @ Vt).T
+    return out.reshape(-1, 3)
+
+
+def reference_apply(x, inv_mass, first, size, targets, stiffness):
+    goal = np.zeros_like(x, dtype=np.float64)
+    count = np.zeros(len(x))
+    for w, f in enumerate(first):
+        goal[f:f + size] += targets[w * size:(w + 1) * size]
+        count[f:f + size] += 1
+    out = x.astype(np.float64).copy()
+    move = (inv_mass > 0) & (count > 0)
+    out[move] += stiffness * (goal[move] / count[move, None] - out[move])
+    return out
+
+
+def groom(rng):
+    """Three strands: straight, wavy and a curl, each deformed away from its rest shape."""
+    straight = np.stack([np.zeros(10), -np.linspace(0, 0.2, 10), np.zeros(10)], 1)
+    wavy = np.stack([0.01 * np.sin(np.linspace(0, 6, 12)), -np.linspace(0, 0.25, 12), np.zeros(12)], 1) + [0.1, 0, 0]
+    curl = helix(16, 0.01, 0.02, 3.0) + [0.2, 0, 0]
+    builder = StrandBuilder()
+    for s in (straight, wavy, curl):
+        builder.add_strand(s)
+    model = builder.finalize("cpu", pinned_per_strand=1)
+    x = model.rest_positions_np + rng.normal(0.0, 0.004, model.rest_positions_np.shape).astype(np.float32)
+    return model, x.astype(np.float32)
+
+
+@pytest.mark.parametrize("variant,size", [(0, 3), (1, 3), (1, 4), (0, 4)])
+def test_targets_match_float64_reference(variant, size):
+    rng = np.random.default_rng(3)
+    model, x = groom(rng)
+    win = model.shape_windows(size)
+    targets = wp.zeros(win.count * size, dtype=wp.vec3)
+    wp.launch(kernels.shape_match_targets, win.count,
+              [wp.array(x, dtype=wp.vec3), win.first, size, win.rest, win.offsets, variant, targets])
+    ref = reference_targets(x, win.first_np, size, win.rest_np, win.offsets_np, variant)
+    got = targets.numpy()
+    scale = np.abs(ref).max()
+    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5 * scale)
+
+    moved = wp.array(x, dtype=wp.vec3)
+    wp.launch(kernels.shape_match_apply, model.num_particles,
+              [moved, model.inv_mass, model.particle_strand, win.at, size, targets, 0.4])
+    ref_moved = reference_apply(x, model.inv_mass_np, win.first_np, size, ref, 0.4)
+    np.testing.assert_allclose(moved.numpy(), ref_moved, rtol=1e-5, atol=1e-5 * scale)
+
+
+def test_full_variant_targets_are_a_rigid_motion_of_the_rest_window():
+    # a rigidly rotated and shifted rest strand is already at its goal: targets equal positions
+    rng = np.random.default_rng(5)
+    model, _ = groom(rng)
+    angle = 0.7
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    x = (model.rest_positions_np @ R.T + [0.05, 0.1, -0.2]).astype(np.float32)
+    win = model.shape_windows(4)
+    targets = wp.zeros(win.count * 4, dtype=wp.vec3)
+    wp.launch(kernels.shape_match_targets, win.count,
+              [wp.array(x, dtype=wp.vec3), win.first, 4, win.rest, win.offsets, 1, targets])
+    expected = x[(win.first_np[:, None] + np.arange(4)).reshape(-1)]
+    np.testing.assert_allclose(targets.numpy(), expected, atol=2e-6)

@@ -1,0 +1,80 @@
+"""Deforming colliders and surface bindings.
+
+A collider mesh is posed by linear blend skinning; anything attached to it (hair roots, pinned
+particles, later garment pins) is stored as a triangle binding: triangle index, barycentric point and
+an offset expressed in the triangle's orthonormal frame, so a rigid motion of the triangle moves the
+bound point rigidly and exactly.
+"""
+
+import warp as wp
+
+
+@wp.func
+def triangle_frame(a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Orthonormal frame of a triangle: columns are edge tangent, bitangent, unit normal."""
+    n = wp.normalize(wp.cross(b - a, c - a))
+    t = wp.normalize(b - a)
+    s = wp.cross(n, t)
+    return wp.matrix_from_cols(t, s, n)
+
+
+@wp.kernel
+def skin_points(
+    rest_points: wp.array(dtype=wp.vec3),
+    skin_indices: wp.array(dtype=wp.vec4i),
+    skin_weights: wp.array(dtype=wp.vec4),
+    bone_matrices: wp.array(dtype=wp.mat44),
+    bone_offset: int,
+    points: wp.array(dtype=wp.vec3),
+):
+    """Linear blend skinning with up to four influences; bone_offset selects the pose (e.g. a substep)."""
+    i = wp.tid()
+    p = rest_points[i]
+    idx = skin_indices[i]
+    w = skin_weights[i]
+    out = wp.vec3(0.0)
+    for k in range(4):
+        if w[k] > 0.0:
+            out += w[k] * wp.transform_point(bone_matrices[bone_offset + idx[k]], p)
+    points[i] = out
+
+
+@wp.kernel
+def evaluate_bindings(
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    bind_particle: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+    positions: wp.array(dtype=wp.vec3),
+):
+    """Place each bound particle at its barycentric point plus its offset in the triangle frame."""
+    b = wp.tid()
+    f = bind_triangle[b]
+    pa = mesh_points[mesh_indices[3 * f + 0]]
+    pb = mesh_points[mesh_indices[3 * f + 1]]
+    pc = mesh_points[mesh_indices[3 * f + 2]]
+    w = bind_barycentric[b]
+    frame = triangle_frame(pa, pb, pc)
+    positions[bind_particle[b]] = w[0] * pa + w[1] * pb + w[2] * pc + frame * bind_local[b]
+
+
+@wp.kernel
+def compute_bindings(
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    positions: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+):
+    """Inverse of evaluate_bindings: express a world point in its triangle's frame."""
+    b = wp.tid()
+    f = bind_triangle[b]
+    pa = mesh_points[mesh_indices[3 * f + 0]]
+    pb = mesh_points[mesh_indices[3 * f + 1]]
+    pc = mesh_points[mesh_indices[3 * f + 2]]
+    w = bind_barycentric[b]
+    frame = triangle_frame(pa, pb, pc)
+    bind_local[b] = wp.transpose(frame) * (positions[b] - (w[0] * pa + w[1] * pb + w[2] * pc))

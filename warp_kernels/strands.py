@@ -1,0 +1,248 @@
+"""Hair strand kernels: particle polylines flattened with offsets, one launch for every strand.
+
+Step order (composed by sim.hair_solver.HairSolver):
+  integrate_particles -> evaluate_bindings (skinning.py) -> shape_match_targets -> shape_match_apply
+  -> follow_the_leader (length + collision) -> update_velocities
+"""
+
+import warp as wp
+
+from .collision import collide_point
+
+SHAPE_SIMPLIFIED = wp.constant(0)
+SHAPE_FULL = wp.constant(1)
+
+
+@wp.kernel
+def integrate_particles(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    gravity: wp.vec3,
+    wind: wp.vec3,
+    air_drag: float,
+    damping: float,
+    turbulence: float,
+    turbulence_scale: float,
+    time: float,
+    dt: float,
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+):
+    """Symplectic Euler prediction. air_drag [1/s] pulls velocity toward the local wind; damping [1/s]."""
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        x_out[i] = x[i]
+        v_out[i] = v[i]
+        return
+    p = x[i]
+    air = wind
+    if turbulence > 0.0:
+        # gusts: smooth noise in space and time scaled by the mean wind speed
+        q = p * turbulence_scale
+        speed = wp.length(wind)
+        state = wp.rand_init(7)
+        gust = wp.vec3(
+            wp.noise(state, wp.vec4(q[0], q[1], q[2], time)),
+            wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], time)),
+            wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], time)),
+        )
+        air = wind + gust * (turbulence * speed)
+    vel = v[i] + dt * (gravity + air_drag * (air - v[i]))
+    vel = vel * wp.max(0.0, 1.0 - damping * dt)
+    x_out[i] = p + dt * vel
+    v_out[i] = vel
+
+
+@wp.func
+def rotation_from_covariance(A: wp.mat33):
+    """Optimal rotation of classic shape matching (Mueller et al. 2005): argmax_R trace(R^T A).
+
+    The SVD runs in float64: float32 svd3 loses up to 1e-2 in R when two singular values are close,
+    which hair windows (nearly straight or nearly planar) often have.
+    """
+    Ad = wp.mat33d(A)
+    U = wp.mat33d()
+    sigma = wp.vec3d()
+    V = wp.mat33d()
+    wp.svd3(Ad, U, sigma, V)
+    R = U * wp.transpose(V)
+    if wp.determinant(R) < wp.float64(0.0):
+        # reflect the axis of the smallest singular value (the window's normal for planar windows)
+        k = int(0)
+        if sigma[1] < sigma[k]:
+            k = 1
+        if sigma[2] < sigma[k]:
+            k = 2
+        for r in range(3):
+            U[r, k] = -U[r, k]
+        R = U * wp.transpose(V)
+    return wp.mat33(R)
+
+
+@wp.kernel
+def shape_match_targets(
+    x: wp.array(dtype=wp.vec3),
+    window_first: wp.array(dtype=wp.int32),
+    window_size: int,
+    window_rest: wp.array(dtype=wp.vec3),
+    window_offsets: wp.array(dtype=float),
+    variant: int,
+    targets: wp.array(dtype=wp.vec3),
+):
+    """Goal positions for the window_size consecutive particles of each window.
+
+    simplified (Hayashimoto et al. §3.6, window of 3): g_k = c + d_k u along the current first-to-last
+    direction u, with d_k the rest offsets along the rest first-to-last direction. No rotation, so
+    curls straighten.
+    full (Mueller et al. 2005): g_k = c + R r_k with r_k the rest offsets from the rest centroid and R
+    the optimal rotation. A window of 3 holds bend angles only; 4 also holds torsion, so helices keep.
+    """
+    w = wp.tid()
+    first = window_first[w]
+    base = w * window_size
+    inv_n = 1.0 / float(window_size)
+    centroid = wp.vec3(0.0)
+    for k in range(window_size):
+        centroid += x[first + k] * inv_n
+    if variant == SHAPE_SIMPLIFIED:
+        e = x[first + window_size - 1] - x[first]
+        length = wp.length(e)
+        if length < 1.0e-12:
+            for k in range(window_size):
+                targets[base + k] = x[first + k]
+            return
+        u = e / length
+        for k in range(window_size):
+            targets[base + k] = centroid + window_offsets[base + k] * u
+    else:
+        A = wp.mat33(0.0)
+        for k in range(window_size):
+            A += wp.outer(x[first + k] - centroid, window_rest[base + k])
+        R = rotation_from_covariance(A)
+        for k in range(window_size):
+            targets[base + k] = centroid + R * window_rest[base + k]
+
+
+@wp.kernel
+def shape_match_apply(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    particle_strand: wp.array(dtype=wp.int32),
+    window_at: wp.array(dtype=wp.int32),
+    window_size: int,
+    targets: wp.array(dtype=wp.vec3),
+    stiffness: float,
+):
+    """Move each free particle toward the average goal of the windows that contain it.
+
+    window_at[j] is the window starting at particle j (-1 if none); windows never cross strands,
+    so a window starting at i - k inside this strand holds particle i at slot k.
+    """
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return
+    strand = particle_strand[i]
+    goal = wp.vec3(0.0)
+    count = float(0.0)
+    for k in range(window_size):
+        j = i - k
+        if j >= 0:
+            if particle_strand[j] == strand:
+                w = window_at[j]
+                if w >= 0:
+                    goal += targets[w * window_size + k]
+                    count += 1.0
+    if count > 0.0:
+        x[i] = x[i] + stiffness * (goal / count - x[i])
+
+
+@wp.kernel
+def follow_the_leader(
+    x: wp.array(dtype=wp.vec3),
+    strand_start: wp.array(dtype=wp.int32),
+    rest_length: wp.array(dtype=float),
+    pinned_per_strand: int,
+    collide_mode: int,
+    mesh: wp.uint64,
+    centers: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    skip: wp.array(dtype=wp.int32),
+    is_leaf: wp.array(dtype=wp.int32),
+    margin: float,
+    search: float,
+    correction: wp.array(dtype=wp.vec3),
+):
+    """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, one thread per strand.
+
+    Each particle is put at its rest distance from its parent; a contact push-out is resolved inline
+    and the particle is then put back on the sphere of rest radius, so every segment leaves with its
+    exact rest length. The corrections feed the dynamic-FTL velocity term.
+    """
+    s = wp.tid()
+    start = strand_start[s]
+    end = strand_start[s + 1]
+    for i in range(start, end):
+        if i - start < pinned_per_strand:
+            correction[i] = wp.vec3(0.0)
+        else:
+            parent = x[i - 1]
+            predicted = x[i]
+            length = rest_length[i]
+            d = predicted - parent
+            dist = wp.length(d)
+            if dist < 1.0e-12:
+                d = wp.vec3(0.0, -1.0, 0.0)
+                if i - start >= 2:
+                    d = parent - x[i - 2]
+                dist = wp.length(d)
+            p = parent + d * (length / dist)
+            if collide_mode != 0:
+                # putting the particle back at rest length can re-enter the collider near a crease
+                # (between two spheres, in a concave corner); a second round settles it
+                for _round in range(2):
+                    p = collide_point(p, collide_mode, mesh, centers, radii, skip, is_leaf, margin, search)
+                    d = p - parent
+                    dist = wp.length(d)
+                    if dist > 1.0e-12:
+                        p = parent + d * (length / dist)
+            correction[i] = p - predicted
+            x[i] = p
+
+
+@wp.kernel
+def update_velocities(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    particle_strand: wp.array(dtype=wp.int32),
+    strand_start: wp.array(dtype=wp.int32),
+    correction: wp.array(dtype=wp.vec3),
+    ftl_damping: float,
+    dt: float,
+    v: wp.array(dtype=wp.vec3),
+):
+    """v = (x - x_prev)/dt, minus s * d_{i+1}/dt for free particles (dynamic FTL, Mueller et al. 2012)."""
+    i = wp.tid()
+    vel = (x[i] - x_prev[i]) / dt
+    if inv_mass[i] > 0.0 and i + 1 < strand_start[particle_strand[i] + 1]:
+        vel = vel - (ftl_damping / dt) * correction[i + 1]
+    v[i] = vel
+
+
+@wp.kernel
+def count_unhealthy(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    max_speed: float,
+    bad_count: wp.array(dtype=wp.int32),
+    first_bad: wp.array(dtype=wp.int32),
+):
+    """Count particles that are non-finite or faster than max_speed [m/s]; remember the lowest index."""
+    i = wp.tid()
+    p = x[i]
+    vel = v[i]
+    finite = wp.isfinite(p) and wp.isfinite(vel)
+    if (not finite) or wp.length(vel) > max_speed:
+        wp.atomic_add(bad_count, 0, 1)
+        wp.atomic_min(first_bad, 0, i)
