@@ -248,11 +248,15 @@ class CacheReader:
         return bool(self.metadata.get("cfx:complete", True))
 
     def frames(self, name=None):
-        """Time codes with samples (of `name`, or of the first prim)."""
-        prim = self.prims[name] if name else next(iter(self.prims.values()))
-        attr = UsdGeom.PointBased(self.stage.GetPrimAtPath(prim.path)).GetPointsAttr()
-        samples = attr.GetTimeSamples()
-        return [int(round(t)) for t in samples] if samples else [self.start_frame]
+        """Time codes with point samples: of prim `name`, or of any prim. A prim with static points
+        reports the start frame."""
+        names = [name] if name else list(self.prims)
+        frames = set()
+        for n in names:
+            attr = UsdGeom.PointBased(self.stage.GetPrimAtPath(self.prims[n].path)).GetPointsAttr()
+            samples = attr.GetTimeSamples()
+            frames.update(int(round(t)) for t in samples) if samples else frames.add(self.start_frame)
+        return sorted(frames) or [self.start_frame]
 
     def points(self, name, frame):
         attr = UsdGeom.PointBased(self.stage.GetPrimAtPath(self.prims[name].path)).GetPointsAttr()
@@ -263,14 +267,19 @@ class CacheReader:
         return np.stack([self.points(name, f) for f in self.frames(name)])
 
     def triangles(self, name):
-        """Triangulated faces (fan) of a mesh prim as (T, 3)."""
+        """Triangulated faces of a mesh prim as (T, 3), each polygon fanned from its first corner."""
         prim = self.prims[name]
-        tris, at = [], 0
-        for n in prim.counts:
-            f = prim.indices[at:at + n]
-            tris.extend([(f[0], f[k], f[k + 1]) for k in range(1, n - 1)])
-            at += n
-        return np.asarray(tris, np.int64)
+        return fan_triangles(prim.counts, prim.indices)
+
+
+def fan_triangles(counts, indices):
+    """Triangles (T, 3) of polygons given as USD faceVertexCounts / faceVertexIndices, each polygon
+    fanned from its first corner."""
+    counts, indices = np.asarray(counts, np.int64), np.asarray(indices, np.int64)
+    fans = np.maximum(counts - 2, 0)
+    first = np.repeat(np.cumsum(counts) - counts, fans)
+    k = np.arange(int(fans.sum())) - np.repeat(np.cumsum(fans) - fans, fans) + 1
+    return np.stack([indices[first], indices[first + k], indices[first + k + 1]], 1)
 
 
 def read_cache(path):

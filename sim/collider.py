@@ -68,8 +68,11 @@ class Collider:
                   [self.sphere_centers, self.sphere_radii, self.sphere_skip, self.sphere_is_leaf],
                   device=self.device)
 
-    def push_out(self, points, margin, mode=collision.COLLIDE_MESH, search=1.0):
-        """Project (N, 3) NumPy points out of the collider in its current pose; returns NumPy."""
+    def push_out(self, points, margin, mode=collision.COLLIDE_MESH, search=0.05):
+        """Project (N, 3) NumPy points out of the collider in its current pose; returns NumPy.
+
+        Only penetrations shallower than `search` [m] are seen (grooming moves in small steps).
+        """
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
         wp.launch(collision.push_points_out, len(pts),
                   [pts, int(mode), self.mesh.id, self.sphere_centers, self.sphere_radii,

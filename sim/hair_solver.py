@@ -29,6 +29,7 @@ class HairParams:
     shape_stiffness: float = 0.5  # fraction of the way to the goal per pass, (0, 1]
     shape_iterations: int = 2  # goal/apply passes per substep; more passes restore shape faster
     shape_window: int = 0  # particles per window, 2..8; 0 = 3 for simplified (the paper), 6 for full
+    rotation_iterations: int = 1  # warm-started Newton steps on each window rotation per pass (full)
     ftl_damping: float = 0.9  # dynamic follow-the-leader velocity correction, [0, 1]
     collision: str = "mesh"  # "mesh" (wp.Mesh BVH), "sphere_tree" (the paper), "none"
     collision_margin: float = 0.0015  # m, hair kept this far outside the collider
@@ -44,6 +45,8 @@ class HairParams:
             raise ValueError("shape_stiffness must be in (0, 1]")
         if self.shape_window != 0 and not (2 <= self.shape_window <= 8):
             raise ValueError("shape_window must be 0 (automatic) or 2 to 8")
+        if self.rotation_iterations < 1:
+            raise ValueError("rotation_iterations must be at least 1")
         if self.shape_iterations < 1:
             raise ValueError("shape_iterations must be at least 1")
         if self.substeps < 1:
@@ -70,6 +73,9 @@ class HairSolver:
         device = model.device
         self.windows = model.shape_windows(params.window_size)
         self.targets = wp.zeros(max(self.windows.size * self.windows.count, 1), dtype=wp.vec3, device=device)
+        # per-window rotation of the full variant, refined from its last value (warm start)
+        self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
+        self._rotations_exact = True
         self.correction = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=device)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=device)
@@ -88,8 +94,14 @@ class HairSolver:
         variant = SHAPE_MATCHING[p.shape_matching]
         win = self.windows
         for _ in range(p.shape_iterations if variant >= 0 and win.count > 0 else 0):
+            if variant == SHAPE_MATCHING["full"]:
+                wp.launch(strands.shape_match_rotations, win.count,
+                          [state_out.x, win.first, win.size, win.rest, int(self._rotations_exact),
+                           p.rotation_iterations, self.rotations], device=dev)
+                self._rotations_exact = False
             wp.launch(strands.shape_match_targets, win.count,
-                      [state_out.x, win.first, win.size, win.rest, win.offsets, variant, self.targets], device=dev)
+                      [state_out.x, win.first, win.size, win.rest, win.offsets, self.rotations, variant,
+                       self.targets], device=dev)
             wp.launch(strands.shape_match_apply, m.num_particles,
                       [state_out.x, m.inv_mass, m.particle_strand, win.at, win.size, self.targets,
                        p.shape_stiffness], device=dev)
@@ -104,6 +116,10 @@ class HairSolver:
         wp.launch(strands.update_velocities, m.num_particles,
                   [state_out.x, state_in.x, m.inv_mass, m.particle_strand, m.strand_start, self.correction,
                    p.ftl_damping, dt, state_out.v], device=dev)
+
+    def reset(self):
+        """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut)."""
+        self._rotations_exact = True
 
     def check_health(self, state, frame, prim):
         """Raise SimulationError naming the frame and prim if any particle is NaN or too fast."""

@@ -53,14 +53,24 @@ def groom(rng):
     return model, x.astype(np.float32)
 
 
-@pytest.mark.parametrize("variant,size", [(0, 3), (1, 3), (1, 4), (0, 4)])
+def launch_targets(x, win, variant, exact=True, iterations=1, rotations=None):
+    if rotations is None:
+        rotations = wp.zeros(win.count, dtype=wp.quat)
+    xs = wp.array(x, dtype=wp.vec3)
+    wp.launch(kernels.shape_match_rotations, win.count,
+              [xs, win.first, win.size, win.rest, int(exact), iterations, rotations])
+    targets = wp.zeros(win.count * win.size, dtype=wp.vec3)
+    wp.launch(kernels.shape_match_targets, win.count,
+              [xs, win.first, win.size, win.rest, win.offsets, rotations, variant, targets])
+    return targets, rotations
+
+
+@pytest.mark.parametrize("variant,size", [(0, 3), (1, 3), (1, 4), (1, 6), (0, 4)])
 def test_targets_match_float64_reference(variant, size):
     rng = np.random.default_rng(3)
     model, x = groom(rng)
     win = model.shape_windows(size)
-    targets = wp.zeros(win.count * size, dtype=wp.vec3)
-    wp.launch(kernels.shape_match_targets, win.count,
-              [wp.array(x, dtype=wp.vec3), win.first, size, win.rest, win.offsets, variant, targets])
+    targets, _ = launch_targets(x, win, variant)
     ref = reference_targets(x, win.first_np, size, win.rest_np, win.offsets_np, variant)
     got = targets.numpy()
     scale = np.abs(ref).max()
@@ -81,8 +91,30 @@ def test_full_variant_targets_are_a_rigid_motion_of_the_rest_window():
     R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
     x = (model.rest_positions_np @ R.T + [0.05, 0.1, -0.2]).astype(np.float32)
     win = model.shape_windows(4)
-    targets = wp.zeros(win.count * 4, dtype=wp.vec3)
-    wp.launch(kernels.shape_match_targets, win.count,
-              [wp.array(x, dtype=wp.vec3), win.first, 4, win.rest, win.offsets, 1, targets])
+    targets, _ = launch_targets(x, win, 1)
     expected = x[(win.first_np[:, None] + np.arange(4)).reshape(-1)]
     np.testing.assert_allclose(targets.numpy(), expected, atol=2e-6)
+
+
+def test_warm_started_rotations_track_the_exact_solution():
+    """Refinement (Mueller et al. 2016) from last step's rotations converges to the float64 SVD answer."""
+    rng = np.random.default_rng(8)
+    model, x0 = groom(rng)
+    win = model.shape_windows(6)
+    _, rotations = launch_targets(x0, win, 1, exact=True)
+    # the next substep: every particle moved a little (a hair substep moves ~1 mm)
+    x1 = (x0 + rng.normal(0.0, 0.001, x0.shape)).astype(np.float32)
+    ref = reference_targets(x1, win.first_np, 6, win.rest_np, win.offsets_np, 1)
+    scale = np.abs(ref).max()
+    stale = wp.array(rotations.numpy(), dtype=wp.quat)
+    xs = wp.array(x1, dtype=wp.vec3)
+    targets = wp.zeros(win.count * 6, dtype=wp.vec3)
+    wp.launch(kernels.shape_match_targets, win.count, [xs, win.first, 6, win.rest, win.offsets, stale, 1, targets])
+    errors = [np.abs(targets.numpy() - ref).max()]  # last step's rotations, not refined
+    for iterations in (1, 2, 4):
+        warm = wp.array(rotations.numpy(), dtype=wp.quat)
+        targets, _ = launch_targets(x1, win, 1, exact=False, iterations=iterations, rotations=warm)
+        errors.append(np.abs(targets.numpy() - ref).max())
+    # Newton steps near the warm start converge quadratically: two reach float32 round-off
+    assert errors[1] < 0.1 * errors[0] and errors[2] < 1e-6 and errors[3] < 1e-6, errors
+    np.testing.assert_allclose(targets.numpy(), ref, rtol=1e-5, atol=1e-5 * scale)

@@ -1,7 +1,8 @@
 """Hair strand kernels: particle polylines flattened with offsets, one launch for every strand.
 
 Step order (composed by sim.hair_solver.HairSolver):
-  integrate_particles -> evaluate_bindings (skinning.py) -> shape_match_targets -> shape_match_apply
+  integrate_particles -> evaluate_bindings (skinning.py)
+  -> [shape_match_rotations (full variant) -> shape_match_targets -> shape_match_apply] x passes
   -> follow_the_leader (length + collision) -> update_velocities
 """
 
@@ -59,7 +60,8 @@ def rotation_from_covariance(A: wp.mat33):
     """Optimal rotation of classic shape matching (Mueller et al. 2005): argmax_R trace(R^T A).
 
     The SVD runs in float64: float32 svd3 loses up to 1e-2 in R when two singular values are close,
-    which hair windows (nearly straight or nearly planar) often have.
+    which hair windows (nearly straight or nearly planar) often have. Used to start the warm-started
+    refinement below, so it runs once, not every substep.
     """
     Ad = wp.mat33d(A)
     U = wp.mat33d()
@@ -80,6 +82,75 @@ def rotation_from_covariance(A: wp.mat33):
     return wp.mat33(R)
 
 
+@wp.func
+def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
+    """Turn q toward argmax_R trace(R^T A), warm-started from the last solution.
+
+    With M = A R^T, trace(R'^T A) for R' = exp([w]) R is, to second order, F + w.g - w^T H w / 2
+    with g = axial(M - M^T) (= sum_j r_j x a_j) and H = trace(M) I - sym(M). Near the optimum H is
+    positive definite and the Newton step w = H^-1 g converges quadratically; elsewhere the step of
+    Müller, Bender, Chentanez, Macklin 2016, w = g / |trace(M)|, which never flips, is taken.
+    """
+    for _it in range(iterations):
+        R = wp.quat_to_matrix(q)
+        M = A * wp.transpose(R)
+        g = wp.vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
+        tr = M[0, 0] + M[1, 1] + M[2, 2]
+        H = wp.identity(n=3, dtype=float) * (tr * (1.0 + 1.0e-6)) - 0.5 * (M + wp.transpose(M))
+        omega = g / (wp.abs(tr) + 1.0e-9)
+        if tr > 0.0:
+            detH = wp.determinant(H)
+            # positive definite: leading minors positive (H[0,0] > 0 and the 2x2 minor > 0 and det > 0)
+            minor = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
+            if H[0, 0] > 0.0 and minor > 0.0 and detH > 1.0e-12 * tr * tr * tr:
+                omega = wp.inverse(H) * g
+        angle = wp.length(omega)
+        if angle < 1.0e-9:
+            break
+        if angle > 1.0:
+            omega = omega / angle
+            angle = 1.0
+        q = wp.normalize(wp.quat_from_axis_angle(omega / angle, angle) * q)
+    return q
+
+
+@wp.func
+def window_centroid(x: wp.array(dtype=wp.vec3), first: int, size: int):
+    c = wp.vec3(0.0)
+    for k in range(size):
+        c += x[first + k]
+    return c / float(size)
+
+
+@wp.kernel
+def shape_match_rotations(
+    x: wp.array(dtype=wp.vec3),
+    window_first: wp.array(dtype=wp.int32),
+    window_size: int,
+    window_rest: wp.array(dtype=wp.vec3),
+    exact: int,
+    iterations: int,
+    rotations: wp.array(dtype=wp.quat),
+):
+    """Per-window optimal rotation of the rest offsets onto the current window (full variant).
+
+    exact = 1 solves it outright (float64 SVD); otherwise `iterations` refinement steps continue
+    from the rotation stored last time.
+    """
+    w = wp.tid()
+    first = window_first[w]
+    base = w * window_size
+    centroid = window_centroid(x, first, window_size)
+    A = wp.mat33(0.0)
+    for k in range(window_size):
+        A += wp.outer(x[first + k] - centroid, window_rest[base + k])
+    A = A / wp.sqrt(wp.max(wp.ddot(A, A), 1.0e-30))  # scale-free, so the 1e-9 guard is relative
+    if exact != 0:
+        rotations[w] = wp.quat_from_matrix(rotation_from_covariance(A))
+    else:
+        rotations[w] = refine_rotation(rotations[w], A, iterations)
+
+
 @wp.kernel
 def shape_match_targets(
     x: wp.array(dtype=wp.vec3),
@@ -87,6 +158,7 @@ def shape_match_targets(
     window_size: int,
     window_rest: wp.array(dtype=wp.vec3),
     window_offsets: wp.array(dtype=float),
+    rotations: wp.array(dtype=wp.quat),
     variant: int,
     targets: wp.array(dtype=wp.vec3),
 ):
@@ -96,15 +168,13 @@ def shape_match_targets(
     direction u, with d_k the rest offsets along the rest first-to-last direction. No rotation, so
     curls straighten.
     full (Mueller et al. 2005): g_k = c + R r_k with r_k the rest offsets from the rest centroid and R
-    the optimal rotation. A window of 3 holds bend angles only; 4 also holds torsion, so helices keep.
+    the window's optimal rotation (shape_match_rotations). A window of 3 holds bend angles only;
+    wider windows also hold torsion, so helices keep their shape.
     """
     w = wp.tid()
     first = window_first[w]
     base = w * window_size
-    inv_n = 1.0 / float(window_size)
-    centroid = wp.vec3(0.0)
-    for k in range(window_size):
-        centroid += x[first + k] * inv_n
+    centroid = window_centroid(x, first, window_size)
     if variant == SHAPE_SIMPLIFIED:
         e = x[first + window_size - 1] - x[first]
         length = wp.length(e)
@@ -116,10 +186,7 @@ def shape_match_targets(
         for k in range(window_size):
             targets[base + k] = centroid + window_offsets[base + k] * u
     else:
-        A = wp.mat33(0.0)
-        for k in range(window_size):
-            A += wp.outer(x[first + k] - centroid, window_rest[base + k])
-        R = rotation_from_covariance(A)
+        R = wp.quat_to_matrix(rotations[w])
         for k in range(window_size):
             targets[base + k] = centroid + R * window_rest[base + k]
 
@@ -201,7 +268,10 @@ def follow_the_leader(
                 # putting the particle back at rest length can re-enter the collider near a crease
                 # (between two spheres, in a concave corner); a second round settles it
                 for _round in range(2):
-                    p = collide_point(p, collide_mode, mesh, centers, radii, skip, is_leaf, margin, search)
+                    pushed = collide_point(p, collide_mode, mesh, centers, radii, skip, is_leaf, margin, search)
+                    if pushed == p:
+                        break
+                    p = pushed
                     d = p - parent
                     dist = wp.length(d)
                     if dist > 1.0e-12:

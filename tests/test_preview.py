@@ -1,0 +1,289 @@
+"""Offscreen previews (EGL, no display needed), the preview camera, hair ribbons and the viewer guard."""
+
+import os
+import subprocess
+import sys
+import threading
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from io_usd.cache import CacheReader, CacheWriter
+from io_usd.preview import (BACKGROUND, Camera, SceneBuilder, auto_camera, contact_sheet,
+                            hair_ribbons, preview, render_frame, strand_tangents)
+from sim.head import procedural_head
+
+W, H = 160, 120
+HAIR = (0.25, 0.15, 0.08)
+BG = np.round(255 * np.asarray(BACKGROUND)).astype(int)
+CROWN = np.array([0.0, 0.472, 0.0])
+
+
+def _strands(num=50, verts=12, length=0.2, sway=0.0):
+    """Straight strands from a ring just outside the crown, hanging down and slightly outward."""
+    angle = np.linspace(0.0, 2 * np.pi, num, endpoint=False)
+    radial = np.stack([np.cos(angle), np.zeros(num), np.sin(angle)], 1)
+    roots = np.array([0.0, 0.452, 0.003]) + 0.062 * radial
+    direction = np.array([0.0, -1.0, 0.0]) + 0.45 * radial + [sway, 0.0, 0.0]
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    s = np.linspace(0.0, length, verts)
+    points = roots[:, None, :] + s[None, :, None] * direction[:, None, :]
+    return points.reshape(-1, 3).astype(np.float32), np.full(num, verts)
+
+
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory):
+    path = str(tmp_path_factory.mktemp("preview") / "head_hair.usdc")
+    head = procedural_head(rings=40, segments=32)
+    points, counts = _strands()
+    with CacheWriter(path, fps=24, start_frame=1, end_frame=3) as w:
+        w.add_mesh("head", "collider", head.vertices, head.faces, color=(0.8, 0.65, 0.55))
+        w.add_curves("hair", "hair", counts, np.full(len(points), 1e-4), color=HAIR)
+        for f in (1, 2, 3):  # the hair sways so every frame differs (GIF would merge equal ones)
+            sway, _ = _strands(sway=0.08 * (f - 2))
+            w.write_frame(f, {"head": head.vertices, "hair": sway})
+    return path
+
+
+def _differs_from_background(image, tolerance=6):
+    return np.abs(image.astype(int) - BG).max(axis=2) > tolerance
+
+
+def _dark_brown(image):
+    r, g, b = (image[..., k].astype(int) for k in range(3))
+    return (r > g) & (g > b) & (r - b > 20) & (r < 150)
+
+
+# -- camera -------------------------------------------------------------------------------------------
+def test_look_at_target_projects_to_image_centre():
+    cam = Camera.look_at(eye=(0.3, 0.5, 1.2), target=(0.05, 0.3, -0.1), yfov=0.7, width=W, height=H)
+    u, v = cam.project([[0.05, 0.3, -0.1]])[0]
+    assert abs(u - W / 2) < 0.5 and abs(v - H / 2) < 0.5
+
+
+def test_project_matches_pinhole_formula():
+    yfov = 0.6
+    f = (H / 2) / np.tan(yfov / 2)
+    front = Camera.look_at(eye=(0, 0, 2), target=(0, 0, 0), yfov=yfov, width=W, height=H)
+    np.testing.assert_allclose(front.project([[0.1, 0.2, 0.0]])[0], [W / 2 + f * 0.1 / 2, H / 2 - f * 0.2 / 2],
+                               atol=1e-9)
+    # from +X looking at the origin, world -Z is screen right and the point is 2.5 m deep
+    side = Camera.look_at(eye=(2, 0, 0), target=(0, 0, 0), yfov=yfov, width=W, height=H)
+    np.testing.assert_allclose(side.project([[-0.5, 0.1, -0.3]])[0], [W / 2 + f * 0.3 / 2.5, H / 2 - f * 0.1 / 2.5],
+                               atol=1e-9)
+    np.testing.assert_allclose(side.intrinsics(), [[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]])
+    assert np.isnan(side.project([[3.0, 0.0, 0.0]])).all()  # behind the camera
+
+
+def test_project_agrees_with_the_renderer(tmp_path):
+    """A small sphere off-centre lands, in the rendered image, where Camera.project puts its centre."""
+    import trimesh
+
+    centre = np.array([0.12, -0.05, 0.03])
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.02)
+    path = str(tmp_path / "ball.usdc")
+    with CacheWriter(path, fps=24, start_frame=1, end_frame=1) as w:
+        w.add_mesh("ball", "collider", ball.vertices + centre, ball.faces)
+        w.write_frame(1, {"ball": ball.vertices + centre})
+    cam = Camera.look_at(eye=(0.4, 0.3, 1.0), target=(0, 0, 0), yfov=0.5, width=W, height=H)
+    image = render_frame(CacheReader(path), 1, cam, shadows=False)
+    rows, cols = np.nonzero(_differs_from_background(image))
+    assert len(rows) > 20
+    np.testing.assert_allclose([cols.mean() + 0.5, rows.mean() + 0.5], cam.project([centre])[0], atol=1.0)
+
+
+def test_frame_bounds_keeps_the_box_in_view():
+    lo, hi = np.array([-0.2, 0.0, -0.15]), np.array([0.2, 0.6, 0.1])
+    cam = Camera.frame_bounds(lo, hi, W, H, yaw_degrees=25, pitch_degrees=10)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    uv = cam.project(corners)
+    assert np.all((uv >= 0) & (uv <= [W, H]))
+    assert uv[:, 1].max() - uv[:, 1].min() > 0.75 * H  # tall box: fills the height, not lost in the middle
+    np.testing.assert_allclose(0.5 * (uv.min(0) + uv.max(0)), [W / 2, H / 2], atol=0.5)  # and is centred
+    assert cam.eye[2] > hi[2] and cam.eye[0] > 0 and cam.eye[1] > 0.3  # in front, turned right, raised
+
+
+# -- ribbons ------------------------------------------------------------------------------------------
+def test_hair_ribbons_face_the_eye():
+    rng = np.random.default_rng(3)
+    counts = np.array([5, 2, 9, 4])
+    steps = rng.normal(0, 0.01, (counts.sum(), 3)) + [0, -0.02, 0]
+    points = np.concatenate([np.cumsum(s, 0) + rng.normal(0, 0.1, 3)
+                             for s in np.split(steps, np.cumsum(counts)[:-1])])
+    eye = np.array([0.3, 0.2, 1.5])
+    widths = rng.uniform(0.004, 0.02, counts.sum())
+    vertices, faces, normals = hair_ribbons(points, counts, widths, eye, min_width=0.008)
+
+    assert vertices.shape == (2 * counts.sum(), 3) and normals.shape == vertices.shape
+    assert faces.shape == (2 * (counts - 1).sum(), 3)
+    centre = 0.5 * (vertices[0::2] + vertices[1::2])
+    np.testing.assert_allclose(centre, points, atol=1e-6)
+    span = (vertices[1::2] - vertices[0::2]).astype(np.float64)
+    np.testing.assert_allclose(np.linalg.norm(span, axis=1), np.maximum(widths, 0.008), rtol=1e-5)
+    across = span / np.linalg.norm(span, axis=1, keepdims=True)
+    tangent = strand_tangents(points, counts)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    view = eye - points
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    assert np.abs(np.sum(across * tangent, 1)).max() < 1e-5
+    assert np.abs(np.sum(across * view, 1)).max() < 1e-5
+    # triangles stay within a strand and are wound towards the eye
+    tri = vertices[faces].astype(np.float64)
+    assert np.all(np.abs(np.diff(faces // 2, axis=1)).max(1) <= 1)
+    facing = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    assert np.all(np.sum(facing * (eye - tri.mean(1)), 1) > 0)
+    assert np.all(np.sum(normals * np.repeat(view, 2, 0), 1) > 0)
+
+
+def test_strand_tangents_are_one_sided_at_the_ends():
+    points = np.array([[0, 0, 0], [1, 0, 0], [3, 0, 0], [0, 0, 0], [0, 2, 0]], float)
+    t = strand_tangents(points, [3, 2])
+    np.testing.assert_allclose(t, [[1, 0, 0], [3, 0, 0], [2, 0, 0], [0, 2, 0], [0, 2, 0]])
+
+
+def test_reader_fans_polygons_from_their_first_corner(tmp_path):
+    points = np.random.default_rng(0).normal(size=(9, 3))
+    polygons = [[0, 1, 2, 3], [3, 2, 4], [4, 5, 6, 7, 8], [8, 7, 1]]
+    path = str(tmp_path / "polys.usda")
+    with CacheWriter(path, fps=24, start_frame=1, end_frame=1) as w:
+        w.add_mesh("poly", "cloth", points, [np.array(p) for p in polygons])
+        w.write_frame(1, {"poly": points})
+    reader = CacheReader(path)
+    expected = [[0, 1, 2], [0, 2, 3], [3, 2, 4], [4, 5, 6], [4, 6, 7], [4, 7, 8], [8, 7, 1]]
+    np.testing.assert_array_equal(reader.triangles("poly"), expected)
+
+
+# -- rendering ----------------------------------------------------------------------------------------
+def test_png_preview_shows_head_and_hair(cache, tmp_path):
+    out = preview(cache, str(tmp_path / "still.png"), width=W, height=H)
+    assert out == str(tmp_path / "still.png") and os.path.isfile(out)
+    image = np.asarray(Image.open(out).convert("RGB"))
+    assert image.shape == (H, W, 3)
+    for corner in (image[:8, :8], image[:8, -8:], image[-8:, :8], image[-8:, -8:]):
+        assert not _differs_from_background(corner).any()
+    covered = _differs_from_background(image).mean()
+    assert 0.05 < covered < 0.8
+    # hair shows around the crown, where the (light) skin would be otherwise
+    cam = auto_camera(CacheReader(cache), W, H, [3])
+    u, v = np.round(cam.project([CROWN])[0]).astype(int)
+    crown = image[max(0, v - 12): v + 25, max(0, u - 25): u + 25]
+    assert _dark_brown(crown).sum() > 40
+    assert _dark_brown(image).sum() > 150
+
+
+def test_contact_sheet_grid(cache, tmp_path):
+    out = preview(cache, str(tmp_path / "sheet.png"), frames=[1, 2, 3], width=W, height=H)
+    assert Image.open(out).size == (2 * W, 2 * H)  # three tiles, near-square: 2 x 2
+    out = preview(cache, str(tmp_path / "row.png"), frames=[1, 2, 3], width=W, height=H, columns=3)
+    sheet = np.asarray(Image.open(out).convert("RGB"))
+    assert sheet.shape == (H, 3 * W, 3)
+    assert not np.array_equal(sheet[:, :W], sheet[:, W:2 * W])  # different frames
+
+
+def test_contact_sheet_helper_labels_tiles():
+    tiles = [np.full((40, 50, 3), 200, np.uint8) for _ in range(5)]
+    sheet = contact_sheet(tiles, ["frame 1", "frame 2", "frame 3", "frame 4", "frame 5"], columns=2)
+    assert sheet.size == (100, 120)
+    pixels = np.asarray(sheet)
+    assert (pixels[:15, :40] < 100).any()  # dark label box in the first tile's corner
+    assert (pixels[80:, 50:] != 200).any()  # the empty sixth cell is filled with the background
+
+
+def test_gif_has_every_frame(cache, tmp_path):
+    out = preview(cache, str(tmp_path / "anim.gif"), width=W, height=H)
+    with Image.open(out) as gif:
+        assert gif.n_frames == 3
+        assert gif.size == (W, H)
+        assert gif.info.get("loop") == 0
+        assert abs(gif.info["duration"] - 1000 / 24) <= 10
+
+
+def test_mp4_has_every_frame(cache, tmp_path):
+    import imageio.v2 as imageio
+
+    out = preview(cache, str(tmp_path / "anim.mp4"), width=W, height=H)
+    with imageio.get_reader(out, format="FFMPEG") as reader:
+        frames = [frame for frame in reader]
+        assert abs(reader.get_meta_data()["fps"] - 24) < 1e-3
+    assert len(frames) == 3 and frames[0].shape == (H, W, 3)
+    with pytest.raises(ValueError, match="even"):
+        preview(cache, str(tmp_path / "odd.mp4"), width=W + 1, height=H)
+
+
+# -- errors -------------------------------------------------------------------------------------------
+def test_missing_cache_names_the_path(tmp_path):
+    missing = str(tmp_path / "nope.usdc")
+    with pytest.raises(FileNotFoundError, match="nope.usdc"):
+        preview(missing, str(tmp_path / "out.png"))
+
+
+def test_bad_requests_raise_value_error(cache, tmp_path):
+    with pytest.raises(ValueError, match=r"out\.jpg"):
+        preview(cache, str(tmp_path / "out.jpg"))
+    with pytest.raises(ValueError, match="frame 9 is not in the cache"):
+        preview(cache, str(tmp_path / "out.png"), frame=9, width=W, height=H)
+    assert os.listdir(tmp_path) == []
+
+
+def test_failed_render_leaves_nothing(cache, tmp_path, monkeypatch):
+    from io_usd import preview as module
+
+    def broken(self, frame, camera):
+        raise RuntimeError("GL went away")
+
+    monkeypatch.setattr(module.FrameRenderer, "render", broken)
+    for name in ("x.png", "x.gif", "x.mp4"):
+        with pytest.raises(RuntimeError, match="GL went away"):
+            preview(cache, str(tmp_path / name), width=W, height=H)
+    assert os.listdir(tmp_path) == []
+
+
+# -- viewer -------------------------------------------------------------------------------------------
+def test_view_needs_a_display(cache, monkeypatch):
+    from io_usd import viewer
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setattr(viewer.sys, "platform", "linux")
+    with pytest.raises(RuntimeError, match="display"):
+        viewer.view(cache)
+
+
+def test_importing_does_not_load_pyrender():
+    code = "import sys, io_usd, io_usd.preview, io_usd.viewer; sys.exit('pyrender' in sys.modules)"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(p for p in [os.getcwd(), os.environ.get("PYTHONPATH")] if p))
+    assert subprocess.run([sys.executable, "-c", code], env=env).returncode == 0
+
+
+class _FakeViewer:
+    """Stands in for pyrender.Viewer: the same scene, lock and size, active for `ticks` checks."""
+
+    def __init__(self, scene, ticks):
+        self.scene, self.render_lock, self.viewport_size = scene, threading.RLock(), (W, H)
+        self._ticks = ticks
+
+    @property
+    def is_active(self):
+        self._ticks -= 1
+        return self._ticks >= 0
+
+
+@pytest.mark.parametrize("loop, expected", [(True, [1, 2, 3, 1, 2, 3, 1]), (False, [1, 2, 3, 3, 3, 3, 3])])
+def test_viewer_playback_updates_the_scene(cache, loop, expected):
+    from io_usd.preview import _pyrender
+    from io_usd.viewer import play
+
+    pyrender = _pyrender()
+    reader = CacheReader(cache)
+    builder = SceneBuilder(reader)
+    shown = []
+    meshes = builder.meshes
+    builder.meshes = lambda frame, eye, focal: shown.append(frame) or meshes(frame, eye, focal)
+    scene = pyrender.Scene()
+    scene.add(pyrender.PerspectiveCamera(yfov=0.6), pose=Camera.look_at((0, 0.3, 1.5), (0, 0.3, 0)).pose)
+    nodes = {}
+    play(_FakeViewer(scene, len(expected)), builder, nodes, [1, 2, 3], fps=1000.0, loop=loop, sleep=lambda s: None)
+    assert shown == expected
+    assert set(nodes) == {"head", "hair"} and len(scene.mesh_nodes) == 2
+    hair = next(iter(nodes["hair"].mesh.primitives)).positions
+    assert hair.shape == (2 * reader.prims["hair"].num_points, 3)
