@@ -17,6 +17,7 @@ import warp as wp
 
 from sim.collider import Collider
 from sim.hair_solver import HairParams, HairSolver
+from sim.scene import quiet_warp
 from sim.hairstyle import HairstyleParams, grow_hairstyle, sample_scalp
 from sim.head import HeadAnimation, procedural_head
 from sim.strands import StrandBuilder
@@ -116,7 +117,7 @@ def main():
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--no-peer", action="store_true")
     args = parser.parse_args()
-    wp.config.quiet = True
+    quiet_warp()
     wp.init()
     devices = args.device or (["cpu"] + (["cuda"] if wp.is_cuda_available() else []))
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()

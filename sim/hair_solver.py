@@ -30,6 +30,8 @@ class HairParams:
     shape_iterations: int = 2  # goal/apply passes per substep; more passes restore shape faster
     shape_window: int = 0  # particles per window, 2..8; 0 = 3 for simplified (the paper), 6 for full
     rotation_iterations: int = 1  # warm-started Newton steps on each window rotation per pass (full)
+    root_stiffness: float = 0.3  # pull toward the groom carried by the root frame, per substep, [0, 1]
+    root_hold_length: float = 0.06  # m from the root over which that pull fades to zero
     ftl_damping: float = 0.9  # dynamic follow-the-leader velocity correction, [0, 1]
     collision: str = "mesh"  # "mesh" (wp.Mesh BVH), "sphere_tree" (the paper), "none"
     collision_margin: float = 0.0015  # m, hair kept this far outside the collider
@@ -45,6 +47,8 @@ class HairParams:
             raise ValueError("shape_stiffness must be in (0, 1]")
         if self.shape_window != 0 and not (2 <= self.shape_window <= 8):
             raise ValueError("shape_window must be 0 (automatic) or 2 to 8")
+        if not (0.0 <= self.root_stiffness <= 1.0):
+            raise ValueError("root_stiffness must be in [0, 1]")
         if self.rotation_iterations < 1:
             raise ValueError("rotation_iterations must be at least 1")
         if self.shape_iterations < 1:
@@ -77,6 +81,7 @@ class HairSolver:
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self._rotations_exact = True
         self.correction = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
+        self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=device)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=device)
 
@@ -91,6 +96,11 @@ class HairSolver:
             wp.launch(skinning.evaluate_bindings, len(m.bind_particle),
                       [collider.points, collider.indices, m.bind_particle, m.bind_triangle,
                        m.bind_barycentric, m.bind_local, state_out.x], device=dev)
+            if p.root_stiffness > 0.0 and p.root_hold_length > 0.0:
+                wp.launch(strands.hold_root_shape, m.num_particles,
+                          [state_out.x, m.particle_strand, m.strand_start, m.root_binding, m.bind_triangle,
+                           collider.points, collider.indices, m.root_local, self.hold, p.root_stiffness],
+                          device=dev)
         variant = SHAPE_MATCHING[p.shape_matching]
         win = self.windows
         for _ in range(p.shape_iterations if variant >= 0 and win.count > 0 else 0):

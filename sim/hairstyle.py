@@ -22,9 +22,9 @@ class HairstyleParams:
     length: float = 0.22  # m, length of the strand's centre line (curls add to the natural length)
     length_jitter: float = 0.15  # relative random variation of length per strand
     vertices: int = 24  # particles per strand
-    bend_length: float = 0.03  # m, how soon a strand turns from the scalp normal to the fall direction
+    bend_length: float = 0.02  # m, how soon a strand turns from the scalp normal to the fall direction
     wave_amplitude: float = 0.006  # m
-    wavelength: float = 0.07  # m
+    wavelength: float = 0.09  # m
     curl_radius: float = 0.008  # m
     curl_pitch: float = 0.03  # m per turn
     root_width: float = 1.2e-4  # m
@@ -106,15 +106,19 @@ def _normalize(v):
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
 
-def _fall_direction(roots, axis_point):
+def _fall_direction(roots, axis_point, part=0.012):
+    """Down and away from the head's vertical axis; hair in front of the ears is parted at
+    x = part and swept to its side and back, so it frames the face instead of covering it."""
     out = roots - axis_point
     out[:, 1] = 0.0
     out = _normalize(out)
-    # the fringe is swept back and to the side rather than over the face
-    front = out[:, 2] > 0.0
-    out[front, 2] *= -0.3
-    out = _normalize(out)
-    return _normalize(np.array([0.0, -1.0, 0.0]) + 0.45 * out)
+    side = np.where(roots[:, 0] - axis_point[0] >= part, 1.0, -1.0)
+    swept = _normalize(np.stack([side, np.zeros_like(side), np.full_like(side, -0.7)], 1))
+    front = np.clip((out[:, 2] - 0.2) / 0.8, 0.0, 1.0)[:, None]  # 0 at and behind the ears, 1 at the face
+    out = _normalize((1.0 - front) * out + front * swept)
+    # front hair first runs along the scalp toward the part's side, then falls
+    down = np.array([0.0, -1.0, 0.0])
+    return _normalize((1.0 - 0.6 * front) * down + (0.2 + 1.0 * front) * out)
 
 
 def _style_offsets(p, centre, rng):
@@ -135,7 +139,8 @@ def _style_offsets(p, centre, rng):
     arc = np.concatenate([np.zeros((n_strands, 1)),
                           np.cumsum(np.linalg.norm(np.diff(centre, axis=1), axis=2), axis=1)], axis=1)
     ramp = np.clip(arc / 0.03, 0.0, 1.0)[..., None]
-    phase = rng.uniform(0.0, 2.0 * np.pi, (n_strands, 1))
+    # neighbouring strands wave in step, as real wavy locks do, with a little scatter
+    phase = rng.normal(0.0, 0.6, (n_strands, 1))
     if p.style == "wavy":
         wave = np.sin(2.0 * np.pi * arc / p.wavelength + phase)[..., None]
         return ramp * p.wave_amplitude * wave * n1

@@ -288,7 +288,7 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     from io_usd.cache import CacheWriter
 
     started = time.perf_counter()
-    wp.config.quiet = True
+    quiet_warp()
     scene = HairScene(config)
     t = config.timing
     if t.preroll > 0.0:
@@ -320,6 +320,14 @@ def run_scene(config, out_path, progress=True, on_frame=None):
         writer.set_metadata("cfx:stats", stats)
     return RunResult(os.fspath(out_path), t.frames, scene.model.num_strands, scene.model.num_particles,
                      time.perf_counter() - started, stats)
+
+
+def quiet_warp():
+    """Keep Warp's start-up banner and per-module compile lines out of the CLI's output."""
+    if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
+        wp.config.log_level = wp.LOG_WARNING
+    else:  # warp-lang before the log levels
+        wp.config.quiet = True
 
 
 def _progress(total, enabled):

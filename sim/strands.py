@@ -102,7 +102,30 @@ class HairModel:
                   [pts, idx, self.bind_triangle, self.bind_barycentric,
                    wp.array(self.rest_positions_np[particle], dtype=wp.vec3, device=device),
                    self.bind_local], device=device)
+        # every particle's rest offset from its root in the root triangle's frame (root hold)
+        self.root_binding = wp.array(np.arange(self.num_strands, dtype=np.int32) * k, dtype=wp.int32, device=device)
+        frames = _triangle_frames(np.asarray(mesh_points, np.float64)[np.asarray(mesh_indices).reshape(-1, 3)[face.numpy()]])
+        offsets = self.rest_positions_np - np.repeat(roots, self.counts, axis=0)
+        local = np.einsum("pji,pj->pi", np.repeat(frames, self.counts, axis=0), offsets)
+        self.root_local = wp.array(local.astype(np.float32), dtype=wp.vec3, device=device)
         return self
+
+    def root_hold_weights(self, length):
+        """Per-particle weight of the root hold: 1 at the root, falling linearly to 0 at `length` [m]."""
+        if length <= 0.0:
+            return np.zeros(self.num_particles, np.float32)
+        arc = np.cumsum(self.rest_length_np.astype(np.float64))
+        arc -= np.repeat(arc[self.strand_start_np[:-1]], self.counts)
+        return np.clip(1.0 - arc / length, 0.0, 1.0).astype(np.float32)
+
+
+def _triangle_frames(tri):
+    """(T, 3, 3) frames with columns edge tangent, bitangent, normal (as skinning.triangle_frame)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    t = (b - a) / np.linalg.norm(b - a, axis=1, keepdims=True)
+    return np.stack([t, np.cross(n, t), n], axis=2)
 
 
 class ShapeWindows:

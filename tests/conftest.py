@@ -5,7 +5,9 @@ import pytest
 import warp as wp
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
-wp.config.quiet = True
+from sim.scene import quiet_warp  # noqa: E402
+
+quiet_warp()
 wp.init()
 
 

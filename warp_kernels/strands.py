@@ -1,7 +1,7 @@
 """Hair strand kernels: particle polylines flattened with offsets, one launch for every strand.
 
 Step order (composed by sim.hair_solver.HairSolver):
-  integrate_particles -> evaluate_bindings (skinning.py)
+  integrate_particles -> evaluate_bindings (skinning.py) -> hold_root_shape
   -> [shape_match_rotations (full variant) -> shape_match_targets -> shape_match_apply] x passes
   -> follow_the_leader (length + collision) -> update_velocities
 """
@@ -9,6 +9,7 @@ Step order (composed by sim.hair_solver.HairSolver):
 import warp as wp
 
 from .collision import collide_point
+from .skinning import triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
 SHAPE_FULL = wp.constant(1)
@@ -53,6 +54,37 @@ def integrate_particles(
     vel = vel * wp.max(0.0, 1.0 - damping * dt)
     x_out[i] = p + dt * vel
     v_out[i] = vel
+
+
+@wp.kernel
+def hold_root_shape(
+    x: wp.array(dtype=wp.vec3),
+    particle_strand: wp.array(dtype=wp.int32),
+    strand_start: wp.array(dtype=wp.int32),
+    root_binding: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    root_local: wp.array(dtype=wp.vec3),
+    hold: wp.array(dtype=float),
+    stiffness: float,
+):
+    """Pull particles toward their groomed positions carried by the root triangle's frame.
+
+    The global shape constraint of TressFX (Han & Harada): `hold` fades from 1 at the root to 0 a
+    few centimetres out, so the groom's lift and parting survive gravity while the lengths swing.
+    Roots must already be placed for this substep (evaluate_bindings).
+    """
+    i = wp.tid()
+    w = hold[i] * stiffness
+    if w <= 0.0:
+        return
+    s = particle_strand[i]
+    f = bind_triangle[root_binding[s]]
+    frame = triangle_frame(mesh_points[mesh_indices[3 * f + 0]], mesh_points[mesh_indices[3 * f + 1]],
+                           mesh_points[mesh_indices[3 * f + 2]])
+    target = x[strand_start[s]] + frame * root_local[i]
+    x[i] = x[i] + w * (target - x[i])
 
 
 @wp.func
