@@ -11,12 +11,13 @@ from scipy.spatial import cKDTree
 
 from warp_kernels import collision, skinning
 
-from .sphere_tree import build_sphere_tree, signed_distance
+from .sphere_tree import build_sphere_tree, empty_sphere_tree, signed_distance
 
 
 class Collider:
     def __init__(self, name, vertices, faces, skin_indices, skin_weights, num_bones, device="cpu",
-                 sphere_leaves=128):
+                 sphere_leaves=1024):
+        """sphere_leaves = 0 skips the sphere tree (a few seconds to build) for mesh-only collisions."""
         self.name = name
         self.device = device
         self.rest_points_np = np.asarray(vertices, np.float32)
@@ -34,10 +35,14 @@ class Collider:
         self.skin_weights = arr(skin_weights, wp.vec4)
         self.mesh = wp.Mesh(points=self.points, indices=self.indices)
 
-        self.tree = build_sphere_tree(self.rest_points_np, self.faces_np, max_leaves=sphere_leaves,
-                                      device=device)
+        if sphere_leaves > 0:
+            self.tree = build_sphere_tree(self.rest_points_np, self.faces_np, max_leaves=sphere_leaves,
+                                          device=device)
+        else:
+            self.tree = empty_sphere_tree()
         # sphere centres move with the skin weights of their nearest surface vertex
-        _, nearest = cKDTree(self.rest_points_np).query(self.tree.centers)
+        _, nearest = cKDTree(self.rest_points_np).query(self.tree.centers.reshape(-1, 3))
+        nearest = np.asarray(nearest, np.int64).reshape(-1)
         self.sphere_rest_centers = arr(self.tree.centers, wp.vec3)
         self.sphere_centers = arr(self.tree.centers, wp.vec3)
         self.sphere_radii = arr(self.tree.radii, float)

@@ -54,7 +54,7 @@ class HeadConfig:
     turn_period: float = 3.0  # s
     nod_degrees: float = 15.0
     nod_period: float = 1.5  # s
-    sphere_leaves: int = 128  # leaf spheres in the collision sphere tree
+    sphere_leaves: int = 1024  # most leaf spheres in the sphere tree (built for collision = "sphere_tree")
 
     def __post_init__(self):
         if self.animation not in ("turn_nod", "turn", "nod", "none"):
@@ -194,8 +194,9 @@ class HairScene:
                 turn_degrees=h.turn_degrees if preset.turn_degrees else 0.0, turn_period=h.turn_period,
                 nod_degrees=h.nod_degrees if preset.nod_degrees else 0.0, nod_period=h.nod_period,
                 pivot=self.head.pivot)
+        leaves = h.sphere_leaves if config.solver.collision == "sphere_tree" else 0
         self.collider = Collider("head", self.head.vertices, self.head.faces, self.head.skin_indices,
-                                 self.head.skin_weights, self.head.num_bones, device, h.sphere_leaves)
+                                 self.head.skin_weights, self.head.num_bones, device, leaves)
         self.collider.set_poses(self.animation.bone_matrices([0.0]))
         self.collider.apply_pose(0)
         self.model = self._groom()

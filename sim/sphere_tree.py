@@ -44,26 +44,35 @@ def signed_distance(points, mesh, device="cpu", max_dist=1.0e6):
     return dist.numpy(), closest.numpy()
 
 
-def build_sphere_tree(vertices, faces, max_leaves=128, tolerance=None, device="cpu"):
+def build_sphere_tree(vertices, faces, max_leaves=1024, tolerance=None, device="cpu", grid=90, samples=20000):
     """Cover the surface of a closed mesh with at most max_leaves inner spheres, then build the tree.
 
     tolerance [m]: a surface sample counts as covered when it lies within tolerance of a sphere's
-    surface; defaults to 1.5% of the bounding-box diagonal.
+    surface; defaults to 0.35% of the bounding-box diagonal (2 mm on the built-in bust, where the
+    surface then lies 0.7 mm beyond the spheres at the median and 1.7 mm at the 95th percentile). Candidate centres lie on a grid of
+    `grid` cells along the diagonal; `samples` extra random surface points join the vertices and
+    face centres as the points to cover (more samples close the gaps between spheres).
     """
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     lo, hi = vertices.min(0), vertices.max(0)
     diag = float(np.linalg.norm(hi - lo))
-    tol = 0.015 * diag if tolerance is None else float(tolerance)
+    tol = 0.0035 * diag if tolerance is None else float(tolerance)
 
-    step = diag / 60.0
+    step = diag / grid
     axes = [np.arange(lo[k] + 0.5 * step, hi[k], step) for k in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     dist, _ = signed_distance(grid, warp_mesh(vertices, faces, device), device)
     inside = dist < -0.25 * step
     cand_c, cand_r = grid[inside], -dist[inside]
 
-    samples = np.concatenate([vertices, vertices[faces].mean(1)])
+    points = [vertices, vertices[faces].mean(1)]
+    if samples:
+        import trimesh
+
+        points.append(trimesh.sample.sample_surface(trimesh.Trimesh(vertices, faces, process=False), samples,
+                                                    seed=0)[0])
+    samples = np.concatenate(points)
     tree = cKDTree(samples)
     rows, cols = [], []
     for k, hits in enumerate(tree.query_ball_point(cand_c, cand_r + tol)):
@@ -80,6 +89,12 @@ def build_sphere_tree(vertices, faces, max_leaves=128, tolerance=None, device="c
         chosen.append(best)
         uncovered[cover[best].indices] = 0.0
     return _hierarchy(cand_c[chosen], cand_r[chosen])
+
+
+def empty_sphere_tree():
+    """A tree with no nodes: collision and penetration queries against it find nothing."""
+    return SphereTree(np.zeros((0, 3), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int32),
+                      np.zeros(0, np.int32))
 
 
 def _hierarchy(leaf_c, leaf_r):

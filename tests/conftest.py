@@ -23,8 +23,7 @@ def head_collider(head):
     from sim.collider import Collider
     from sim.head import HeadAnimation
 
-    c = Collider("head", head.vertices, head.faces, head.skin_indices, head.skin_weights, head.num_bones, "cpu",
-                 sphere_leaves=96)
+    c = Collider("head", head.vertices, head.faces, head.skin_indices, head.skin_weights, head.num_bones, "cpu")
     c.set_poses(HeadAnimation.preset("none").bone_matrices([0.0]))
     c.apply_pose(0)
     return c
