@@ -27,6 +27,17 @@ def _extent(points, widths=None):
     return UsdGeom.PointBased.ComputeExtent(points)
 
 
+def check_cache_path(path):
+    """Raise ValueError unless `path` names a USD file we can write (.usd, .usdc, .usda)."""
+    path = os.fspath(path)
+    if os.path.splitext(path)[1].lower() not in (".usd", ".usdc", ".usda"):
+        raise ValueError(f"{path}: output must end in .usd, .usdc or .usda")
+    folder = os.path.dirname(os.path.abspath(path))
+    if os.path.exists(folder) and not os.path.isdir(folder):
+        raise ValueError(f"{path}: {folder} is not a folder")
+    return path
+
+
 class CacheWriter:
     """Streams frames into a USD cache. Use as a context manager; on error nothing is left behind.
 
@@ -36,11 +47,8 @@ class CacheWriter:
 
     def __init__(self, path, fps, start_frame, end_frame, settings=None, up_axis="Y",
                  meters_per_unit=1.0, flush_every=8, engine_version=None):
-        self.path = os.fspath(path)
-        ext = os.path.splitext(self.path)[1].lower()
-        if ext not in (".usd", ".usdc", ".usda"):
-            raise ValueError(f"{self.path}: output must end in .usd, .usdc or .usda")
-        self._ascii = ext == ".usda"
+        self.path = check_cache_path(path)
+        self._ascii = self.path.lower().endswith(".usda")
         folder = os.path.dirname(os.path.abspath(self.path))
         os.makedirs(folder, exist_ok=True)
         base = os.path.basename(self.path)

@@ -178,6 +178,8 @@ class HairScene:
     def __init__(self, config):
         self.config = config
         device = config.timing.device
+        if device.startswith("cuda") and not wp.is_cuda_available():
+            raise InputError(config.source, "scene.device", f"device '{device}' is not available (no CUDA driver)")
         try:
             wp.get_device(device)
         except (ValueError, RuntimeError):
@@ -185,15 +187,10 @@ class HairScene:
         self.device = device
         self.head = _load_head(config)
         h = config.head
-        self.animation = HeadAnimation(turn_degrees=h.turn_degrees, turn_period=h.turn_period,
-                                       nod_degrees=h.nod_degrees, nod_period=h.nod_period,
+        turns, nods = h.animation in ("turn", "turn_nod"), h.animation in ("nod", "turn_nod")
+        self.animation = HeadAnimation(turn_degrees=h.turn_degrees if turns else 0.0, turn_period=h.turn_period,
+                                       nod_degrees=h.nod_degrees if nods else 0.0, nod_period=h.nod_period,
                                        pivot=self.head.pivot)
-        if h.animation != "turn_nod":
-            preset = HeadAnimation.preset(h.animation, self.head.pivot)
-            self.animation = HeadAnimation(
-                turn_degrees=h.turn_degrees if preset.turn_degrees else 0.0, turn_period=h.turn_period,
-                nod_degrees=h.nod_degrees if preset.nod_degrees else 0.0, nod_period=h.nod_period,
-                pivot=self.head.pivot)
         leaves = h.sphere_leaves if config.solver.collision == "sphere_tree" else 0
         self.collider = Collider("head", self.head.vertices, self.head.faces, self.head.skin_indices,
                                  self.head.skin_weights, self.head.num_bones, device, leaves)
@@ -286,8 +283,9 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     The cache is written under a temporary name and moved onto out_path only when every frame is
     done; an error (bad input, NaN) leaves out_path untouched.
     """
-    from io_usd.cache import CacheWriter
+    from io_usd.cache import CacheWriter, check_cache_path
 
+    check_cache_path(out_path)  # before minutes of simulation, not after
     started = time.perf_counter()
     quiet_warp()
     scene = HairScene(config)

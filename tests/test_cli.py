@@ -128,3 +128,16 @@ def test_scene_can_use_its_own_head_mesh_and_roots(tmp_path, head):
 def test_cfx_entry_point_runs_as_a_module():
     proc = subprocess.run([sys.executable, "-m", "sim.cli", "--version"], capture_output=True, text=True)
     assert proc.returncode == 0 and "warp-cfx" in proc.stdout
+
+
+def test_bad_output_path_and_missing_device_fail_before_simulating(tmp_path, capsys):
+    import warp as wp
+
+    scene = write(tmp_path, SMALL)
+    assert main(["run", scene, "-o", str(tmp_path / "cache.abc"), "-q"]) == 2
+    assert "must end in .usd, .usdc or .usda" in capsys.readouterr().err
+    if not wp.is_cuda_available():
+        assert main(["run", scene, "-o", str(tmp_path / "c.usdc"), "--device", "cuda", "-q"]) == 2
+        err = capsys.readouterr().err
+        assert "scene.device" in err and "not available" in err
+    assert os.listdir(tmp_path) == ["scene.toml"]

@@ -18,6 +18,18 @@ def triangle_frame(a: wp.vec3, b: wp.vec3, c: wp.vec3):
     return wp.matrix_from_cols(t, s, n)
 
 
+@wp.func
+def face_frame(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), f: int):
+    """triangle_frame of face f of an indexed triangle mesh."""
+    return triangle_frame(points[indices[3 * f + 0]], points[indices[3 * f + 1]], points[indices[3 * f + 2]])
+
+
+@wp.func
+def face_point(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), f: int, w: wp.vec3):
+    """The point with barycentric weights w (of corners 0, 1, 2) on face f."""
+    return w[0] * points[indices[3 * f + 0]] + w[1] * points[indices[3 * f + 1]] + w[2] * points[indices[3 * f + 2]]
+
+
 @wp.kernel
 def skin_points(
     rest_points: wp.array(dtype=wp.vec3),
@@ -52,12 +64,8 @@ def evaluate_bindings(
     """Place each bound particle at its barycentric point plus its offset in the triangle frame."""
     b = wp.tid()
     f = bind_triangle[b]
-    pa = mesh_points[mesh_indices[3 * f + 0]]
-    pb = mesh_points[mesh_indices[3 * f + 1]]
-    pc = mesh_points[mesh_indices[3 * f + 2]]
-    w = bind_barycentric[b]
-    frame = triangle_frame(pa, pb, pc)
-    positions[bind_particle[b]] = w[0] * pa + w[1] * pb + w[2] * pc + frame * bind_local[b]
+    frame = face_frame(mesh_points, mesh_indices, f)
+    positions[bind_particle[b]] = face_point(mesh_points, mesh_indices, f, bind_barycentric[b]) + frame * bind_local[b]
 
 
 @wp.kernel
@@ -72,9 +80,5 @@ def compute_bindings(
     """Inverse of evaluate_bindings: express a world point in its triangle's frame."""
     b = wp.tid()
     f = bind_triangle[b]
-    pa = mesh_points[mesh_indices[3 * f + 0]]
-    pb = mesh_points[mesh_indices[3 * f + 1]]
-    pc = mesh_points[mesh_indices[3 * f + 2]]
-    w = bind_barycentric[b]
-    frame = triangle_frame(pa, pb, pc)
-    bind_local[b] = wp.transpose(frame) * (positions[b] - (w[0] * pa + w[1] * pb + w[2] * pc))
+    frame = face_frame(mesh_points, mesh_indices, f)
+    bind_local[b] = wp.transpose(frame) * (positions[b] - face_point(mesh_points, mesh_indices, f, bind_barycentric[b]))

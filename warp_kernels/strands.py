@@ -9,7 +9,7 @@ Step order (composed by sim.hair_solver.HairSolver):
 import warp as wp
 
 from .collision import collide_point
-from .skinning import triangle_frame
+from .skinning import face_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
 SHAPE_FULL = wp.constant(1)
@@ -80,9 +80,7 @@ def hold_root_shape(
     if w <= 0.0:
         return
     s = particle_strand[i]
-    f = bind_triangle[root_binding[s]]
-    frame = triangle_frame(mesh_points[mesh_indices[3 * f + 0]], mesh_points[mesh_indices[3 * f + 1]],
-                           mesh_points[mesh_indices[3 * f + 2]])
+    frame = face_frame(mesh_points, mesh_indices, bind_triangle[root_binding[s]])
     target = x[strand_start[s]] + frame * root_local[i]
     x[i] = x[i] + w * (target - x[i])
 
