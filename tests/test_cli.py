@@ -141,3 +141,16 @@ def test_bad_output_path_and_missing_device_fail_before_simulating(tmp_path, cap
         err = capsys.readouterr().err
         assert "scene.device" in err and "not available" in err
     assert os.listdir(tmp_path) == ["scene.toml"]
+
+
+def test_scalp_mask_decides_where_hair_grows(tmp_path, head):
+    top = np.flatnonzero(head.vertices[head.faces].mean(1)[:, 1] > 0.45)  # a crown patch
+    np.save(tmp_path / "crown.npy", top)
+    scene = write(tmp_path, SMALL.replace("[head]", '[head]\nscalp_faces = "crown.npy"'))
+    out = str(tmp_path / "crown.usdc")
+    assert main(["run", scene, "-o", out, "-q"]) == 0
+    roots = CacheReader(out).points("hair", 1).reshape(40, 8, 3)[:, 0]
+    assert roots[:, 1].min() > 0.445  # every root on the crown patch (its lowest corner is above 0.445 m)
+    bad = write(tmp_path, SMALL.replace("[head]", '[head]\nscalp_faces = "crown.npy"'), "bad.toml")
+    np.save(tmp_path / "crown.npy", np.array([10 ** 7]))
+    assert main(["run", bad, "-o", str(tmp_path / "bad.usdc"), "-q"]) == 2
