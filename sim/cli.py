@@ -83,8 +83,10 @@ def cmd_preview(args):
 
 
 def cmd_view(args):
-    from io_usd.viewer import view
+    from io_usd.viewer import has_display, view
 
+    if not has_display():
+        return _fail("cfx view needs a display (set DISPLAY); use cfx preview for images and movies", EXIT_INPUT)
     view(args.cache)
     return 0
 
@@ -183,8 +185,6 @@ def main(argv=None):
         return _fail(str(err), EXIT_INPUT)
     except SimulationError as err:
         return _fail(f"simulation failed: {err}", EXIT_SIMULATION)
-    except RuntimeError as err:
-        return _fail(str(err), EXIT_INPUT)
     except KeyboardInterrupt:
         return _fail("interrupted; no cache was written", 130)
 
