@@ -85,10 +85,13 @@ class CacheWriter:
         self._prims[name] = dict(prim=prim, kind=kind, **info)
         return prim
 
-    def add_mesh(self, name, role, points, faces, color=None, animated=True):
-        """A triangle mesh (faces (F, 3)) or polygon mesh (faces a list of index lists)."""
+    def add_mesh(self, name, role, points, faces, color=None, animated=True, face_counts=None, face_indices=None):
+        """A mesh from faces (F, k) or a list of index lists, or from USD-style face_counts and
+        face_indices (mixed quads and triangles)."""
         mesh = UsdGeom.Mesh.Define(self.stage, f"{ROOT}/{name}")
-        if isinstance(faces, np.ndarray) and faces.ndim == 2:
+        if face_counts is not None:
+            counts, indices = np.asarray(face_counts), np.asarray(face_indices)
+        elif isinstance(faces, np.ndarray) and faces.ndim == 2:
             counts, indices = np.full(len(faces), faces.shape[1]), faces.reshape(-1)
         else:
             counts, indices = np.array([len(f) for f in faces]), np.concatenate(faces)

@@ -14,13 +14,16 @@ from .errors import InputError, SimulationError  # noqa: E402
 from .hair_solver import HairParams, HairSolver  # noqa: E402
 from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp  # noqa: E402
 from .head import HeadAnimation, HeadAsset, mesh_head, procedural_head  # noqa: E402
-from .scene import HairScene, HeadConfig, RunResult, SceneConfig, TimingConfig, demo_scene, load_scene, run_scene  # noqa: E402
+from .cloth import ClothModel, ClothParams, ClothSolver, ClothState  # noqa: E402
+from .scene import (BodyConfig, GarmentConfig, HeadConfig, RunResult, Scene, SceneConfig, TimingConfig,  # noqa: E402
+                    demo_scene, hair_demo_scene, load_scene, run_scene)
 from .sphere_tree import SphereTree, build_sphere_tree  # noqa: E402
 from .strands import HairModel, HairState, StrandBuilder  # noqa: E402
 
 __all__ = [
-    "Collider", "HairModel", "HairParams", "HairScene", "HairSolver", "HairState", "HairstyleParams",
-    "HeadAnimation", "HeadAsset", "HeadConfig", "InputError", "RunResult", "SceneConfig", "SimulationError",
-    "SphereTree", "StrandBuilder", "TimingConfig", "build_sphere_tree", "demo_scene", "grow_hairstyle",
+    "BodyConfig", "ClothModel", "ClothParams", "ClothSolver", "ClothState", "Collider", "GarmentConfig",
+    "HairModel", "HairParams", "HairSolver", "HairState", "HairstyleParams", "HeadAnimation", "HeadAsset",
+    "HeadConfig", "InputError", "RunResult", "Scene", "SceneConfig", "SimulationError", "SphereTree",
+    "StrandBuilder", "TimingConfig", "build_sphere_tree", "demo_scene", "grow_hairstyle", "hair_demo_scene",
     "load_scene", "mesh_head", "procedural_head", "run_scene", "sample_scalp",
 ]

@@ -39,12 +39,21 @@ def _overrides(args):
 
 def _report(result):
     s = result.stats
-    print(f"wrote {result.path}: {result.frames} frames, {result.strands} strands, "
-          f"{result.particles} particles in {result.seconds:.1f} s", file=sys.stderr)
-    if s:
-        print(f"  max segment stretch {100 * s['max_stretch']:.3f}%, roots within 5 mm of the head "
-              f"{100 * s['root_within_5mm']:.2f}%, hair points >1 mm inside the head "
-              f"{100 * s['inside_1mm']:.3f}%", file=sys.stderr)
+    parts = []
+    if result.strands:
+        parts.append(f"{result.strands} strands ({result.particles} particles)")
+    if result.cloth_particles:
+        parts.append(f"{result.cloth_particles} cloth particles")
+    print(f"wrote {result.path}: {result.frames} frames, {', '.join(parts)} in {result.seconds:.1f} s",
+          file=sys.stderr)
+    if "max_stretch" in s:
+        print(f"  hair: max segment stretch {100 * s['max_stretch']:.3f}%, roots within 5 mm of the surface "
+              f"{100 * s['root_within_5mm']:.2f}%, points >1 mm inside {100 * s['inside_1mm']:.3f}%", file=sys.stderr)
+    if "cloth_stretch_p99" in s:
+        print(f"  cloth: edge stretch p99 {100 * s['cloth_stretch_p99']:.2f}% (max {100 * s['cloth_stretch_max']:.2f}%), "
+              f"vertices >2 mm inside {100 * s['cloth_inside_2mm']:.3f}%, nearest-vertex walk agrees with brute "
+              f"force on {100 * s['walk_agreement']:.2f}% (worst frame {100 * s['walk_agreement_worst_frame']:.2f}%)",
+              file=sys.stderr)
 
 
 def cmd_run(args, config=None):

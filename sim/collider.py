@@ -30,6 +30,8 @@ class Collider:
         arr = lambda a, t: wp.array(a, dtype=t, device=device)  # noqa: E731
         self.rest_points = arr(self.rest_points_np, wp.vec3)
         self.points = arr(self.rest_points_np, wp.vec3)
+        self.prev_points = arr(self.rest_points_np, wp.vec3)  # the pose before, for surface velocities
+        self._pose_points = None  # poses given as point arrays instead of bone matrices
         self.indices = arr(self.faces_np.reshape(-1), wp.int32)
         self.skin_indices = arr(skin_indices, wp.vec4i)
         self.skin_weights = arr(skin_weights, wp.vec4)
@@ -52,6 +54,17 @@ class Collider:
         self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
         self.bone_matrices = None
 
+    def set_point_poses(self, points):
+        """points: (K, V, 3) vertex positions for K upcoming poses (a point cache, e.g. from USD)."""
+        pts = np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))
+        if len(pts) % len(self.rest_points_np):
+            raise ValueError(f"{self.name}: point poses must have {len(self.rest_points_np)} points each")
+        if self._pose_points is None or self._pose_points.shape[0] != len(pts):
+            self._pose_points = wp.array(pts, dtype=wp.vec3, device=self.device)
+        else:
+            self._pose_points.assign(pts)
+        self.bone_matrices = None
+
     def set_poses(self, matrices):
         """matrices: (K, num_bones, 4, 4) bone transforms for K upcoming poses (e.g. substeps)."""
         m = np.ascontiguousarray(np.asarray(matrices, np.float32).reshape(-1, 4, 4))
@@ -59,8 +72,15 @@ class Collider:
             self.bone_matrices = wp.array(m, dtype=wp.mat44, device=self.device)
         else:
             self.bone_matrices.assign(m)
+        self._pose_points = None
 
     def apply_pose(self, k):
+        wp.copy(self.prev_points, self.points)
+        if self._pose_points is not None:
+            n = len(self.rest_points_np)
+            wp.copy(self.points, self._pose_points, 0, k * n, n)
+            self.mesh.refit()
+            return  # the sphere tree follows skinned poses only
         offset = k * self.num_bones
         wp.launch(skinning.skin_points, len(self.points),
                   [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
@@ -72,6 +92,17 @@ class Collider:
         wp.launch(collision.refit_sphere_tree, len(self.sphere_centers),
                   [self.sphere_centers, self.sphere_radii, self.sphere_skip, self.sphere_is_leaf],
                   device=self.device)
+
+    def adjacency(self):
+        """CSR vertex->vertex and vertex->face adjacency and per-vertex concave flags, built once
+        (the cloth's nearest-vertex walk runs on them)."""
+        if getattr(self, "_adjacency", None) is None:
+            self._adjacency = _Adjacency(self.rest_points_np, self.faces_np, self.device)
+        return self._adjacency
+
+    def reset_motion(self):
+        """Make the current pose also the previous one (after a jump, so surfaces have no velocity)."""
+        wp.copy(self.prev_points, self.points)
 
     def push_out(self, points, margin, mode=collision.COLLIDE_MESH, search=0.05):
         """Project (N, 3) NumPy points out of the collider in its current pose; returns NumPy.
@@ -112,3 +143,32 @@ class Collider:
 
     def posed_points(self):
         return self.points.numpy()
+
+
+class _Adjacency:
+    def __init__(self, vertices, faces, device):
+        n = len(vertices)
+        e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+        e = np.unique(np.sort(np.concatenate([e, e[:, ::-1]]), axis=1), axis=0)
+        pairs = np.concatenate([e, e[:, ::-1]])
+        pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+        vv_start = np.concatenate([[0], np.cumsum(np.bincount(pairs[:, 0], minlength=n))])
+        vf = np.stack([faces.reshape(-1), np.repeat(np.arange(len(faces)), 3)], 1)
+        vf = vf[np.argsort(vf[:, 0], kind="stable")]
+        vf_start = np.concatenate([[0], np.cumsum(np.bincount(vf[:, 0], minlength=n))])
+        # a vertex is concave (or a saddle) when a neighbour rises above its tangent plane: there the
+        # "behind every incident face" test and the greedy walk are not trustworthy
+        fn = np.cross(vertices[faces[:, 1]] - vertices[faces[:, 0]], vertices[faces[:, 2]] - vertices[faces[:, 0]])
+        vn = np.zeros_like(vertices)
+        for k in range(3):
+            np.add.at(vn, faces[:, k], fn)
+        vn /= np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-30)
+        d = vertices[pairs[:, 1]] - vertices[pairs[:, 0]]
+        rise = np.einsum("ij,ij->i", d, vn[pairs[:, 0]]) / np.maximum(np.linalg.norm(d, axis=1), 1e-30)
+        concave = np.zeros(n, np.int32)
+        np.maximum.at(concave, pairs[:, 0], (rise > 0.05).astype(np.int32))
+        arr = lambda a, t: wp.array(a, dtype=t, device=device)  # noqa: E731
+        self.vv_start, self.vv_adj = arr(vv_start.astype(np.int32), wp.int32), arr(pairs[:, 1].astype(np.int32), wp.int32)
+        self.vf_start, self.vf_face = arr(vf_start.astype(np.int32), wp.int32), arr(vf[:, 1].astype(np.int32), wp.int32)
+        self.concave = arr(concave, wp.int32)
+        self.concave_fraction = float(concave.mean())

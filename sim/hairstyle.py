@@ -16,6 +16,7 @@ STYLES = ("straight", "wavy", "curly")
 
 @dataclass(frozen=True)
 class HairstyleParams:
+    enabled: bool = True  # false: a scene without hair (cloth only)
     style: str = "wavy"  # "straight", "wavy" or "curly"
     count: int = 3000  # strands; ignored when density > 0
     density: float = 0.0  # strands per cm^2 of scalp (0: use count)

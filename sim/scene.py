@@ -14,6 +14,7 @@ import numpy as np
 import warp as wp
 
 from . import __version__
+from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
 from .config import from_table, load_toml
 from .errors import InputError
@@ -24,6 +25,7 @@ from .strands import StrandBuilder
 
 HAIR_COLOR = (0.23, 0.14, 0.08)
 SKIN_COLOR = (0.85, 0.68, 0.58)
+CLOTH_COLOR = (0.25, 0.35, 0.55)
 
 
 @dataclass(frozen=True)
@@ -66,21 +68,64 @@ class HeadConfig:
 
 
 @dataclass(frozen=True)
+class BodyConfig:
+    """A character body as the collider (instead of the head bust): built in, or a user's mesh."""
+
+    enabled: bool = False  # set by the presence of a [body] table
+    mesh: str = "builtin"  # "builtin", a mesh file (with `points`), or a USD file (with `prim`)
+    points: str = ""  # .npy of (frames, V, 3) vertex positions animating a mesh file, one per frame
+    prim: str = ""  # prim path of a UsdGeom.Mesh with time-sampled points, when mesh is a USD file
+    animation: str = "walk"  # built-in body: "walk", "arm_raise", "turn" or "none"
+    in_place: bool = False  # built-in walk: stay on the spot instead of walking forward
+
+    def __post_init__(self):
+        if self.animation not in ("walk", "arm_raise", "turn", "none"):
+            raise ValueError("animation must be one of walk, arm_raise, turn, none")
+
+
+@dataclass(frozen=True)
+class GarmentConfig:
+    """The garment simulated as cloth; its solver settings are the [cloth.solver] table."""
+
+    enabled: bool = False  # set by the presence of a [cloth] table
+    garment: str = "dress"  # "dress", "skirt", "shirt" (fitted to the built-in body) or a mesh/USD file
+    prim: str = ""  # prim path of the garment's UsdGeom.Mesh when garment is a USD file
+    pinned: str = ""  # .npy of vertex indices bound to the body, for a garment file
+    particles: int = 322  # particles of a built-in garment (the paper's one-piece dress has 322)
+    ease: float = 0.012  # m, how far outside the body a built-in garment is fitted
+
+    def __post_init__(self):
+        if self.particles < 16:
+            raise ValueError("particles must be at least 16")
+        if self.ease <= 0.0:
+            raise ValueError("ease must be positive")
+
+
+@dataclass(frozen=True)
 class SceneConfig:
     source: str = "<demo>"  # the scene file this came from, for error messages
     timing: TimingConfig = field(default_factory=TimingConfig)
     head: HeadConfig = field(default_factory=HeadConfig)
     hair: HairstyleParams = field(default_factory=HairstyleParams)
     solver: HairParams = field(default_factory=HairParams)
+    body: BodyConfig = field(default_factory=BodyConfig)
+    cloth: GarmentConfig = field(default_factory=GarmentConfig)
+    cloth_solver: ClothParams = field(default_factory=ClothParams)
 
     def settings(self):
         """Everything that determines the result, for the cache's customLayerData."""
-        return {"scene": self.source, "timing": asdict(self.timing), "head": asdict(self.head),
-                "hair": asdict(self.hair), "solver": asdict(self.solver)}
+        out = {"scene": self.source, "timing": asdict(self.timing)}
+        out["body" if self.body.enabled else "head"] = asdict(self.body if self.body.enabled else self.head)
+        if self.hair.enabled:
+            out.update(hair=asdict(self.hair), solver=asdict(self.solver))
+        if self.cloth.enabled:
+            out.update(cloth=asdict(self.cloth), cloth_solver=asdict(self.cloth_solver))
+        return out
 
 
 SECTIONS = {"scene": ("timing", TimingConfig), "head": ("head", HeadConfig),
-            "hair": ("hair", HairstyleParams), "solver": ("solver", HairParams)}
+            "hair": ("hair", HairstyleParams), "solver": ("solver", HairParams),
+            "body": ("body", BodyConfig), "cloth": ("cloth", GarmentConfig)}
 
 
 def load_scene(path, overrides=None):
@@ -92,23 +137,51 @@ def load_scene(path, overrides=None):
     return _build_config(str(path), data, overrides)
 
 
+DEMO = {"body": {"animation": "walk"}, "cloth": {"garment": "dress", "solver": {"strain_limit": 0.03}},
+        "hair": {"count": 2000}}
+
+
 def demo_scene(overrides=None):
-    """The built-in scene: wavy shoulder-length hair on the procedural head turning and nodding."""
+    """The built-in scene: the character walks in a one-piece dress, with wavy shoulder-length hair."""
+    return _build_config("<demo>", {k: dict(v) for k, v in DEMO.items()}, overrides)
+
+
+def hair_demo_scene(overrides=None):
+    """Hair alone: wavy shoulder-length hair on the built-in head bust turning and nodding."""
     return _build_config("<demo>", {}, overrides)
 
 
 def _build_config(source, data, overrides):
     overrides = overrides or {}
+    data = dict(data)
+    cloth_table = dict(data.get("cloth", {}))
+    solver_table = cloth_table.pop("solver", {})
+    if "cloth" in data:
+        data["cloth"] = {"enabled": True, **cloth_table}
+    if "body" in data:
+        data["body"] = {"enabled": True, **data["body"]}
     parts = {}
     for section, (attr, cls) in SECTIONS.items():
         parts[attr] = from_table(cls, data.get(section, {}), source, section, overrides.get(section))
+    parts["cloth_solver"] = from_table(ClothParams, solver_table, source, "cloth.solver",
+                                       overrides.get("cloth.solver"))
     config = SceneConfig(source=source, **parts)
     base = os.path.dirname(os.path.abspath(source)) if source != "<demo>" else os.getcwd()
-    for key in ("mesh", "scalp_faces", "roots"):
-        value = getattr(config.head, key)
+    files = [("head", k, getattr(config.head, k)) for k in ("mesh", "scalp_faces", "roots")]
+    files += [("body", k, getattr(config.body, k)) for k in ("mesh", "points")]
+    files += [("cloth", k, getattr(config.cloth, k)) for k in ("pinned",)]
+    if config.cloth.garment not in _garment_names():
+        files.append(("cloth", "garment", config.cloth.garment))
+    for section, key, value in files:
         if value and value != "builtin" and not os.path.exists(os.path.join(base, value)):
-            raise InputError(source, f"head.{key}", f"file not found: {value}")
+            raise InputError(source, f"{section}.{key}", f"file not found: {value}")
+    if config.cloth.enabled and not config.body.enabled and config.cloth.garment in _garment_names():
+        raise InputError(source, "cloth.garment", "built-in garments are fitted to the built-in body: add a [body] table")
     return config
+
+
+def _garment_names():
+    return ("dress", "skirt", "shirt")
 
 
 def _resolve(config, name):
@@ -172,8 +245,9 @@ def _load_roots(config):
     return roots
 
 
-class HairScene:
-    """An assembled scene: collider, hair model, solver, animation. Build with HairScene(config)."""
+class Scene:
+    """An assembled scene: a collider (head bust or body) and its motion, optional hair, optional
+    cloth. Build with Scene(config), then advance(); the states are scene.state (hair) and scene.cloth_state."""
 
     def __init__(self, config):
         self.config = config
@@ -185,29 +259,54 @@ class HairScene:
         except (ValueError, RuntimeError):
             raise InputError(config.source, "scene.device", f"device '{device}' is not available") from None
         self.device = device
-        self.head = _load_head(config)
-        h = config.head
-        turns, nods = h.animation in ("turn", "turn_nod"), h.animation in ("nod", "turn_nod")
-        self.animation = HeadAnimation(turn_degrees=h.turn_degrees if turns else 0.0, turn_period=h.turn_period,
-                                       nod_degrees=h.nod_degrees if nods else 0.0, nod_period=h.nod_period,
-                                       pivot=self.head.pivot)
-        leaves = h.sphere_leaves if config.solver.collision == "sphere_tree" else 0
-        self.collider = Collider("head", self.head.vertices, self.head.faces, self.head.skin_indices,
-                                 self.head.skin_weights, self.head.num_bones, device, leaves)
-        self.collider.set_poses(self.animation.bone_matrices([0.0]))
-        self.collider.apply_pose(0)
-        self.model = self._groom()
-        self.solver = HairSolver(self.model, config.solver)
-        self.state = self.model.state()
-        self._scratch = self.model.state()
         self.time = 0.0
+        leaves = config.head.sphere_leaves if config.hair.enabled and config.solver.collision == "sphere_tree" else 0
+        if config.body.enabled:
+            self.head, self._motion = _load_body(config)
+            self.collider_name = "body"
+        else:
+            self.head = _load_head(config)
+            h = config.head
+            turns, nods = h.animation in ("turn", "turn_nod"), h.animation in ("nod", "turn_nod")
+            self._motion = HeadAnimation(turn_degrees=h.turn_degrees if turns else 0.0, turn_period=h.turn_period,
+                                         nod_degrees=h.nod_degrees if nods else 0.0, nod_period=h.nod_period,
+                                         pivot=self.head.pivot)
+            self.collider_name = "head"
+        self.collider = Collider(self.collider_name, self.head.vertices, self.head.faces, self.head.skin_indices,
+                                 self.head.skin_weights, self.head.num_bones, device, leaves)
+        self._pose(np.array([0.0]))
+        self.collider.apply_pose(0)
+        self.collider.reset_motion()
+
+        self.model = self.solver = self.state = None
+        if config.hair.enabled:
+            self.model = self._groom()
+            self.solver = HairSolver(self.model, config.solver)
+            self.state, self._scratch = self.model.state(), self.model.state()
+        self.cloth_model = self.cloth_solver = self.cloth_state = None
+        if config.cloth.enabled:
+            garment = _load_garment(config, self.head)
+            try:
+                self.cloth_model = ClothModel.from_garment(garment, config.cloth_solver, device)
+            except ValueError as err:
+                raise InputError(config.source, "cloth.garment", str(err)) from None
+            self.cloth_model.bind_to_mesh(self.collider.posed_points(), self.head.faces)
+            self.cloth_solver = ClothSolver(self.cloth_model)
+            self.cloth_state, self._cloth_scratch = self.cloth_model.state(), self.cloth_model.state()
+            self.cloth_substeps = self.cloth_model.substeps_for(1.0 / config.timing.fps)
+
+    def _pose(self, times):
+        """Pose the collider for each of `times` (uploaded once; apply_pose(k) picks one)."""
+        if isinstance(self._motion, PointCacheMotion):
+            self.collider.set_point_poses(self._motion.points(times))
+        else:
+            self.collider.set_poses(self._motion.bone_matrices(times))
 
     def _groom(self):
         cfg, head = self.config, self.head
         rest_points = self.collider.posed_points()
-        if cfg.head.roots:
-            roots = _load_roots(cfg)
-            roots, normals = self._project_roots(roots)
+        if cfg.head.roots and not cfg.body.enabled:
+            roots, normals = self._project_roots(_load_roots(cfg))
         else:
             count = cfg.hair.count
             if cfg.hair.density > 0.0:
@@ -216,8 +315,8 @@ class HairScene:
                 roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, count, cfg.hair.seed)
             except ValueError as err:
                 raise InputError(cfg.source, "head.scalp_faces", str(err)) from None
-        axis = np.array([0.5 * (head.vertices[:, 0].min() + head.vertices[:, 0].max()), 0.0,
-                         0.5 * (head.vertices[:, 2].min() + head.vertices[:, 2].max())])
+        scalp = head.vertices[np.unique(head.faces[head.scalp_faces])]
+        axis = np.array([0.5 * (scalp[:, 0].min() + scalp[:, 0].max()), 0.0, 0.5 * (scalp[:, 2].min() + scalp[:, 2].max())])
         points, counts, widths = grow_hairstyle(cfg.hair, roots, normals, self.collider.push_out, axis)
         model = StrandBuilder().add_strands(points, counts, widths).finalize(self.device, pinned_per_strand=2)
         return model.bind_to_mesh(rest_points, head.faces)
@@ -234,37 +333,179 @@ class HairScene:
         return 1.0 / (self.config.timing.fps * self.config.solver.substeps)
 
     def advance(self, duration, animate=True):
-        """Simulate `duration` seconds in substeps; with animate=False the head holds its pose."""
-        fps, substeps = self.config.timing.fps, self.config.solver.substeps
-        frames = int(round(duration * fps))
-        dt = self.substep_dt()
-        for _ in range(frames):
+        """Simulate `duration` seconds; with animate=False the collider holds its pose (preroll).
+        Hair and cloth each take their own substeps across the frame against the same collider."""
+        fps = self.config.timing.fps
+        frame_dt = 1.0 / fps
+        for _ in range(int(round(duration * fps))):
             t0 = self.time
-            times = t0 + dt * np.arange(1, substeps + 1) if animate else np.full(substeps, t0)
-            self.collider.set_poses(self.animation.bone_matrices(times))
-            for k in range(substeps):
-                self.collider.apply_pose(k)
-                self.solver.step(self.state, self._scratch, self.collider, dt, float(times[k]))
-                self.state, self._scratch = self._scratch, self.state
+            if self.model is not None:
+                self._advance_solver(t0, frame_dt, self.config.solver.substeps, animate, self._step_hair)
+            if self.cloth_model is not None:
+                self._advance_solver(t0, frame_dt, self.cloth_substeps, animate, self._step_cloth)
             if animate:
-                self.time = t0 + substeps * dt
+                self.time = t0 + frame_dt
+
+    def _advance_solver(self, t0, frame_dt, substeps, animate, step):
+        dt = frame_dt / substeps
+        times = t0 + dt * np.arange(0, substeps + 1) if animate else np.full(substeps + 1, t0)
+        self._pose(times)
+        # start from the frame's first pose: another solver may have left the collider at the frame's
+        # end, and surface velocities (cloth friction) come from consecutive poses
+        self.collider.apply_pose(0)
+        self.collider.reset_motion()
+        for k in range(1, substeps + 1):
+            self.collider.apply_pose(k)
+            step(dt, float(times[k]))
+
+    def _step_hair(self, dt, t):
+        self.solver.step(self.state, self._scratch, self.collider, dt, t)
+        self.state, self._scratch = self._scratch, self.state
+
+    def _step_cloth(self, dt, t):
+        self.cloth_solver.step(self.cloth_state, self._cloth_scratch, self.collider, dt)
+        self.cloth_state, self._cloth_scratch = self._cloth_scratch, self.cloth_state
 
     def measure(self):
-        """Per-frame quality numbers: worst segment stretch, root drift, points inside the head."""
-        m = self.model
-        x = self.state.x.numpy().astype(np.float64)
-        seg = np.linalg.norm(x[1:] - x[:-1], axis=1)
-        child = np.arange(1, m.num_particles)
-        keep = m.rest_length_np[child] > 0.0
-        stretch = np.abs(seg[keep] / m.rest_length_np[child][keep] - 1.0)
-        sdf = self.collider.signed_distance(x, max_dist=0.03)
-        roots = m.strand_start_np[:-1]
-        return {
-            "max_stretch": float(stretch.max()) if stretch.size else 0.0,
-            "root_distance_max": float(np.abs(sdf[roots]).max()),
-            "root_within_5mm": float(np.mean(np.abs(sdf[roots]) <= 0.005)),
-            "inside_1mm": float(np.mean(sdf < -0.001)),
-        }
+        """Per-frame quality numbers for hair (stretch, root drift, penetration) and cloth (edge
+        stretch, penetration, how often the nearest-vertex walk agrees with brute force)."""
+        out = {}
+        if self.model is not None:
+            m = self.model
+            x = self.state.x.numpy().astype(np.float64)
+            seg = np.linalg.norm(x[1:] - x[:-1], axis=1)
+            child = np.arange(1, m.num_particles)
+            keep = m.rest_length_np[child] > 0.0
+            stretch = np.abs(seg[keep] / m.rest_length_np[child][keep] - 1.0)
+            sdf = self.collider.signed_distance(x, max_dist=0.03)
+            roots = m.strand_start_np[:-1]
+            out.update(max_stretch=float(stretch.max()) if stretch.size else 0.0,
+                       root_distance_max=float(np.abs(sdf[roots]).max()),
+                       root_within_5mm=float(np.mean(np.abs(sdf[roots]) <= 0.005)),
+                       inside_1mm=float(np.mean(sdf < -0.001)))
+        if self.cloth_model is not None:
+            out.update(self.cloth_stats())
+        return out
+
+    def cloth_stats(self):
+        from warp_kernels import cloth as cloth_kernels
+
+        cm, st = self.cloth_model, self.cloth_state
+        x = st.x.numpy().astype(np.float64)
+        edges = cm.spring_pairs_np[cm.spring_kind_np == 0]
+        rest = cm.spring_rest_np[cm.spring_kind_np == 0]
+        strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
+        sdf = self.collider.signed_distance(x, max_dist=0.05)
+        brute = wp.zeros(cm.num_particles, dtype=wp.int32, device=self.device)
+        wp.launch(cloth_kernels.nearest_vertex_brute_force, cm.num_particles, [st.x, self.collider.points, brute],
+                  device=self.device)
+        walk, truth = st.nearest.numpy(), brute.numpy()
+        free = cm.inv_mass_np > 0
+        pts = self.collider.points.numpy()
+        # ties (two vertices at the same distance) count as agreement
+        same = (walk == truth) | np.isclose(np.linalg.norm(x - pts[np.maximum(walk, 0)], axis=1),
+                                            np.linalg.norm(x - pts[truth], axis=1), rtol=1e-6, atol=1e-9)
+        return {"cloth_stretch_p99": float(np.percentile(strain, 99)),
+                "cloth_stretch_max": float(strain.max()),
+                "cloth_inside_2mm": float(np.mean(sdf < -0.002)),
+                "walk_agreement": float(np.mean(same[free])) if free.any() else 1.0}
+
+
+class PointCacheMotion:
+    """A body animated by per-frame vertex positions, linearly interpolated between frames."""
+
+    def __init__(self, frames, fps):
+        self.frames = np.asarray(frames, np.float64)
+        self.fps = float(fps)
+
+    def points(self, times):
+        f = np.clip(np.asarray(times) * self.fps, 0.0, len(self.frames) - 1)
+        i = np.minimum(np.floor(f).astype(int), len(self.frames) - 2) if len(self.frames) > 1 else np.zeros(len(f), int)
+        w = (f - i)[:, None, None] if len(self.frames) > 1 else np.zeros((len(f), 1, 1))
+        j = np.minimum(i + 1, len(self.frames) - 1)
+        return (1.0 - w) * self.frames[i] + w * self.frames[j]
+
+
+def _load_body(config):
+    """The body collider and its motion: the built-in body with a preset, or a user's point cache."""
+    b = config.body
+    if b.mesh == "builtin":
+        from .body import BodyAnimation, procedural_body
+
+        body = procedural_body()
+        animation = BodyAnimation.preset(b.animation)
+        if b.animation == "walk" and b.in_place:
+            from dataclasses import replace
+
+            animation = replace(animation, in_place=True)
+        return body, animation
+    path = _resolve(config, b.mesh)
+    if path.lower().endswith((".usd", ".usda", ".usdc")):
+        vertices, faces, frames, fps = _read_usd_body(config, path)
+    else:
+        import trimesh
+
+        try:
+            mesh = trimesh.load(path, force="mesh", process=False)
+        except Exception as err:  # trimesh raises many types for unreadable files
+            raise InputError(config.source, "body.mesh", f"cannot read {b.mesh}: {err}") from None
+        vertices, faces, fps = np.asarray(mesh.vertices), np.asarray(mesh.faces), config.timing.fps
+        frames = vertices[None]
+        if b.points:
+            try:
+                frames = np.load(_resolve(config, b.points))
+            except (OSError, ValueError) as err:
+                raise InputError(config.source, "body.points", f"cannot read {b.points}: {err}") from None
+            if frames.ndim != 3 or frames.shape[1:] != vertices.shape or not np.all(np.isfinite(frames)):
+                raise InputError(config.source, "body.points",
+                                 f"expected finite (frames, {len(vertices)}, 3) positions, got {frames.shape}")
+    if len(faces) == 0 or not np.all(np.isfinite(vertices)):
+        raise InputError(config.source, "body.mesh", f"{b.mesh} has no faces or non-finite points")
+    body = mesh_head(b.mesh, frames[0], faces)
+    body.vertices = frames[0]
+    return body, PointCacheMotion(frames, fps)
+
+
+def _read_usd_body(config, path):
+    from pxr import Usd, UsdGeom
+
+    from io_usd.cache import fan_triangles
+
+    stage = Usd.Stage.Open(path)
+    if stage is None:
+        raise InputError(config.source, "body.mesh", f"{config.body.mesh} is not a USD stage")
+    prim = stage.GetPrimAtPath(config.body.prim) if config.body.prim else None
+    if prim is None or not prim.IsValid() or not prim.IsA(UsdGeom.Mesh):
+        raise InputError(config.source, "body.prim", f"no UsdGeom.Mesh at '{config.body.prim}' in {config.body.mesh}")
+    mesh = UsdGeom.Mesh(prim)
+    faces = fan_triangles(mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get())
+    times = mesh.GetPointsAttr().GetTimeSamples() or [Usd.TimeCode.Default()]
+    frames = np.stack([np.asarray(mesh.GetPointsAttr().Get(t), np.float64) for t in times])
+    return frames[0], faces, frames, stage.GetTimeCodesPerSecond()
+
+
+def _load_garment(config, body):
+    from . import garment as garments
+
+    c = config.cloth
+    if c.garment in _garment_names():
+        return garments.GARMENTS[c.garment](body, particles=c.particles, ease=c.ease)
+    path = _resolve(config, c.garment)
+    pinned = None
+    if c.pinned:
+        try:
+            pinned = np.load(_resolve(config, c.pinned)).astype(np.int64).ravel()
+        except (OSError, ValueError) as err:
+            raise InputError(config.source, "cloth.pinned", f"cannot read {c.pinned}: {err}") from None
+    try:
+        if path.lower().endswith((".usd", ".usda", ".usdc")):
+            g = garments.garment_from_usd(path, c.prim)
+            if pinned is not None:
+                g.pinned = pinned
+            return g
+        return garments.garment_from_file(path, pinned=pinned)
+    except ValueError as err:
+        raise InputError(config.source, "cloth.garment", str(err)) from None
 
 
 @dataclass
@@ -275,6 +516,7 @@ class RunResult:
     particles: int
     seconds: float
     stats: dict
+    cloth_particles: int = 0
 
 
 def run_scene(config, out_path, progress=True, on_frame=None):
@@ -288,37 +530,57 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     check_cache_path(out_path)  # before minutes of simulation, not after
     started = time.perf_counter()
     quiet_warp()
-    scene = HairScene(config)
+    scene = Scene(config)
     t = config.timing
     if t.preroll > 0.0:
         scene.advance(t.preroll, animate=False)
     end_frame = t.start_frame + t.frames - 1
-    worst = {"max_stretch": 0.0, "root_distance_max": 0.0, "root_within_5mm": 1.0, "inside_1mm": 0.0}
+    worst, agreement = {}, []
+    larger_is_worse = ("max_stretch", "root_distance_max", "inside_1mm", "cloth_stretch_p99", "cloth_stretch_max",
+                       "cloth_inside_2mm")
     bar = _progress(t.frames, progress)
     with CacheWriter(out_path, t.fps, t.start_frame, end_frame, settings=config.settings(),
                      engine_version=__version__) as writer:
-        writer.add_mesh("head", "collider", scene.head.vertices, scene.head.faces, color=SKIN_COLOR)
-        writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=HAIR_COLOR)
+        name = scene.collider_name
+        writer.add_mesh(name, "collider", scene.head.vertices, scene.head.faces, color=SKIN_COLOR)
+        if scene.model is not None:
+            writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=HAIR_COLOR)
+        if scene.cloth_model is not None:
+            cm = scene.cloth_model
+            writer.add_mesh("cloth", "cloth", cm.rest_positions_np, None, color=CLOTH_COLOR,
+                            face_counts=cm.face_counts_np, face_indices=cm.face_indices_np)
         for i in range(t.frames):
             frame = t.start_frame + i
             if i > 0:
                 scene.advance(1.0 / t.fps)
-            scene.solver.check_health(scene.state, frame, "/World/hair")
-            writer.write_frame(frame, {"head": scene.collider.posed_points(), "hair": scene.state.x.numpy()})
+            samples = {name: scene.collider.posed_points()}
+            if scene.model is not None:
+                scene.solver.check_health(scene.state, frame, "/World/hair")
+                samples["hair"] = scene.state.x.numpy()
+            if scene.cloth_model is not None:
+                scene.cloth_solver.check_health(scene.cloth_state, frame, "/World/cloth")
+                samples["cloth"] = scene.cloth_state.x.numpy()
+            writer.write_frame(frame, samples)
             if t.stats:
-                s = scene.measure()
-                worst = {"max_stretch": max(worst["max_stretch"], s["max_stretch"]),
-                         "root_distance_max": max(worst["root_distance_max"], s["root_distance_max"]),
-                         "root_within_5mm": min(worst["root_within_5mm"], s["root_within_5mm"]),
-                         "inside_1mm": max(worst["inside_1mm"], s["inside_1mm"])}
+                for key, value in scene.measure().items():
+                    if key == "walk_agreement":  # reported over the whole run and for the worst frame
+                        agreement.append(value)
+                        key = "walk_agreement_worst_frame"
+                    if key not in worst:
+                        worst[key] = value
+                    else:
+                        worst[key] = max(worst[key], value) if key in larger_is_worse else min(worst[key], value)
             if on_frame:
                 on_frame(frame, scene)
             bar.update(1)
         bar.close()
-        stats = worst if t.stats else {}
-        writer.set_metadata("cfx:stats", stats)
-    return RunResult(os.fspath(out_path), t.frames, scene.model.num_strands, scene.model.num_particles,
-                     time.perf_counter() - started, stats)
+        if agreement:
+            worst["walk_agreement"] = float(np.mean(agreement))
+        writer.set_metadata("cfx:stats", worst)
+    strands = scene.model.num_strands if scene.model is not None else 0
+    particles = scene.model.num_particles if scene.model is not None else 0
+    cloth = scene.cloth_model.num_particles if scene.cloth_model is not None else 0
+    return RunResult(os.fspath(out_path), t.frames, strands, particles, time.perf_counter() - started, worst, cloth)
 
 
 def quiet_warp():

@@ -14,9 +14,9 @@ from sim.sphere_tree import signed_distance
 
 
 @pytest.mark.slow
-def test_demo_scene_keeps_lengths_roots_and_stays_out_of_the_head(tmp_path):
+def test_hair_demo_keeps_lengths_roots_and_stays_out_of_the_head(tmp_path):
     out = str(tmp_path / "demo.usdc")
-    config = sim.demo_scene({"hair": {"count": 150}, "scene": {"preroll": 0.5}})
+    config = sim.hair_demo_scene({"hair": {"count": 150}, "scene": {"preroll": 0.5}})
     result = sim.run_scene(config, out, progress=False)
     assert validation_errors(out) == []
 

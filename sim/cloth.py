@@ -1,0 +1,286 @@
+"""Sparse particle cloth on an animated body (Oshita & Makinouchi §3): explicit RK4 with bi-phase
+springs, vertex-only body collision through a cached nearest body vertex, and following the body.
+
+ClothModel holds the garment's rest shape, masses and springs; ClothState the particles and their
+contact caches; ClothSolver.step advances state_in -> state_out by dt with a fixed sequence of
+kernel launches. The body is a sim.Collider posed for the end of the step.
+"""
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import warp as wp
+
+from warp_kernels import cloth as kernels
+from warp_kernels import collision, skinning
+
+from .errors import SimulationError
+
+STRETCH, SHEAR, BEND = 0, 1, 2
+
+
+@dataclass(frozen=True)
+class ClothParams:
+    density: float = 0.15  # kg/m^2 of cloth (cotton 0.1-0.2)
+    stretch_stiffness: float = 100.0  # N/m, edge springs longer than rest
+    compress_stiffness: float = 2.0  # N/m, edge springs shorter than rest (soft: wrinkles come later)
+    shear_stiffness: float = 8.0  # N/m, quad diagonals (same stiffness both ways)
+    bend_stiffness: float = 0.6  # N/m, springs across an edge
+    spring_damping: float = 0.02  # N s/m, dashpot along every spring
+    damping: float = 0.3  # 1/s, global velocity damping
+    air_drag: float = 0.3  # kg/(m^2 s), linear drag toward the wind per area of cloth
+    wind: tuple = (0.0, 0.0, 0.0)  # m/s
+    gravity: tuple = (0.0, -9.81, 0.0)  # m/s^2
+    friction: float = 0.4  # Coulomb coefficient at body contact
+    collision_margin: float = 0.008  # m, kept outside the body; covers the body bulging between particles
+    walk_steps: int = 16  # most steps of the nearest-vertex walk before falling back to the BVH
+    teleport: float = 0.05  # m, a particle that moved this far in one step restarts from the BVH
+    walk_trust_distance: float = 0.015  # m, farther from the body the BVH finds the nearest vertex
+    follow: bool = True  # move particles with the body before each step (§3.4)
+    follow_full_within: float = 0.02  # m: particles this close to the body follow it fully ...
+    follow_none_beyond: float = 0.08  # m: ... fading to not at all at this distance
+    strain_limit: float = 0.0  # max edge stretch after a step (0.03 = 3%); 0 = off
+    strain_iterations: int = 4  # Jacobi passes of the strain limit
+    substeps: int = 0  # per frame; 0 = from the stability bound
+    max_speed: float = 50.0  # m/s, faster particles are reported as an explosion
+
+    def __post_init__(self):
+        for name in ("density", "stretch_stiffness"):
+            if getattr(self, name) <= 0.0:
+                raise ValueError(f"{name} must be positive")
+        for name in ("compress_stiffness", "shear_stiffness", "bend_stiffness", "spring_damping", "damping",
+                     "air_drag", "friction", "collision_margin", "strain_limit"):
+            if getattr(self, name) < 0.0:
+                raise ValueError(f"{name} must be zero or positive")
+        if self.substeps < 0:
+            raise ValueError("substeps must be 0 (automatic) or positive")
+        if self.follow_none_beyond < self.follow_full_within:
+            raise ValueError("follow_none_beyond must be at least follow_full_within")
+
+    def as_dict(self):
+        return asdict(self)
+
+
+@dataclass
+class ClothState:
+    """Positions [m], velocities [m/s] and the body-contact caches that persist between steps."""
+
+    x: wp.array
+    v: wp.array
+    nearest: wp.array  # cached nearest body vertex per particle (-1: unknown)
+    follow_face: wp.array  # body face each particle was last recorded against (-1: none)
+    follow_barycentric: wp.array
+    follow_local: wp.array
+    contact: wp.array  # 1 where the particle touched the body in the last step
+
+
+class ClothModel:
+    """Rest shape, lumped masses and springs of a garment. Build with ClothModel.from_garment or
+    directly from triangles and spring pairs."""
+
+    def __init__(self, vertices, triangles, stretch_pairs, shear_pairs, bend_pairs, pinned, params=ClothParams(),
+                 device="cpu", name="cloth", face_counts=None, face_indices=None, masses=None):
+        """masses [kg] per particle override the lumped masses (density x a third of each face's area)."""
+        x = np.asarray(vertices, np.float64)
+        tris = np.asarray(triangles, np.int64).reshape(-1, 3)
+        self.name, self.device, self.params = name, device, params
+        self.num_particles = len(x)
+        self.rest_positions_np = x.astype(np.float32)
+        self.triangles_np = tris
+        self.face_counts_np = np.full(len(tris), 3) if face_counts is None else np.asarray(face_counts)
+        self.face_indices_np = tris.reshape(-1) if face_indices is None else np.asarray(face_indices)
+        if masses is None:
+            area = 0.5 * np.linalg.norm(np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]]), axis=1)
+            vertex_area = np.bincount(tris.reshape(-1), np.repeat(area / 3.0, 3), minlength=len(x))
+            if np.any(vertex_area <= 0.0):
+                raise ValueError(f"{name}: {np.count_nonzero(vertex_area <= 0)} vertices belong to no face of "
+                                 "positive area")
+            self.mass_np = params.density * vertex_area
+        else:
+            self.mass_np = np.broadcast_to(np.asarray(masses, np.float64), (len(x),)).copy()
+        self.pinned_np = np.unique(np.asarray(pinned, np.int64)) if pinned is not None else np.zeros(0, np.int64)
+        inv_mass = 1.0 / self.mass_np
+        inv_mass[self.pinned_np] = 0.0
+        self.inv_mass_np = inv_mass.astype(np.float32)
+
+        p = params
+        groups = [(stretch_pairs, STRETCH, p.stretch_stiffness, p.compress_stiffness),
+                  (shear_pairs, SHEAR, p.shear_stiffness, p.shear_stiffness),
+                  (bend_pairs, BEND, p.bend_stiffness, p.bend_stiffness)]
+        pairs, kind, ks, kc = [], [], [], []
+        for g, k, k_s, k_c in groups:
+            g = np.asarray(g, np.int64).reshape(-1, 2)
+            pairs.append(g)
+            kind.append(np.full(len(g), k))
+            ks.append(np.full(len(g), k_s))
+            kc.append(np.full(len(g), k_c))
+        pairs = np.concatenate(pairs) if sum(len(g) for g in pairs) else np.zeros((0, 2), np.int64)
+        self.spring_pairs_np, self.spring_kind_np = pairs, np.concatenate(kind)
+        self.spring_rest_np = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1)
+        if np.any(self.spring_rest_np <= 1e-9):
+            raise ValueError(f"{name}: {np.count_nonzero(self.spring_rest_np <= 1e-9)} springs have zero rest length")
+        k_stretch, k_compress = np.concatenate(ks), np.concatenate(kc)
+
+        # particle -> incident springs (CSR), so the force pass gathers without atomics
+        ends = np.concatenate([pairs[:, 0], pairs[:, 1]])
+        springs = np.tile(np.arange(len(pairs)), 2)
+        order = np.argsort(ends, kind="stable")
+        adj_start = np.concatenate([[0], np.cumsum(np.bincount(ends, minlength=len(x)))])
+
+        # Gershgorin bound on the stiffest mode: omega^2 <= max_p 2 sum_s k_s / m_p; RK4's stability
+        # interval on the imaginary axis is |omega dt| <= 2 sqrt(2)
+        k_max = np.maximum(k_stretch, k_compress)
+        row = np.bincount(ends, np.concatenate([k_max, k_max]), minlength=len(x))
+        omega = np.sqrt(np.max(2.0 * row / self.mass_np)) if len(pairs) else 0.0
+        self.stable_dt = float(0.9 * 2.0 * np.sqrt(2.0) / omega) if omega > 0.0 else np.inf
+
+        arr = lambda a, t: wp.array(a, dtype=t, device=device)  # noqa: E731
+        self.inv_mass = arr(self.inv_mass_np, float)
+        self.drag = arr(np.full(len(x), p.air_drag / p.density, np.float32), float)
+        self.adj_start = arr(adj_start.astype(np.int32), wp.int32)
+        self.adj_spring = arr(springs[order].astype(np.int32), wp.int32)
+        self.spring_i = arr(pairs[:, 0].astype(np.int32), wp.int32)
+        self.spring_j = arr(pairs[:, 1].astype(np.int32), wp.int32)
+        self.spring_rest = arr(self.spring_rest_np.astype(np.float32), float)
+        self.spring_k_stretch = arr(k_stretch.astype(np.float32), float)
+        self.spring_k_compress = arr(k_compress.astype(np.float32), float)
+        self.spring_damping = arr(np.full(len(pairs), p.spring_damping, np.float32), float)
+        self.spring_limited = arr((self.spring_kind_np == STRETCH).astype(np.int32), wp.int32)
+        self.pinned = arr(self.pinned_np.astype(np.int32), wp.int32)
+        self.bind_particle = None
+
+    @classmethod
+    def from_garment(cls, garment, params=ClothParams(), device="cpu"):
+        """A sim.garment.GarmentMesh: edges stretch, quad diagonals shear, bending pairs bend."""
+        return cls(garment.vertices, garment.triangles(), garment.edges(), garment.quad_diagonals(),
+                   garment.bending_pairs(), garment.pinned, params, device, garment.name,
+                   garment.face_counts, garment.face_indices)
+
+    def substeps_for(self, frame_dt):
+        """Substeps per frame: the user's, or the fewest that respect the stability bound."""
+        if self.params.substeps > 0:
+            return self.params.substeps
+        return max(1, int(np.ceil(frame_dt / self.stable_dt)))
+
+    def state(self):
+        d, n = self.device, self.num_particles
+        return ClothState(
+            x=wp.array(self.rest_positions_np, dtype=wp.vec3, device=d),
+            v=wp.zeros(n, dtype=wp.vec3, device=d),
+            nearest=wp.full(n, -1, dtype=wp.int32, device=d),
+            follow_face=wp.full(n, -1, dtype=wp.int32, device=d),
+            follow_barycentric=wp.zeros(n, dtype=wp.vec3, device=d),
+            follow_local=wp.zeros(n, dtype=wp.vec3, device=d),
+            contact=wp.zeros(n, dtype=wp.int32, device=d),
+        )
+
+    def bind_to_mesh(self, mesh_points, mesh_indices):
+        """Bind the pinned particles to their closest body triangles (the hair roots' binding)."""
+        if len(self.pinned_np) == 0:
+            return self
+        d = self.device
+        pts = wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=d)
+        idx = wp.array(np.asarray(mesh_indices, np.int32).reshape(-1), dtype=wp.int32, device=d)
+        mesh = wp.Mesh(points=pts, indices=idx)
+        pinned_x = wp.array(self.rest_positions_np[self.pinned_np], dtype=wp.vec3, device=d)
+        self.bind_triangle = wp.zeros(len(self.pinned_np), dtype=wp.int32, device=d)
+        self.bind_barycentric = wp.zeros(len(self.pinned_np), dtype=wp.vec3, device=d)
+        self.bind_local = wp.zeros(len(self.pinned_np), dtype=wp.vec3, device=d)
+        wp.launch(collision.mesh_closest_face, len(self.pinned_np),
+                  [pinned_x, mesh.id, 1.0e6, self.bind_triangle, self.bind_barycentric], device=d)
+        wp.launch(skinning.compute_bindings, len(self.pinned_np),
+                  [pts, idx, self.bind_triangle, self.bind_barycentric, pinned_x, self.bind_local], device=d)
+        self.bind_particle = self.pinned
+        return self
+
+
+class ClothSolver:
+    """Explicit RK4 (every stage a full force evaluation), then strain limiting, body collision and
+    the record for following the body."""
+
+    def __init__(self, model, params=None):
+        self.model = model
+        self.params = params or model.params
+        d, n = model.device, model.num_particles
+        z = lambda: wp.zeros(n, dtype=wp.vec3, device=d)  # noqa: E731
+        self.x_stage, self.v_stage, self.x_scratch, self.v_scratch = z(), z(), z(), z()
+        self.acc_x, self.acc_v = z(), z()
+        self.pin_target = z()
+        self.fallbacks = wp.zeros(1, dtype=wp.int32, device=d)
+        self._bad_count = wp.zeros(1, dtype=wp.int32, device=d)
+        self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
+
+    def step(self, state_in, state_out, body, dt):
+        """One step of dt. `body` (a Collider or None) must be posed for the end of the step."""
+        m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
+        if body is not None and p.follow:
+            wp.launch(kernels.apply_follow, n,
+                      [state_in.x, m.inv_mass, body.points, body.indices, state_in.follow_face,
+                       state_in.follow_barycentric, state_in.follow_local, p.follow_full_within,
+                       p.follow_none_beyond], device=dev)
+        if body is not None and m.bind_particle is not None:
+            wp.launch(skinning.evaluate_bindings, len(m.pinned_np),
+                      [body.points, body.indices, m.bind_particle, m.bind_triangle, m.bind_barycentric,
+                       m.bind_local, self.pin_target], device=dev)
+            wp.launch(kernels.prescribe_pinned, len(m.pinned_np), [state_in.x, self.pin_target, m.pinned, dt,
+                                                                   state_in.v], device=dev)
+        # RK4 on y = (x, v): stages at 0, dt/2, dt/2, dt, each a full force evaluation; stage states
+        # ping-pong between two buffer pairs because neighbours read a stage while it is replaced
+        x0, v0 = state_in.x, state_in.v
+        xs, vs = x0, v0
+        buffers = ((self.x_stage, self.v_stage), (self.x_scratch, self.v_scratch))
+        for k, (weight, h_next) in enumerate(((1.0, 0.5 * dt), (2.0, 0.5 * dt), (2.0, dt), (1.0, 0.0))):
+            xn, vn = buffers[k % 2]
+            wp.launch(kernels.rk4_stage, n,
+                      [x0, v0, xs, vs, m.inv_mass, m.drag, m.adj_start, m.adj_spring, m.spring_i, m.spring_j,
+                       m.spring_rest, m.spring_k_stretch, m.spring_k_compress, m.spring_damping,
+                       wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, weight, h_next, self.acc_x, self.acc_v,
+                       xn, vn], device=dev)
+            xs, vs = xn, vn
+        wp.launch(kernels.rk4_finish, n, [x0, v0, self.acc_x, self.acc_v, dt, state_out.x, state_out.v], device=dev)
+        if body is not None:
+            adj = body.adjacency()
+            wp.copy(state_out.nearest, state_in.nearest)
+            self._collide(state_in, state_out, body, adj, dt)
+        if p.strain_limit > 0.0:
+            self._limit_strain(state_out, dt)
+            if body is not None:
+                self._collide(state_out, state_out, body, adj, dt)  # contact has the last word
+        if body is not None:
+            if p.follow:
+                wp.launch(kernels.record_follow, n,
+                          [state_out.x, body.points, body.indices, adj.vf_start, adj.vf_face, state_out.nearest,
+                           state_out.follow_face, state_out.follow_barycentric, state_out.follow_local], device=dev)
+
+    def _collide(self, state_prev, state, body, adj, dt):
+        m, p = self.model, self.params
+        wp.launch(kernels.body_collide, m.num_particles,
+                  [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
+                   adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, p.walk_steps,
+                   p.teleport, p.walk_trust_distance, p.collision_margin, p.friction, dt, state.nearest,
+                   state.contact, self.fallbacks], device=m.device)
+
+    def _limit_strain(self, state, dt):
+        m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
+        wp.copy(self.x_stage, state.x)
+        src, dst = state.x, self.x_scratch
+        for _ in range(p.strain_iterations):
+            wp.launch(kernels.limit_strain, n,
+                      [src, m.inv_mass, m.adj_start, m.adj_spring, m.spring_i, m.spring_j, m.spring_rest,
+                       m.spring_limited, p.strain_limit, dst], device=dev)
+            src, dst = dst, src
+        if src is not state.x:
+            wp.copy(state.x, src)
+        wp.launch(kernels.velocity_from_correction, n, [self.x_stage, state.x, dt, state.v], device=dev)
+
+    def check_health(self, state, frame, prim):
+        from warp_kernels import strands
+
+        self._bad_count.zero_()
+        self._first_bad.fill_(np.iinfo(np.int32).max)
+        wp.launch(strands.count_unhealthy, self.model.num_particles,
+                  [state.x, state.v, self.params.max_speed, self._bad_count, self._first_bad], device=self.model.device)
+        bad = int(self._bad_count.numpy()[0])
+        if bad:
+            raise SimulationError(frame, prim, f"{bad} cloth particles are non-finite or faster than "
+                                  f"{self.params.max_speed} m/s (first: particle {int(self._first_bad.numpy()[0])})")

@@ -1,0 +1,170 @@
+"""Cloth dynamics against analytic truths and a float64 reference; body collision and following."""
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+
+from sim.cloth import ClothModel, ClothParams, ClothSolver
+from sim.collider import Collider
+from warp_kernels import cloth as kernels
+
+PLAIN = dict(damping=0.0, air_drag=0.0, spring_damping=0.0, gravity=(0.0, 0.0, 0.0), follow=False)
+
+
+def chain(points, k_stretch, k_compress, mass, pinned=(0,), **extra):
+    pts = np.asarray(points, np.float64)
+    pairs = np.stack([np.arange(len(pts) - 1), np.arange(1, len(pts))], 1)
+    params = ClothParams(stretch_stiffness=k_stretch, compress_stiffness=k_compress, **{**PLAIN, **extra})
+    return ClothModel(pts, np.zeros((0, 3)), pairs, [], [], list(pinned), params, masses=mass)
+
+
+def run(model, seconds, dt, state=None, body=None, record=None):
+    solver = ClothSolver(model)
+    s0 = state or model.state()
+    s1 = model.state()
+    out = []
+    for _ in range(int(round(seconds / dt))):
+        solver.step(s0, s1, body, dt)
+        s0, s1 = s1, s0
+        if record:
+            out.append(record(s0))
+    return s0, out
+
+
+def test_rk4_converges_at_fourth_order_on_a_mass_spring():
+    # omega = 2 pi; at 3/4 of a period the bob crosses rest at full speed, so the error there is the
+    # phase error, O(dt^4) for RK4 (at a turning point it would be the smaller amplitude error)
+    k, m, rest, amplitude, seconds = 4.0 * np.pi ** 2, 1.0, 0.1, 0.04, 0.75
+    errors = []
+    for dt in (1.0 / 20.0, 1.0 / 40.0):
+        model = chain([[0, 0, 0], [rest, 0, 0]], k, k, m)
+        state = model.state()
+        state.x.assign(np.array([[0, 0, 0], [rest + amplitude, 0, 0]], np.float32))
+        state, _ = run(model, seconds, dt, state)
+        exact = rest + amplitude * np.cos(2.0 * np.pi * seconds)
+        errors.append(abs(state.x.numpy()[1, 0] - exact))
+    ratio = errors[0] / errors[1]
+    assert 13.0 < ratio < 19.0, (errors, ratio)
+
+
+@pytest.mark.parametrize("k_compress", [2.0, 50.0])
+def test_hanging_column_stretches_as_the_analytic_static_solution(k_compress):
+    n, rest, k, m, g = 8, 0.05, 400.0, 0.01, 9.81
+    pts = np.stack([np.zeros(n + 1), -rest * np.arange(n + 1), np.zeros(n + 1)], 1)
+    model = chain(pts, k, k_compress, m, damping=4.0, gravity=(0.0, -g, 0.0))
+    state, _ = run(model, 6.0, 1.0 / 600.0)
+    stretch = -state.x.numpy()[-1, 1] - n * rest
+    expected = m * g * n * (n + 1) / (2.0 * k)
+    assert abs(stretch / expected - 1.0) < 0.01, (stretch, expected)
+
+
+def test_free_fall_with_linear_drag_matches_the_exponential_approach():
+    params = ClothParams(air_drag=0.6, density=0.15, gravity=(0.0, -9.81, 0.0), damping=0.0, follow=False)
+    model = ClothModel(np.zeros((1, 3)), np.zeros((0, 3)), [], [], [], [], params, masses=0.01)
+    c_over_m = params.air_drag / params.density
+    seconds = 1.0
+    state, _ = run(model, seconds, 1.0 / 100.0)
+    v_inf = 9.81 / c_over_m
+    expected = -v_inf * (1.0 - np.exp(-c_over_m * seconds))
+    assert abs(state.v.numpy()[0, 1] / expected - 1.0) < 1e-4
+
+
+def test_spring_force_kernel_matches_float64_reference():
+    rng = np.random.default_rng(4)
+    n = 200
+    xi, xj = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    vi, vj = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+    rest = np.linalg.norm(xi - xj, axis=1) * rng.uniform(0.7, 1.3, n)  # half stretched, half compressed
+    ks, kc, c = rng.uniform(10, 100, n), rng.uniform(0.5, 5, n), rng.uniform(0, 0.5, n)
+    x = np.concatenate([xi, xj]).astype(np.float32)
+    v = np.concatenate([vi, vj]).astype(np.float32)
+    f = wp.zeros(n, dtype=wp.vec3)
+    f32 = lambda a: wp.array(a.astype(np.float32), dtype=float)  # noqa: E731
+    wp.launch(kernels.spring_forces, n, [wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3),
+                                         wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32),
+                                         wp.array(np.arange(n, 2 * n, dtype=np.int32), dtype=wp.int32),
+                                         f32(rest), f32(ks), f32(kc), f32(c), f])
+    xi, xj, vi, vj = (a.astype(np.float32).astype(np.float64) for a in (xi, xj, vi, vj))
+    rest, ks, kc, c = (a.astype(np.float32).astype(np.float64) for a in (rest, ks, kc, c))
+    d = xi - xj
+    length = np.linalg.norm(d, axis=1)
+    u = d / length[:, None]
+    k = np.where(length > rest, ks, kc)
+    ref = -(k * (length - rest) + c * np.einsum("ij,ij->i", vi - vj, u))[:, None] * u
+    np.testing.assert_allclose(f.numpy(), ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
+
+
+def sphere_body(radius=0.3, subdivisions=4):
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    v = np.asarray(m.vertices)
+    skin_i = np.zeros((len(v), 4), np.int32)
+    skin_w = np.zeros((len(v), 4))
+    skin_w[:, 0] = 1.0
+    body = Collider("ball", v, m.faces, skin_i, skin_w, 1, "cpu", sphere_leaves=0)
+    body.set_poses(np.eye(4)[None, None])
+    body.apply_pose(0)
+    return body
+
+
+def grid(n, size, height):
+    u = np.linspace(-size / 2, size / 2, n)
+    X, Z = np.meshgrid(u, u, indexing="ij")
+    pts = np.stack([X.ravel(), np.full(n * n, height), Z.ravel()], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
+    tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+    edges = np.concatenate([np.stack([idx[:-1, :].ravel(), idx[1:, :].ravel()], 1),
+                            np.stack([idx[:, :-1].ravel(), idx[:, 1:].ravel()], 1)])
+    shear = np.concatenate([quads[:, [0, 2]], quads[:, [1, 3]]])
+    bend = np.concatenate([np.stack([idx[:-2, :].ravel(), idx[2:, :].ravel()], 1),
+                           np.stack([idx[:, :-2].ravel(), idx[:, 2:].ravel()], 1)])
+    return pts, tris, edges, shear, bend
+
+
+def test_cloth_draped_on_a_ball_ends_outside_it():
+    body = sphere_body()
+    pts, tris, edges, shear, bend = grid(20, 0.9, 0.35)
+    model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams())
+    dt = model.stable_dt
+    state, _ = run(model, 1.0, dt, body=body)
+    r = np.linalg.norm(state.x.numpy(), axis=1)
+    assert r.min() > 0.3  # nothing inside the ball
+    margin = model.params.collision_margin
+    assert np.mean(r < 0.3 + margin + 0.002) > 0.15  # and the cloth really rests on it, at the margin
+    seg = np.linalg.norm(state.x.numpy()[edges[:, 0]] - state.x.numpy()[edges[:, 1]], axis=1)
+    assert np.percentile(seg / model.spring_rest_np[:len(edges)] - 1.0, 99) < 0.05  # stiff in stretch
+
+
+def test_following_keeps_body_relative_coordinates_under_rigid_motion():
+    body = sphere_body()
+    rng = np.random.default_rng(2)
+    directions = rng.normal(size=(50, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    pts = directions * (0.3 + rng.uniform(0.002, 0.015, (50, 1)))  # within follow_full_within of the body
+    model = ClothModel(pts, np.zeros((0, 3)), [], [], [], [], ClothParams(), masses=0.001)
+    state = model.state()
+    adj = body.adjacency()
+    wp.launch(kernels.nearest_vertex_brute_force, 50, [state.x, body.points, state.nearest])
+    wp.launch(kernels.record_follow, 50, [state.x, body.points, body.indices, adj.vf_start, adj.vf_face, state.nearest,
+                                          state.follow_face, state.follow_barycentric, state.follow_local])
+    angle = 0.8
+    R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, [0.3, -0.1, 0.2]
+    body.set_poses(M[None, None])
+    body.apply_pose(0)
+    wp.launch(kernels.apply_follow, 50, [state.x, model.inv_mass, body.points, body.indices, state.follow_face,
+                                         state.follow_barycentric, state.follow_local, 0.02, 0.08])
+    np.testing.assert_allclose(state.x.numpy(), pts @ R.T + M[:3, 3], atol=1e-5)
+
+
+def test_stability_bound_picks_substeps_that_stay_stable():
+    pts, tris, edges, shear, bend = grid(12, 0.5, 0.0)
+    params = ClothParams(stretch_stiffness=400.0)
+    model = ClothModel(pts, tris, edges, shear, bend, [0, 11], params)
+    frame = 1.0 / 24.0
+    substeps = model.substeps_for(frame)
+    assert substeps == int(np.ceil(frame / model.stable_dt))
+    state, _ = run(model, 0.5, frame / substeps)
+    assert np.all(np.isfinite(state.x.numpy())) and np.abs(state.v.numpy()).max() < 10.0

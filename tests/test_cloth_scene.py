@@ -1,0 +1,145 @@
+"""Cloth in scenes: the dress on the walking built-in body, user bodies and garments, the demo."""
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+from pxr import Usd, UsdGeom, Vt
+
+import sim
+from io_usd import CacheReader, validation_errors
+from sim.cli import main
+from sim.scene import Scene
+from sim.sphere_tree import signed_distance, warp_mesh
+from warp_kernels import cloth as kernels
+
+
+@pytest.mark.slow
+def test_walk_agrees_with_brute_force_and_leaves_nothing_inside_after_a_stride():
+    config = sim.demo_scene({"hair": {"enabled": False}})
+    scene = Scene(config)
+    scene.advance(0.5, animate=False)
+    fps = config.timing.fps
+    stride = 2.0 / 1.8  # two steps at the walk's cadence of 1.8 steps/s
+    agree, total = 0, 0
+    free = scene.cloth_model.inv_mass_np > 0
+    for _ in range(int(np.ceil(stride * fps))):
+        scene.advance(1.0 / fps)
+        st, body = scene.cloth_state, scene.collider
+        truth = wp.zeros(scene.cloth_model.num_particles, dtype=wp.int32)
+        wp.launch(kernels.nearest_vertex_brute_force, len(truth), [st.x, body.points, truth])
+        x, pts = st.x.numpy(), body.points.numpy()
+        walk, brute = st.nearest.numpy(), truth.numpy()
+        tie = np.isclose(np.linalg.norm(x - pts[walk], axis=1), np.linalg.norm(x - pts[brute], axis=1), rtol=1e-6)
+        agree += np.count_nonzero(((walk == brute) | tie)[free])
+        total += np.count_nonzero(free)
+    assert agree / total >= 0.99, agree / total
+    sdf, _ = signed_distance(scene.cloth_state.x.numpy(), warp_mesh(scene.collider.points.numpy(), scene.head.faces))
+    assert sdf[free].min() > -0.001  # nothing inside the body after a full stride
+
+
+@pytest.mark.slow
+def test_demo_walks_the_dress_with_stretch_and_penetration_in_bounds(tmp_path):
+    out = str(tmp_path / "demo.usdc")
+    config = sim.demo_scene({"hair": {"count": 150}, "scene": {"preroll": 0.5}})
+    result = sim.run_scene(config, out, progress=False)
+    assert validation_errors(out) == []
+    reader = CacheReader(out)
+    assert set(reader.prims) == {"body", "hair", "cloth"}
+    assert reader.prims["cloth"].role == "cloth" and reader.prims["body"].role == "collider"
+    frames = reader.frames("cloth")
+    assert len(frames) >= 48 and reader.fps >= 24
+    cloth = reader.prims["cloth"]
+    edges = set()
+    at = 0
+    for n in cloth.counts:  # polygon edges, as the stretch springs are
+        f = cloth.indices[at:at + n]
+        edges.update(tuple(sorted((int(f[k]), int(f[(k + 1) % n])))) for k in range(n))
+        at += n
+    edges = np.array(sorted(edges))
+    faces = reader.triangles("body")
+    from sim.body import procedural_body
+    from sim.garment import fit_dress
+
+    garment = fit_dress(procedural_body(), particles=config.cloth.particles, ease=config.cloth.ease)
+    rest = np.linalg.norm(garment.vertices[edges[:, 0]] - garment.vertices[edges[:, 1]], axis=1)
+    for frame in frames:
+        x = reader.points("cloth", frame).astype(np.float64)
+        assert np.all(np.isfinite(x))
+        stretch = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
+        assert np.percentile(stretch, 99) <= 0.05, frame  # 99th-percentile edge stretch at every frame
+        body = reader.points("body", frame)
+        sdf, _ = signed_distance(x, warp_mesh(body, faces), max_dist=1.0)
+        assert np.mean(sdf < -0.002) < 0.005, frame
+    assert result.stats["walk_agreement"] >= 0.99
+    z = [reader.points("body", f)[:, 2].mean() for f in (frames[0], frames[-1])]
+    assert z[1] - z[0] > 0.5  # the character walked forward
+
+
+def _sheet_obj(path, n=8, size=0.5, height=0.36):
+    lines = []
+    u = np.linspace(-size / 2, size / 2, n)
+    for i in range(n):
+        for j in range(n):
+            lines.append(f"v {u[i]:.6f} {height:.6f} {u[j]:.6f}")
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j + 1
+            lines.append(f"f {a} {a + n} {a + n + 1} {a + 1}")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def _ball_frames(frames=12, radius=0.3):
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=radius)
+    shift = np.linspace(0.0, 0.1, frames)
+    return ball, np.stack([ball.vertices + [s, 0.0, 0.0] for s in shift])
+
+
+def test_scene_with_a_usd_body_point_cache_and_a_garment_file(tmp_path):
+    ball, frames = _ball_frames()
+    stage = Usd.Stage.CreateNew(str(tmp_path / "body.usda"))
+    stage.SetTimeCodesPerSecond(24)
+    mesh = UsdGeom.Mesh.Define(stage, "/Body")
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(ball.faces), 3, np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(ball.faces.reshape(-1).astype(np.int32)))
+    for k, pts in enumerate(frames):
+        mesh.GetPointsAttr().Set(Vt.Vec3fArray.FromNumpy(pts.astype(np.float32)), k)
+    stage.Save()
+    _sheet_obj(tmp_path / "sheet.obj")
+    scene = tmp_path / "scene.toml"
+    scene.write_text('[scene]\nframes = 12\npreroll = 0.0\n[body]\nmesh = "body.usda"\nprim = "/Body"\n'
+                     '[hair]\nenabled = false\n[cloth]\ngarment = "sheet.obj"\n')
+    out = str(tmp_path / "out.usdc")
+    assert main(["run", str(scene), "-o", out, "-q"]) == 0
+    reader = CacheReader(out)
+    assert set(reader.prims) == {"body", "cloth"} and reader.prims["cloth"].counts.tolist() == [4] * 49
+    np.testing.assert_allclose(reader.points("body", 12), frames[11], atol=1e-6)  # the point cache plays back
+    x = reader.points("cloth", 12)
+    r = np.linalg.norm(x - frames[11].mean(0), axis=1)
+    assert r.min() > 0.3 - 0.002  # the sheet fell onto the moving ball and stays outside it
+
+
+def test_scene_with_a_mesh_body_and_per_frame_points(tmp_path):
+    ball, frames = _ball_frames()
+    ball.export(tmp_path / "ball.obj")
+    np.save(tmp_path / "frames.npy", frames)
+    _sheet_obj(tmp_path / "sheet.obj")
+    scene = tmp_path / "scene.toml"
+    scene.write_text('[scene]\nframes = 6\npreroll = 0.0\n[body]\nmesh = "ball.obj"\npoints = "frames.npy"\n'
+                     '[hair]\nenabled = false\n[cloth]\ngarment = "sheet.obj"\n[cloth.solver]\nstrain_limit = 0.03\n')
+    out = str(tmp_path / "out.usdc")
+    assert main(["run", str(scene), "-o", out, "-q"]) == 0
+    np.testing.assert_allclose(CacheReader(out).points("body", 6), frames[5], atol=1e-6)
+    bad = tmp_path / "bad.toml"
+    np.save(tmp_path / "short.npy", frames[:, :10])
+    bad.write_text(scene.read_text().replace("frames.npy", "short.npy"))
+    assert main(["run", str(bad), "-o", str(tmp_path / "bad.usdc"), "-q"]) == 2
+    bad.write_text(scene.read_text().replace("strain_limit = 0.03", "strain_limt = 0.03"))
+    assert main(["run", str(bad), "-o", str(tmp_path / "bad.usdc"), "-q"]) == 2
+
+
+def test_built_in_garment_without_the_built_in_body_is_refused(tmp_path, capsys):
+    scene = tmp_path / "scene.toml"
+    scene.write_text('[cloth]\ngarment = "dress"\n')
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+    assert "cloth.garment" in capsys.readouterr().err

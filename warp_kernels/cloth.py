@@ -1,0 +1,450 @@
+"""Sparse particle cloth (Oshita & Makinouchi §3): spring forces for explicit RK4, the
+nearest-vertex body collision with its local walk, and following the body's motion.
+
+Springs are gathered per particle through a CSR adjacency (particle -> incident springs), so the
+force pass writes each particle once with no atomics and gives the same result on CPU and CUDA.
+"""
+
+import warp as wp
+
+from .skinning import face_frame, face_point
+
+
+@wp.func
+def spring_force(xi: wp.vec3, xj: wp.vec3, vi: wp.vec3, vj: wp.vec3, rest: float, k_stretch: float,
+                 k_compress: float, damping: float):
+    """Force on i from the spring (i, j): bi-phase Hooke (eq. 1 of Oshita & Makinouchi, with the
+    unit direction) plus a dashpot along the spring. Stiff when stretched, soft when compressed, so
+    the coarse cloth barely stretches but may shorten where wrinkles are added later."""
+    d = xi - xj
+    length = wp.length(d)
+    if length < 1.0e-12:
+        return wp.vec3(0.0)
+    n = d / length
+    k = k_compress
+    if length > rest:
+        k = k_stretch
+    return -(k * (length - rest) + damping * wp.dot(vi - vj, n)) * n
+
+
+@wp.func
+def particle_acceleration(
+    p: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    drag: wp.array(dtype=float),
+    adj_start: wp.array(dtype=wp.int32),
+    adj_spring: wp.array(dtype=wp.int32),
+    spring_i: wp.array(dtype=wp.int32),
+    spring_j: wp.array(dtype=wp.int32),
+    spring_rest: wp.array(dtype=float),
+    spring_k_stretch: wp.array(dtype=float),
+    spring_k_compress: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    gravity: wp.vec3,
+    wind: wp.vec3,
+    damping: float,
+):
+    """a = F/m: springs, gravity, linear air drag toward the wind (drag = c/m [1/s]), damping [1/s].
+    Pinned particles (inv_mass 0) get no acceleration: their velocity is prescribed."""
+    w = inv_mass[p]
+    if w == 0.0:
+        return wp.vec3(0.0)
+    f = wp.vec3(0.0)
+    for k in range(adj_start[p], adj_start[p + 1]):
+        s = adj_spring[k]
+        q = spring_j[s]
+        if q == p:
+            q = spring_i[s]
+        f += spring_force(x[p], x[q], v[p], v[q], spring_rest[s], spring_k_stretch[s], spring_k_compress[s],
+                          spring_damping[s])
+    return f * w + gravity + drag[p] * (wind - v[p]) - damping * v[p]
+
+
+@wp.kernel
+def spring_forces(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    spring_i: wp.array(dtype=wp.int32),
+    spring_j: wp.array(dtype=wp.int32),
+    spring_rest: wp.array(dtype=float),
+    spring_k_stretch: wp.array(dtype=float),
+    spring_k_compress: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    force: wp.array(dtype=wp.vec3),
+):
+    """Per-spring force on its first particle (the second gets the negative); for tools and tests."""
+    s = wp.tid()
+    i = spring_i[s]
+    j = spring_j[s]
+    force[s] = spring_force(x[i], x[j], v[i], v[j], spring_rest[s], spring_k_stretch[s], spring_k_compress[s],
+                            spring_damping[s])
+
+
+@wp.kernel
+def rk4_stage(
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    xs: wp.array(dtype=wp.vec3),
+    vs: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    drag: wp.array(dtype=float),
+    adj_start: wp.array(dtype=wp.int32),
+    adj_spring: wp.array(dtype=wp.int32),
+    spring_i: wp.array(dtype=wp.int32),
+    spring_j: wp.array(dtype=wp.int32),
+    spring_rest: wp.array(dtype=float),
+    spring_k_stretch: wp.array(dtype=float),
+    spring_k_compress: wp.array(dtype=float),
+    spring_damping: wp.array(dtype=float),
+    gravity: wp.vec3,
+    wind: wp.vec3,
+    damping: float,
+    weight: float,
+    h_next: float,
+    acc_x: wp.array(dtype=wp.vec3),
+    acc_v: wp.array(dtype=wp.vec3),
+    x_next: wp.array(dtype=wp.vec3),
+    v_next: wp.array(dtype=wp.vec3),
+):
+    """One RK4 stage on y = (x, v), f(y) = (v, a(x, v)): evaluate k = f(stage state), add it to the
+    accumulators with its weight (1, 2, 2, 1) and write the next stage's state y0 + h_next * k.
+    Force evaluation and stage update are fused so the stage state is read once; x_next/v_next must
+    not alias xs/vs (neighbours are still reading them)."""
+    p = wp.tid()
+    kv = particle_acceleration(p, xs, vs, inv_mass, drag, adj_start, adj_spring, spring_i, spring_j, spring_rest,
+                               spring_k_stretch, spring_k_compress, spring_damping, gravity, wind, damping)
+    kx = vs[p]
+    x_next[p] = x0[p] + h_next * kx
+    v_next[p] = v0[p] + h_next * kv
+    acc_x[p] = acc_x[p] + weight * kx
+    acc_v[p] = acc_v[p] + weight * kv
+
+
+@wp.kernel
+def rk4_finish(
+    x0: wp.array(dtype=wp.vec3),
+    v0: wp.array(dtype=wp.vec3),
+    acc_x: wp.array(dtype=wp.vec3),
+    acc_v: wp.array(dtype=wp.vec3),
+    dt: float,
+    x1: wp.array(dtype=wp.vec3),
+    v1: wp.array(dtype=wp.vec3),
+):
+    p = wp.tid()
+    x1[p] = x0[p] + (dt / 6.0) * acc_x[p]
+    v1[p] = v0[p] + (dt / 6.0) * acc_v[p]
+    acc_x[p] = wp.vec3(0.0)
+    acc_v[p] = wp.vec3(0.0)
+
+
+@wp.kernel
+def prescribe_pinned(
+    x: wp.array(dtype=wp.vec3),
+    target: wp.array(dtype=wp.vec3),
+    pinned: wp.array(dtype=wp.int32),
+    dt: float,
+    v: wp.array(dtype=wp.vec3),
+):
+    """Pinned particles move in a straight line to their bound position at the step's end."""
+    b = wp.tid()
+    p = pinned[b]
+    v[p] = (target[p] - x[p]) / dt
+
+
+@wp.kernel
+def limit_strain(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    adj_start: wp.array(dtype=wp.int32),
+    adj_spring: wp.array(dtype=wp.int32),
+    spring_i: wp.array(dtype=wp.int32),
+    spring_j: wp.array(dtype=wp.int32),
+    spring_rest: wp.array(dtype=float),
+    spring_limited: wp.array(dtype=wp.int32),
+    max_stretch: float,
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """One Jacobi pass of strain limiting: each over-stretched edge is shortened to (1 + max_stretch)
+    of its rest length, the correction split by inverse mass and averaged over a particle's edges."""
+    p = wp.tid()
+    w = inv_mass[p]
+    if w == 0.0:
+        x_out[p] = x[p]
+        return
+    corr = wp.vec3(0.0)
+    count = float(0.0)
+    for k in range(adj_start[p], adj_start[p + 1]):
+        s = adj_spring[k]
+        if spring_limited[s] == 0:
+            continue
+        q = spring_j[s]
+        if q == p:
+            q = spring_i[s]
+        d = x[p] - x[q]
+        length = wp.length(d)
+        limit = spring_rest[s] * (1.0 + max_stretch)
+        if length > limit:
+            wq = inv_mass[q]
+            corr -= (w / (w + wq)) * (length - limit) * d / length
+            count += 1.0
+    if count > 0.0:
+        x_out[p] = x[p] + corr / count
+    else:
+        x_out[p] = x[p]
+
+
+@wp.kernel
+def velocity_from_correction(x_before: wp.array(dtype=wp.vec3), x_after: wp.array(dtype=wp.vec3), dt: float,
+                             v: wp.array(dtype=wp.vec3)):
+    """Positions moved by a projection change the velocity by the same displacement over dt."""
+    p = wp.tid()
+    v[p] = v[p] + (x_after[p] - x_before[p]) / dt
+
+
+@wp.func
+def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Barycentric weights (of a, b, c) of the point of triangle abc closest to p (Ericson, RTCD §5.1.5)."""
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return wp.vec3(1.0, 0.0, 0.0)
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return wp.vec3(0.0, 1.0, 0.0)
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        t = d1 / (d1 - d3)
+        return wp.vec3(1.0 - t, t, 0.0)
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return wp.vec3(0.0, 0.0, 1.0)
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        t = d2 / (d2 - d6)
+        return wp.vec3(1.0 - t, 0.0, t)
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return wp.vec3(0.0, 1.0 - t, t)
+    denom = 1.0 / (va + vb + vc)
+    return wp.vec3(va * denom, vb * denom, vc * denom)
+
+
+@wp.func
+def walk_to_nearest_vertex(p: wp.vec3, start: int, points: wp.array(dtype=wp.vec3),
+                           vv_start: wp.array(dtype=wp.int32), vv_adj: wp.array(dtype=wp.int32), max_steps: int):
+    """Greedy walk over the vertex adjacency while the distance to p decreases (Oshita & Makinouchi
+    §3.3, after Igarashi et al.). Returns the vertex, or -1 - vertex when max_steps ran out."""
+    v = start
+    d = wp.length_sq(p - points[v])
+    steps = int(0)
+    while steps < max_steps:
+        best = v
+        for k in range(vv_start[v], vv_start[v + 1]):
+            u = vv_adj[k]
+            du = wp.length_sq(p - points[u])
+            if du < d:
+                d = du
+                best = u
+        if best == v:
+            return v
+        v = best
+        steps += 1
+    return -1 - v
+
+
+@wp.kernel
+def body_collide(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    points: wp.array(dtype=wp.vec3),
+    prev_points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    vv_start: wp.array(dtype=wp.int32),
+    vv_adj: wp.array(dtype=wp.int32),
+    vf_start: wp.array(dtype=wp.int32),
+    vf_face: wp.array(dtype=wp.int32),
+    concave: wp.array(dtype=wp.int32),
+    mesh: wp.uint64,
+    max_steps: int,
+    teleport: float,
+    trust_distance: float,
+    margin: float,
+    friction: float,
+    dt: float,
+    nearest: wp.array(dtype=wp.int32),
+    contact: wp.array(dtype=wp.int32),
+    fallbacks: wp.array(dtype=wp.int32),
+):
+    """Vertex-only body collision of Oshita & Makinouchi §3.3.
+
+    Each particle walks from its cached nearest body vertex to a local minimum of distance and is
+    inside when it lies behind every face incident to that vertex; it is then put on the surface
+    (plus margin) and its velocity relative to the body loses its inward part, with Coulomb friction
+    on the tangential part. Where the walk is not trusted (no cache yet, a jump farther than
+    `teleport` since the last step, a walk that ran out of steps, a concave vertex, or a particle
+    farther than `trust_distance` from the body, where the distance has local minima between limbs)
+    a BVH closest-point query decides and restarts the cache.
+    """
+    p = wp.tid()
+    contact[p] = 0
+    if inv_mass[p] == 0.0:
+        return
+    xp = x[p]
+    vtx = nearest[p]
+    trusted = vtx >= 0
+    if trusted:
+        if wp.length(xp - x_prev[p]) > teleport:
+            trusted = False
+    if trusted:
+        vtx = walk_to_nearest_vertex(xp, vtx, points, vv_start, vv_adj, max_steps)
+        if vtx < 0:
+            trusted = False
+            vtx = -1 - vtx
+        elif concave[vtx] != 0 or wp.length(xp - points[vtx]) > trust_distance:
+            trusted = False
+    n = wp.vec3(float(0.0), float(0.0), float(0.0))
+    depth = float(0.0)  # how far to move along n to reach margin outside the surface
+    hit = bool(False)
+    if trusted:
+        # behind every incident face: the least-inside face decides the projection
+        inside = bool(True)
+        best = float(-1.0e30)
+        for k in range(vf_start[vtx], vf_start[vtx + 1]):
+            f = vf_face[k]
+            a = points[indices[3 * f + 0]]
+            nf = wp.normalize(wp.cross(points[indices[3 * f + 1]] - a, points[indices[3 * f + 2]] - a))
+            sd = wp.dot(xp - a, nf)
+            if sd >= margin:
+                inside = False
+            if sd > best:
+                best = sd
+                n = nf
+        if inside and vf_start[vtx + 1] > vf_start[vtx]:
+            hit = True
+            depth = margin - best
+    else:
+        wp.atomic_add(fallbacks, 0, 1)
+        q = wp.mesh_query_point_sign_normal(mesh, xp, 1.0e6)
+        if q.result:
+            cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+            nf = wp.mesh_eval_face_normal(mesh, q.face)
+            sd = q.sign * wp.length(xp - cp)
+            # restart the cache at the closest corner of the closest face, then settle it locally
+            best_c = indices[3 * q.face]
+            for c in range(1, 3):
+                corner = indices[3 * q.face + c]
+                if wp.length_sq(xp - points[corner]) < wp.length_sq(xp - points[best_c]):
+                    best_c = corner
+            vtx = walk_to_nearest_vertex(xp, best_c, points, vv_start, vv_adj, max_steps)
+            if vtx < 0:
+                vtx = -1 - vtx
+            if sd < margin:
+                hit = True
+                n = nf
+                depth = margin - sd
+    nearest[p] = vtx
+    if hit:
+        x[p] = xp + depth * n
+        vb = (points[vtx] - prev_points[vtx]) / dt
+        rel = v[p] - vb
+        vn = wp.dot(rel, n)
+        if vn < 0.0:
+            tangent = rel - vn * n
+            speed = wp.length(tangent)
+            if speed > 1.0e-12:
+                tangent = tangent * wp.max(0.0, 1.0 - friction * (-vn) / speed)
+            rel = tangent
+        v[p] = vb + rel
+        contact[p] = 1
+
+
+@wp.kernel
+def nearest_vertex_brute_force(x: wp.array(dtype=wp.vec3), points: wp.array(dtype=wp.vec3),
+                               nearest: wp.array(dtype=wp.int32)):
+    """Exhaustive nearest body vertex: the truth the walk is measured against."""
+    p = wp.tid()
+    best = int(0)
+    d = wp.length_sq(x[p] - points[0])
+    for i in range(1, points.shape[0]):
+        di = wp.length_sq(x[p] - points[i])
+        if di < d:
+            d = di
+            best = i
+    nearest[p] = best
+
+
+@wp.kernel
+def record_follow(
+    x: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    vf_start: wp.array(dtype=wp.int32),
+    vf_face: wp.array(dtype=wp.int32),
+    nearest: wp.array(dtype=wp.int32),
+    face: wp.array(dtype=wp.int32),
+    barycentric: wp.array(dtype=wp.vec3),
+    local: wp.array(dtype=wp.vec3),
+):
+    """Oshita & Makinouchi §3.4, at the end of a step: each particle's coordinates relative to its
+    nearest body face (closest point's barycentric weights plus the offset in the face frame)."""
+    p = wp.tid()
+    vtx = nearest[p]
+    face[p] = -1
+    if vtx < 0:
+        return
+    xp = x[p]
+    best_d = float(1.0e30)
+    for k in range(vf_start[vtx], vf_start[vtx + 1]):
+        f = vf_face[k]
+        w = closest_on_triangle(xp, points[indices[3 * f + 0]], points[indices[3 * f + 1]], points[indices[3 * f + 2]])
+        d = wp.length_sq(xp - face_point(points, indices, f, w))
+        if d < best_d:
+            best_d = d
+            face[p] = f
+            barycentric[p] = w
+    f = face[p]
+    if f >= 0:
+        local[p] = wp.transpose(face_frame(points, indices, f)) * (xp - face_point(points, indices, f, barycentric[p]))
+
+
+@wp.kernel
+def apply_follow(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    face: wp.array(dtype=wp.int32),
+    barycentric: wp.array(dtype=wp.vec3),
+    local: wp.array(dtype=wp.vec3),
+    full_within: float,
+    none_beyond: float,
+):
+    """Oshita & Makinouchi §3.4, before a step: restore the recorded face-relative coordinates under the
+    body's new pose. Particles farther than full_within from the body follow less, none beyond
+    none_beyond, so a skirt's hem is not dragged rigidly with a leg."""
+    p = wp.tid()
+    f = face[p]
+    if f < 0 or inv_mass[p] == 0.0:
+        return
+    offset = local[p]
+    dist = wp.length(offset)
+    w = float(1.0)
+    if dist > full_within:
+        t = wp.clamp((dist - full_within) / wp.max(none_beyond - full_within, 1.0e-9), 0.0, 1.0)
+        w = 1.0 - t * t * (3.0 - 2.0 * t)
+    if w <= 0.0:
+        return
+    target = face_point(points, indices, f, barycentric[p]) + face_frame(points, indices, f) * offset
+    x[p] = x[p] + w * (target - x[p])
