@@ -504,14 +504,15 @@ def _write(images, labels, tmp, ext, fps, columns):
 
 
 def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720, columns=None, camera=None,
-            shadows=True):
+            shadows=True, follow=False):
     """Render a cache to an image or a movie and return out_path.
 
     The extension picks the output: .png is one frame (default the last) or, when `frames` lists
     several, a contact sheet of width x height tiles labelled with their frame numbers; .mp4 and .gif
     play `frames` (default all) at the cache's fps. A given camera sets the image size and view;
-    otherwise one frames the whole scene. shadows=False roughly halves the render time on software
-    GL. The file appears only once fully written.
+    otherwise one frames the whole scene, or with follow=True each frame on its own (a camera that
+    tracks a walking character). shadows=False roughly halves the render time on software GL. The
+    file appears only once fully written.
     """
     cache_path, out_path = os.fspath(cache_path), os.fspath(out_path)
     ext = os.path.splitext(out_path)[1].lower()
@@ -539,7 +540,10 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
                     disable=len(chosen) < 2, leave=False)
     try:
         with FrameRenderer(reader, camera.width, camera.height, shadows=shadows) as renderer:
-            images = (renderer.render(f, camera) for f in progress)
+            def view(f):
+                return auto_camera(reader, camera.width, camera.height, [f]) if follow else camera
+
+            images = (renderer.render(f, view(f)) for f in progress)
             _write(images, [f"frame {f}" for f in chosen], tmp, ext, reader.fps or 24.0, columns)
         os.replace(tmp, out_path)
     finally:

@@ -77,17 +77,17 @@ def cmd_demo(args):
     return cmd_run(args, config)
 
 
-def _preview(cache, out, frames, quiet, size=(960, 720)):
+def _preview(cache, out, frames, quiet, size=(960, 720), follow=False):
     from io_usd.preview import preview
 
-    preview(cache, out, frames=frames, width=size[0], height=size[1])
+    preview(cache, out, frames=frames, width=size[0], height=size[1], follow=follow)
     if not quiet:
         print(f"wrote {out}", file=sys.stderr)
 
 
 def cmd_preview(args):
     frames = _frames(args.frames) if args.frames else None
-    _preview(args.cache, args.output, frames, args.quiet, _size(args.size))
+    _preview(args.cache, args.output, frames, args.quiet, _size(args.size), args.follow)
     return 0
 
 
@@ -160,6 +160,7 @@ def build_parser():
     p.add_argument("--frames", help="frame (12), list (1,24,48) or range start:end:step; "
                                     "several frames in a .png make a contact sheet")
     p.add_argument("--size", default="960x720", help="WIDTHxHEIGHT in pixels")
+    p.add_argument("--follow", action="store_true", help="frame every frame on its own (a tracking camera)")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=cmd_preview)
 

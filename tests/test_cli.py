@@ -154,3 +154,31 @@ def test_scalp_mask_decides_where_hair_grows(tmp_path, head):
     bad = write(tmp_path, SMALL.replace("[head]", '[head]\nscalp_faces = "crown.npy"'), "bad.toml")
     np.save(tmp_path / "crown.npy", np.array([10 ** 7]))
     assert main(["run", bad, "-o", str(tmp_path / "bad.usdc"), "-q"]) == 2
+
+
+def test_follow_camera_keeps_a_moving_subject_centred(tmp_path):
+    """A ball that moves 2 m stays in the middle of every tile with --follow, not without."""
+    import trimesh
+    from PIL import Image
+
+    from io_usd.cache import CacheWriter
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.2)
+    out = str(tmp_path / "moving.usdc")
+    with CacheWriter(out, 24, 1, 3) as w:
+        w.add_mesh("ball", "collider", ball.vertices, ball.faces)
+        for f in (1, 2, 3):
+            w.write_frame(f, {"ball": ball.vertices + [(f - 1) * 1.0, 0.0, 0.0]})
+    spread = {}
+    for follow in (False, True):
+        png = tmp_path / f"sheet_{follow}.png"
+        args = ["preview", out, "-o", str(png), "--frames", "1,3", "--size", "160x120", "-q"] + (["--follow"] if follow else [])
+        assert main(args) == 0
+        img = np.asarray(Image.open(png).convert("L")).astype(float)
+        centres = []
+        for tile in (img[:120, :160], img[:120, 160:320]):
+            mask = np.abs(tile - tile[-5, -5]) > 20  # away from the label in the top-left corner
+            mask[:30, :70] = False  # the frame label
+            centres.append(np.argwhere(mask)[:, 1].mean())
+        spread[follow] = abs(centres[0] - centres[1])
+    assert spread[True] < 5.0 < spread[False]
