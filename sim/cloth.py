@@ -35,7 +35,8 @@ class ClothParams:
     collision_margin: float = 0.008  # m, kept outside the body; covers the body bulging between particles
     walk_steps: int = 16  # most steps of the nearest-vertex walk before falling back to the BVH
     teleport: float = 0.05  # m, a particle that moved this far in one step restarts from the BVH
-    walk_trust_distance: float = 0.015  # m, farther from the body the BVH finds the nearest vertex
+    walk_trust_distance: float = 0.015  # m, farther from the body the walk is re-seeded from the BVH ...
+    walk_refresh: int = 8  # ... every this many steps
     follow: bool = True  # move particles with the body before each step (§3.4)
     follow_full_within: float = 0.02  # m: particles this close to the body follow it fully ...
     follow_none_beyond: float = 0.08  # m: ... fading to not at all at this distance
@@ -207,12 +208,14 @@ class ClothSolver:
         self.acc_x, self.acc_v = z(), z()
         self.pin_target = z()
         self.fallbacks = wp.zeros(1, dtype=wp.int32, device=d)
+        self._steps = 0
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=d)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
 
     def step(self, state_in, state_out, body, dt):
         """One step of dt. `body` (a Collider or None) must be posed for the end of the step."""
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
+        self._steps += 1
         if body is not None and p.follow:
             wp.launch(kernels.apply_follow, n,
                       [state_in.x, m.inv_mass, body.points, body.indices, state_in.follow_face,
@@ -257,8 +260,8 @@ class ClothSolver:
         wp.launch(kernels.body_collide, m.num_particles,
                   [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
                    adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, p.walk_steps,
-                   p.teleport, p.walk_trust_distance, p.collision_margin, p.friction, dt, state.nearest,
-                   state.contact, self.fallbacks], device=m.device)
+                   p.teleport, p.walk_trust_distance, max(1, p.walk_refresh), self._steps, p.collision_margin,
+                   p.friction, dt, state.nearest, state.contact, self.fallbacks], device=m.device)
 
     def _limit_strain(self, state, dt):
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles

@@ -305,7 +305,7 @@ class Scene:
     def _groom(self):
         cfg, head = self.config, self.head
         rest_points = self.collider.posed_points()
-        if cfg.head.roots and not cfg.body.enabled:
+        if cfg.head.roots:
             roots, normals = self._project_roots(_load_roots(cfg))
         else:
             count = cfg.hair.count
@@ -461,8 +461,12 @@ def _load_body(config):
                                  f"expected finite (frames, {len(vertices)}, 3) positions, got {frames.shape}")
     if len(faces) == 0 or not np.all(np.isfinite(vertices)):
         raise InputError(config.source, "body.mesh", f"{b.mesh} has no faces or non-finite points")
-    body = mesh_head(b.mesh, frames[0], faces)
-    body.vertices = frames[0]
+    h = config.head
+    if config.hair.enabled and not (h.scalp_faces or h.roots):
+        raise InputError(config.source, "head.scalp_faces", "hair on a body from a file needs head.scalp_faces or "
+                         "head.roots (or [hair] enabled = false)")
+    scalp = _load_face_mask(config, len(faces)) if h.scalp_faces else None
+    body = mesh_head(b.mesh, frames[0], faces, scalp)
     return body, PointCacheMotion(frames, fps)
 
 

@@ -143,3 +143,17 @@ def test_built_in_garment_without_the_built_in_body_is_refused(tmp_path, capsys)
     scene.write_text('[cloth]\ngarment = "dress"\n')
     assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
     assert "cloth.garment" in capsys.readouterr().err
+
+
+def test_hair_on_a_body_file_needs_a_scalp(tmp_path, capsys):
+    ball, frames = _ball_frames()
+    ball.export(tmp_path / "ball.obj")
+    scene = tmp_path / "scene.toml"
+    scene.write_text('[scene]\nframes = 2\npreroll = 0.0\n[body]\nmesh = "ball.obj"\n[hair]\ncount = 10\n')
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+    assert "head.scalp_faces" in capsys.readouterr().err
+    np.save(tmp_path / "top.npy", np.flatnonzero(ball.triangles_center[:, 1] > 0.25))
+    scene.write_text(scene.read_text().replace('[hair]', '[head]\nscalp_faces = "top.npy"\n[hair]\nvertices = 6\nlength = 0.1'))
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "-q"]) == 0
+    roots = CacheReader(str(tmp_path / "x.usdc")).points("hair", 1).reshape(10, 6, 3)[:, 0]
+    assert roots[:, 1].min() > 0.24

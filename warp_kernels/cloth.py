@@ -280,6 +280,8 @@ def body_collide(
     max_steps: int,
     teleport: float,
     trust_distance: float,
+    refresh: int,
+    step_index: int,
     margin: float,
     friction: float,
     dt: float,
@@ -293,9 +295,10 @@ def body_collide(
     inside when it lies behind every face incident to that vertex; it is then put on the surface
     (plus margin) and its velocity relative to the body loses its inward part, with Coulomb friction
     on the tangential part. Where the walk is not trusted (no cache yet, a jump farther than
-    `teleport` since the last step, a walk that ran out of steps, a concave vertex, or a particle
-    farther than `trust_distance` from the body, where the distance has local minima between limbs)
-    a BVH closest-point query decides and restarts the cache.
+    `teleport` since the last step, a walk that ran out of steps, a concave vertex near the body) a
+    BVH closest-point query decides and restarts the cache. Particles farther than `trust_distance`
+    cannot collide, but their walk can stall between limbs; they are re-seeded from the BVH every
+    `refresh` steps, staggered by index, so the cost is spread out.
     """
     p = wp.tid()
     contact[p] = 0
@@ -304,6 +307,7 @@ def body_collide(
     xp = x[p]
     vtx = nearest[p]
     trusted = vtx >= 0
+    search = float(1.0e6)  # BVH query radius when the walk is not trusted
     if trusted:
         if wp.length(xp - x_prev[p]) > teleport:
             trusted = False
@@ -312,8 +316,13 @@ def body_collide(
         if vtx < 0:
             trusted = False
             vtx = -1 - vtx
-        elif concave[vtx] != 0 or wp.length(xp - points[vtx]) > trust_distance:
-            trusted = False
+        else:
+            reach = wp.length(xp - points[vtx])
+            far = reach > trust_distance
+            if (concave[vtx] != 0 and not far) or (far and (step_index + p) % refresh == 0):
+                trusted = False
+                # the closest surface point is no farther than the vertex the walk reached
+                search = reach + margin
     n = wp.vec3(float(0.0), float(0.0), float(0.0))
     depth = float(0.0)  # how far to move along n to reach margin outside the surface
     hit = bool(False)
@@ -336,7 +345,7 @@ def body_collide(
             depth = margin - best
     else:
         wp.atomic_add(fallbacks, 0, 1)
-        q = wp.mesh_query_point_sign_normal(mesh, xp, 1.0e6)
+        q = wp.mesh_query_point_sign_normal(mesh, xp, search)
         if q.result:
             cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
             nf = wp.mesh_eval_face_normal(mesh, q.face)
