@@ -503,10 +503,7 @@ def _load_garment(config, body):
             raise InputError(config.source, "cloth.pinned", f"cannot read {c.pinned}: {err}") from None
     try:
         if path.lower().endswith((".usd", ".usda", ".usdc")):
-            g = garments.garment_from_usd(path, c.prim)
-            if pinned is not None:
-                g.pinned = pinned
-            return g
+            return garments.garment_from_usd(path, c.prim, pinned=pinned)
         return garments.garment_from_file(path, pinned=pinned)
     except ValueError as err:
         raise InputError(config.source, "cloth.garment", str(err)) from None
