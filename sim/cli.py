@@ -49,6 +49,10 @@ def _report(result):
     if "max_stretch" in s:
         print(f"  hair: max segment stretch {100 * s['max_stretch']:.3f}%, roots within 5 mm of the surface "
               f"{100 * s['root_within_5mm']:.2f}%, points >1 mm inside {100 * s['inside_1mm']:.3f}%", file=sys.stderr)
+    if "cloth_substeps" in s:
+        chosen = "set by the scene" if result.cloth_substeps_fixed else "from the RK4 stability bound"
+        print(f"  cloth: {s['cloth_substeps']} substeps per frame, {chosen} (stable dt <= "
+              f"{1e3 * s['cloth_stable_dt']:.3f} ms)", file=sys.stderr)
     if "cloth_stretch_p99" in s:
         print(f"  cloth: edge stretch p99 {100 * s['cloth_stretch_p99']:.2f}% (max {100 * s['cloth_stretch_max']:.2f}%), "
               f"vertices >2 mm inside {100 * s['cloth_inside_2mm']:.3f}%, nearest-vertex walk agrees with brute "

@@ -518,6 +518,7 @@ class RunResult:
     seconds: float
     stats: dict
     cloth_particles: int = 0
+    cloth_substeps_fixed: bool = False
 
 
 def run_scene(config, out_path, progress=True, on_frame=None):
@@ -577,11 +578,15 @@ def run_scene(config, out_path, progress=True, on_frame=None):
         bar.close()
         if agreement:
             worst["walk_agreement"] = float(np.mean(agreement))
+        if scene.cloth_model is not None:
+            worst["cloth_substeps"] = scene.cloth_substeps
+            worst["cloth_stable_dt"] = scene.cloth_model.stable_dt
         writer.set_metadata("cfx:stats", worst)
     strands = scene.model.num_strands if scene.model is not None else 0
     particles = scene.model.num_particles if scene.model is not None else 0
     cloth = scene.cloth_model.num_particles if scene.cloth_model is not None else 0
-    return RunResult(os.fspath(out_path), t.frames, strands, particles, time.perf_counter() - started, worst, cloth)
+    return RunResult(os.fspath(out_path), t.frames, strands, particles, time.perf_counter() - started, worst, cloth,
+                     config.cloth_solver.substeps > 0)
 
 
 def quiet_warp():

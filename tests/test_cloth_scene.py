@@ -119,7 +119,7 @@ def test_scene_with_a_usd_body_point_cache_and_a_garment_file(tmp_path):
     assert r.min() > 0.3 - 0.002  # the sheet fell onto the moving ball and stays outside it
 
 
-def test_scene_with_a_mesh_body_and_per_frame_points(tmp_path):
+def test_scene_with_a_mesh_body_and_per_frame_points(tmp_path, capsys):
     ball, frames = _ball_frames()
     ball.export(tmp_path / "ball.obj")
     np.save(tmp_path / "frames.npy", frames)
@@ -129,6 +129,10 @@ def test_scene_with_a_mesh_body_and_per_frame_points(tmp_path):
                      '[hair]\nenabled = false\n[cloth]\ngarment = "sheet.obj"\n[cloth.solver]\nstrain_limit = 0.03\n')
     out = str(tmp_path / "out.usdc")
     assert main(["run", str(scene), "-o", out, "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "substeps per frame, from the RK4 stability bound" in err  # the bound is reported
+    stats = CacheReader(out).metadata["cfx:stats"]
+    assert stats["cloth_substeps"] == int(np.ceil((1 / 24) / stats["cloth_stable_dt"]))
     np.testing.assert_allclose(CacheReader(out).points("body", 6), frames[5], atol=1e-6)
     bad = tmp_path / "bad.toml"
     np.save(tmp_path / "short.npy", frames[:, :10])
