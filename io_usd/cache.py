@@ -85,9 +85,10 @@ class CacheWriter:
         self._prims[name] = dict(prim=prim, kind=kind, **info)
         return prim
 
-    def add_mesh(self, name, role, points, faces, color=None, animated=True, face_counts=None, face_indices=None):
+    def add_mesh(self, name, role, points, faces, color=None, animated=True, face_counts=None, face_indices=None,
+                 normals=False):
         """A mesh from faces (F, k) or a list of index lists, or from USD-style face_counts and
-        face_indices (mixed quads and triangles)."""
+        face_indices (mixed quads and triangles). normals=True: per-vertex normals come with each frame."""
         mesh = UsdGeom.Mesh.Define(self.stage, f"{ROOT}/{name}")
         if face_counts is not None:
             counts, indices = np.asarray(face_counts), np.asarray(face_indices)
@@ -101,8 +102,11 @@ class CacheWriter:
         mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
         if color is not None:
             mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([Gf.Vec3f(*color)])
+        if normals:
+            mesh.CreateNormalsAttr()
+            mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
         self._tag(mesh, name, role, "mesh", animated=animated)
-        if not animated:
+        if not animated and points is not None:
             pts = _vec3f(points)
             mesh.CreatePointsAttr(pts)
             mesh.CreateExtentAttr(_extent(pts))
@@ -125,8 +129,8 @@ class CacheWriter:
         return curves
 
     # -- frames ------------------------------------------------------------------------------
-    def write_frame(self, frame, points_by_name):
-        """Write time samples of points (and extent) for the named prims at time code `frame`."""
+    def write_frame(self, frame, points_by_name, normals_by_name=None):
+        """Write time samples of points (and extent, and normals where given) at time code `frame`."""
         t = Usd.TimeCode(float(frame))
         for name, points in points_by_name.items():
             info = self._prims[name]
@@ -134,6 +138,8 @@ class CacheWriter:
             pts = _vec3f(points)
             geom.GetPointsAttr().Set(pts, t)
             geom.GetExtentAttr().Set(_extent(pts, info.get("widths")), t)
+        for name, normals in (normals_by_name or {}).items():
+            self._prims[name]["prim"].GetNormalsAttr().Set(_vec3f(normals), t)
         self._since_flush += 1
         if self._since_flush >= self.flush_every:
             self.stage.GetRootLayer().Save()
@@ -268,6 +274,12 @@ class CacheReader:
             samples = attr.GetTimeSamples()
             frames.update(int(round(t)) for t in samples) if samples else frames.add(self.start_frame)
         return sorted(frames) or [self.start_frame]
+
+    def normals(self, name, frame):
+        """Per-vertex normals of a mesh prim at `frame`, or None where the cache has none."""
+        attr = UsdGeom.Mesh(self.stage.GetPrimAtPath(self.prims[name].path)).GetNormalsAttr()
+        value = attr.Get(Usd.TimeCode(float(frame))) if attr and attr.HasAuthoredValue() else None
+        return None if value is None else np.array(value, dtype=np.float32)
 
     def points(self, name, frame):
         attr = UsdGeom.PointBased(self.stage.GetPrimAtPath(self.prims[name].path)).GetPointsAttr()

@@ -307,13 +307,19 @@ class SceneBuilder:
             if name not in self._triangles:
                 self._triangles[name] = fan_triangles(prim.counts, prim.indices)
             faces = self._triangles[name]
-            vertices, normals, colors = points, _smooth_normals(points.astype(np.float64), faces), None
+            normals = self.reader.normals(name, frame) if prim.role == "cloth_detail" else None
+            if normals is None or len(normals) != len(points):
+                normals = _smooth_normals(points.astype(np.float64), faces)
+            vertices, colors = points, None
         primitive = pyrender.Primitive(positions=vertices, normals=normals, indices=faces, color_0=colors,
                                        material=self._material(prim, pyrender))
         return pyrender.Mesh([primitive], name=name)
 
     def meshes(self, frame, eye, focal):
-        out = {name: self.mesh(name, frame, eye, focal) for name in self.reader.prims}
+        # a garment's detail surface replaces its coarse simulation mesh in the picture
+        has_detail = any(p.role == "cloth_detail" for p in self.reader.prims.values())
+        names = [n for n, p in self.reader.prims.items() if not (has_detail and p.role == "cloth")]
+        out = {name: self.mesh(name, frame, eye, focal) for name in names}
         return {k: v for k, v in out.items() if v is not None}
 
 

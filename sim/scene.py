@@ -16,6 +16,7 @@ import warp as wp
 from . import __version__
 from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
+from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
 from .errors import InputError
 from .hair_solver import HairParams, HairSolver
@@ -111,6 +112,7 @@ class SceneConfig:
     body: BodyConfig = field(default_factory=BodyConfig)
     cloth: GarmentConfig = field(default_factory=GarmentConfig)
     cloth_solver: ClothParams = field(default_factory=ClothParams)
+    cloth_detail: DetailParams = field(default_factory=DetailParams)
 
     def settings(self):
         """Everything that determines the result, for the cache's customLayerData."""
@@ -119,7 +121,8 @@ class SceneConfig:
         if self.hair.enabled:
             out.update(hair=asdict(self.hair), solver=asdict(self.solver))
         if self.cloth.enabled:
-            out.update(cloth=asdict(self.cloth), cloth_solver=asdict(self.cloth_solver))
+            out.update(cloth=asdict(self.cloth), cloth_solver=asdict(self.cloth_solver),
+                       cloth_detail=asdict(self.cloth_detail))
         return out
 
 
@@ -156,6 +159,7 @@ def _build_config(source, data, overrides):
     data = dict(data)
     cloth_table = dict(data.get("cloth", {}))
     solver_table = cloth_table.pop("solver", {})
+    detail_table = cloth_table.pop("detail", {})
     if "cloth" in data:
         data["cloth"] = {"enabled": True, **cloth_table}
     if "body" in data:
@@ -165,6 +169,8 @@ def _build_config(source, data, overrides):
         parts[attr] = from_table(cls, data.get(section, {}), source, section, overrides.get(section))
     parts["cloth_solver"] = from_table(ClothParams, solver_table, source, "cloth.solver",
                                        overrides.get("cloth.solver"))
+    parts["cloth_detail"] = from_table(DetailParams, detail_table, source, "cloth.detail",
+                                       overrides.get("cloth.detail"))
     config = SceneConfig(source=source, **parts)
     base = os.path.dirname(os.path.abspath(source)) if source != "<demo>" else os.getcwd()
     files = [("head", k, getattr(config.head, k)) for k in ("mesh", "scalp_faces", "roots")]
@@ -283,7 +289,7 @@ class Scene:
             self.model = self._groom()
             self.solver = HairSolver(self.model, config.solver)
             self.state, self._scratch = self.model.state(), self.model.state()
-        self.cloth_model = self.cloth_solver = self.cloth_state = None
+        self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = None
         if config.cloth.enabled:
             garment = _load_garment(config, self.head)
             try:
@@ -294,6 +300,8 @@ class Scene:
             self.cloth_solver = ClothSolver(self.cloth_model)
             self.cloth_state, self._cloth_scratch = self.cloth_model.state(), self.cloth_model.state()
             self.cloth_substeps = self.cloth_model.substeps_for(1.0 / config.timing.fps)
+            if config.cloth_detail.level > 0:
+                self.cloth_detail = ClothDetail(self.cloth_model, config.cloth_detail, device)
 
     def _pose(self, times):
         """Pose the collider for each of `times` (uploaded once; apply_pose(k) picks one)."""
@@ -366,6 +374,12 @@ class Scene:
         self.cloth_solver.step(self.cloth_state, self._cloth_scratch, self.collider, dt)
         self.cloth_state, self._cloth_scratch = self._cloth_scratch, self.cloth_state
 
+    def update_detail(self):
+        """This frame's detail surface over the garment (positions, normals), or None."""
+        if self.cloth_detail is None:
+            return None
+        return self.cloth_detail.update(self.cloth_model, self.cloth_state, self.collider, 1.0 / self.config.timing.fps)
+
     def measure(self):
         """Per-frame quality numbers for hair (stretch, root drift, penetration) and cloth (edge
         stretch, penetration, how often the nearest-vertex walk agrees with brute force)."""
@@ -385,6 +399,10 @@ class Scene:
                        inside_1mm=float(np.mean(sdf < -0.001)))
         if self.cloth_model is not None:
             out.update(self.cloth_stats())
+        if self.cloth_detail is not None:
+            x = self.cloth_detail.positions.numpy()
+            out.update(detail_inside_2mm=float(np.mean(self.collider.signed_distance(x, max_dist=0.05) < -0.002)),
+                       detail_queries=self.cloth_detail.query_fraction())
         return out
 
     def cloth_stats(self):
@@ -539,7 +557,7 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     end_frame = t.start_frame + t.frames - 1
     worst, agreement = {}, []
     larger_is_worse = ("max_stretch", "root_distance_max", "inside_1mm", "cloth_stretch_p99", "cloth_stretch_max",
-                       "cloth_inside_2mm")
+                       "cloth_inside_2mm", "detail_inside_2mm", "detail_queries")
     bar = _progress(t.frames, progress)
     with CacheWriter(out_path, t.fps, t.start_frame, end_frame, settings=config.settings(),
                      engine_version=__version__) as writer:
@@ -551,6 +569,9 @@ def run_scene(config, out_path, progress=True, on_frame=None):
             cm = scene.cloth_model
             writer.add_mesh("cloth", "cloth", cm.rest_positions_np, None, color=CLOTH_COLOR,
                             face_counts=cm.face_counts_np, face_indices=cm.face_indices_np)
+        if scene.cloth_detail is not None:
+            writer.add_mesh("cloth_detail", "cloth_detail", None, scene.cloth_detail.triangles_np, color=CLOTH_COLOR,
+                            normals=True)
         for i in range(t.frames):
             frame = t.start_frame + i
             if i > 0:
@@ -559,10 +580,14 @@ def run_scene(config, out_path, progress=True, on_frame=None):
             if scene.model is not None:
                 scene.solver.check_health(scene.state, frame, "/World/hair")
                 samples["hair"] = scene.state.x.numpy()
+            normals = {}
             if scene.cloth_model is not None:
                 scene.cloth_solver.check_health(scene.cloth_state, frame, "/World/cloth")
                 samples["cloth"] = scene.cloth_state.x.numpy()
-            writer.write_frame(frame, samples)
+                detail = scene.update_detail()
+                if detail is not None:
+                    samples["cloth_detail"], normals["cloth_detail"] = detail[0].numpy(), detail[1].numpy()
+            writer.write_frame(frame, samples, normals)
             if t.stats:
                 for key, value in scene.measure().items():
                     if key == "walk_agreement":  # reported over the whole run and for the worst frame

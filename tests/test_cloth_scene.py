@@ -45,7 +45,7 @@ def test_demo_walks_the_dress_with_stretch_and_penetration_in_bounds(tmp_path):
     result = sim.run_scene(config, out, progress=False)
     assert validation_errors(out) == []
     reader = CacheReader(out)
-    assert set(reader.prims) == {"body", "hair", "cloth"}
+    assert set(reader.prims) == {"body", "hair", "cloth", "cloth_detail"}
     assert reader.prims["cloth"].role == "cloth" and reader.prims["body"].role == "collider"
     frames = reader.frames("cloth")
     assert len(frames) >= 48 and reader.fps >= 24
@@ -72,6 +72,20 @@ def test_demo_walks_the_dress_with_stretch_and_penetration_in_bounds(tmp_path):
         sdf, _ = signed_distance(x, warp_mesh(body, faces), max_dist=1.0)
         assert np.mean(sdf < -0.002) < 0.005, frame
     assert result.stats["walk_agreement"] >= 0.99
+    # the detail surface: 8x the coarse vertices or more, unit normals, manifold, outside the body
+    detail = reader.prims["cloth_detail"]
+    assert reader.prims["cloth_detail"].role == "cloth_detail"
+    assert detail.num_points >= 8 * reader.prims["cloth"].num_points
+    tris = reader.triangles("cloth_detail")
+    e = np.sort(np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]]), axis=1)
+    _, uses = np.unique(e, axis=0, return_counts=True)
+    assert uses.max() <= 2  # no non-manifold edge
+    for frame in frames[::6]:
+        n = reader.normals("cloth_detail", frame)
+        np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-4)
+        x = reader.points("cloth_detail", frame)
+        sdf, _ = signed_distance(x, warp_mesh(reader.points("body", frame), faces), max_dist=1.0)
+        assert np.mean(sdf < -0.002) < 0.01, frame
     z = [reader.points("body", f)[:, 2].mean() for f in (frames[0], frames[-1])]
     assert z[1] - z[0] > 0.5  # the character walked forward
 
@@ -112,7 +126,7 @@ def test_scene_with_a_usd_body_point_cache_and_a_garment_file(tmp_path):
     out = str(tmp_path / "out.usdc")
     assert main(["run", str(scene), "-o", out, "-q"]) == 0
     reader = CacheReader(out)
-    assert set(reader.prims) == {"body", "cloth"} and reader.prims["cloth"].counts.tolist() == [4] * 49
+    assert set(reader.prims) == {"body", "cloth", "cloth_detail"} and reader.prims["cloth"].counts.tolist() == [4] * 49
     np.testing.assert_allclose(reader.points("body", 12), frames[11], atol=1e-6)  # the point cache plays back
     x = reader.points("cloth", 12)
     r = np.linalg.norm(x - frames[11].mean(0), axis=1)

@@ -457,3 +457,29 @@ def apply_follow(
         return
     target = face_point(points, indices, f, barycentric[p]) + face_frame(points, indices, f) * offset
     x[p] = x[p] + w * (target - x[p])
+
+
+@wp.kernel
+def elastic_forces(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    adj_start: wp.array(dtype=wp.int32),
+    adj_spring: wp.array(dtype=wp.int32),
+    spring_i: wp.array(dtype=wp.int32),
+    spring_j: wp.array(dtype=wp.int32),
+    spring_rest: wp.array(dtype=float),
+    spring_k_stretch: wp.array(dtype=float),
+    spring_k_compress: wp.array(dtype=float),
+    force: wp.array(dtype=wp.vec3),
+):
+    """Net spring force on each particle, no damping, gravity or drag: the elastic force the detail
+    surface's wrinkles are driven by (Oshita & Makinouchi §4.3.1)."""
+    p = wp.tid()
+    f = wp.vec3(0.0)
+    for k in range(adj_start[p], adj_start[p + 1]):
+        s = adj_spring[k]
+        q = spring_j[s]
+        if q == p:
+            q = spring_i[s]
+        f += spring_force(x[p], x[q], v[p], v[q], spring_rest[s], spring_k_stretch[s], spring_k_compress[s], 0.0)
+    force[p] = f

@@ -1,0 +1,91 @@
+"""The detail surface over a simulated garment: wrinkles, lifting out of the body, blended normals."""
+
+import numpy as np
+import warp as wp
+
+from sim.cloth import ClothModel, ClothParams, ClothSolver
+from sim.detail import ClothDetail, DetailParams
+from test_cloth import grid, sphere_body
+
+
+def _squeezed_sheet():
+    """A flat sheet whose left half is squeezed (with ripples, so forces vary) and right half stretched."""
+    pts, tris, edges, shear, bend = grid(13, 0.6, 0.0)
+    model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams(gravity=(0.0, 0.0, 0.0)))
+    x = pts.copy()
+    left = x[:, 0] < 0.0
+    x[left, 0] *= 0.75 + 0.05 * np.sin(25.0 * x[left, 2])
+    x[~left, 0] *= 1.08
+    state = model.state()
+    state.x.assign(x.astype(np.float32))
+    return model, state, x
+
+
+def test_wrinkles_rise_only_where_edges_are_compressed():
+    model, state, x = _squeezed_sheet()
+    detail = ClothDetail(model, DetailParams(k_out_plane=20.0), "cpu")
+    for _ in range(20):
+        detail.update(model, state, None, 1.0 / 24.0)
+    height = detail.height.numpy()
+    top = detail.surface.topology
+    deficit = detail.edge_deficit.numpy()  # rest minus current, per coarse edge: > 0 compressed
+    face_edges = detail.face_edges.numpy().reshape(-1, 3)
+    compressed_face = (deficit[face_edges] > 1e-6).any(axis=1)
+    stretched_face = (deficit[face_edges] < 0.0).all(axis=1)
+    raised = height > 1e-6
+    assert raised.any()  # the squeezed half wrinkles ...
+    # ... and every raised sample lies on a coarse face with a compressed edge
+    on_compressed = np.zeros(len(height), bool)
+    for k in range(3):
+        on_compressed[top.triangles[:, k]] |= compressed_face[top.coarse_face]
+    assert np.all(on_compressed[raised])
+    inner = top.kind == 2
+    assert np.all(height[inner & stretched_face[top.owner_face]] == 0.0)  # no wrinkle in all-stretched faces
+    assert np.all(height >= 0.0)
+
+
+def test_detail_surface_ends_outside_the_body_and_the_hierarchy_saves_queries():
+    body = sphere_body()
+    pts, tris, edges, shear, bend = grid(16, 0.9, 0.35)
+    # a thin coarse margin, so the smooth surface between particles does cut into the ball
+    model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams(collision_margin=0.002))
+    solver = ClothSolver(model)
+    s0, s1 = model.state(), model.state()
+    for _ in range(int(1.0 / model.stable_dt)):
+        solver.step(s0, s1, body, model.stable_dt)
+        s0, s1 = s1, s0
+    detail = ClothDetail(model, DetailParams(), "cpu")
+    positions, normals = detail.update(model, s0, body, 1.0 / 24.0)
+    r = np.linalg.norm(positions.numpy(), axis=1)
+    assert r.min() > 0.3 - 1e-4  # no detail vertex inside the ball
+    # the coarse cloth alone cuts through the ball between particles; the PN surface without lifting too
+    base = detail.surface.positions.numpy()
+    assert np.linalg.norm(base, axis=1).min() < 0.3
+    assert detail.query_fraction() < 0.5  # most vertices were never tested
+    np.testing.assert_allclose(np.linalg.norm(normals.numpy(), axis=1), 1.0, atol=1e-5)
+
+
+def test_normals_blend_from_pn_to_the_displaced_surface_with_height():
+    model, state, _ = _squeezed_sheet()
+    h_normal = 0.004
+    detail = ClothDetail(model, DetailParams(wrinkles=False, h_normal=h_normal), "cpu")
+    detail.update(model, state, None, 1.0 / 24.0)
+    pn = detail.surface.normals.numpy().copy()
+    nv = detail.surface.topology.num_vertices
+    rng = np.random.default_rng(1)
+    height = rng.uniform(0.0, 2.0 * h_normal, nv).astype(np.float32)
+    detail.height.assign(height)
+    detail.params = DetailParams(wrinkles=False, h_normal=h_normal, height_carry=1.0)
+    positions, normals = detail.update(model, state, None, 1.0 / 24.0)
+    # reference (eqs. 13-14): area-weighted normal of the displaced surface, blended by min(1, h / h_normal)
+    x = positions.numpy().astype(np.float64)
+    tris = detail.surface.topology.triangles
+    fn = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]])
+    deform = np.zeros_like(x)
+    for k in range(3):
+        np.add.at(deform, tris[:, k], fn)
+    deform /= np.linalg.norm(deform, axis=1, keepdims=True)
+    alpha = np.clip(height / h_normal, 0.0, 1.0)[:, None]
+    ref = alpha * deform + (1.0 - alpha) * pn
+    ref /= np.linalg.norm(ref, axis=1, keepdims=True)
+    np.testing.assert_allclose(normals.numpy(), ref, atol=2e-5)

@@ -1,0 +1,563 @@
+"""Curved PN triangles (Vlachos, Peters, Boyd & Mitchell 2001): the smooth detail surface that
+Oshita & Makinouchi §4.1 lay over the coarse simulated garment every frame.
+
+Each coarse triangle becomes a cubic Bezier patch for position and a quadratic one for the normal,
+built from its three corners and their vertex normals only, so the patches of neighbouring triangles
+meet along a shared edge curve whenever the corners share their normals. Three launches per frame:
+coarse_vertex_normals (per coarse vertex), pn_coefficients (per coarse triangle), pn_evaluate (per
+detail vertex).
+
+Coefficient layout, slot 10 f + k of `control` and 6 f + k of `normal_coeffs` for triangle f:
+    control:       b300 b030 b003 b210 b120 b021 b012 b102 b201 b111
+    normal_coeffs: n200 n020 n002 n110 n011 n101
+Index i of b_ijk goes with corner 0 (P1, weight w), j with corner 1 (P2, weight u), k with corner 2
+(P3, weight v); a barycentric vec3 (w0, w1, w2) of corners 0, 1, 2 is (w, u, v).
+
+Over the PN surface, the detail surface moves each vertex along its control direction by a height
+dh (Oshita & Makinouchi eqs. 2-3): force-driven wrinkles (§4.3), lifted out of the body with a
+coarse-to-fine test (§4.2), shaded with normals blended by height (§4.4). Those kernels follow below.
+"""
+
+import warp as wp
+
+
+@wp.func
+def normalize_or(v: wp.vec3, fallback: wp.vec3):
+    """v / |v|, or fallback where v is too short to have a direction."""
+    length = wp.length(v)
+    if length > 1.0e-30:
+        return v / length
+    return fallback
+
+
+@wp.func
+def pn_edge_point(pi: wp.vec3, pj: wp.vec3, ni: wp.vec3):
+    """Control point b_ij next to corner i on edge ij: the point a third of the way to Pj, projected
+    into the tangent plane of corner i (Vlachos et al. 2001, §3.1: b_ij = (2 Pi + Pj - w_ij Ni) / 3,
+    w_ij = (Pj - Pi) . Ni)."""
+    w = wp.dot(pj - pi, ni)
+    return (2.0 * pi + pj - w * ni) / 3.0
+
+
+@wp.func
+def pn_edge_normal(pi: wp.vec3, pj: wp.vec3, ni: wp.vec3, nj: wp.vec3):
+    """Mid-edge coefficient of the quadratic normal patch: the average normal reflected in the plane
+    perpendicular to the edge (Vlachos et al. 2001, §3.2: n_ij = normalize(Ni + Nj - v_ij (Pj - Pi)),
+    v_ij = 2 (Pj - Pi) . (Ni + Nj) / |Pj - Pi|^2). A zero-length edge has no plane to reflect in:
+    v_ij = 0 there."""
+    d = pj - pi
+    dd = wp.dot(d, d)
+    v = float(0.0)
+    if dd > 1.0e-30:
+        v = 2.0 * wp.dot(d, ni + nj) / dd
+    return normalize_or(ni + nj - v * d, normalize_or(ni + nj, ni))
+
+
+@wp.func
+def pn_triangle_coefficients(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, n1: wp.vec3, n2: wp.vec3, n3: wp.vec3,
+                             f: int, control: wp.array(dtype=wp.vec3), normal_coeffs: wp.array(dtype=wp.vec3)):
+    """The ten cubic control points and six quadratic normal coefficients of one PN triangle, written
+    to slots 10 f.. and 6 f.. (layout in the module docstring)."""
+    b210 = pn_edge_point(p1, p2, n1)
+    b120 = pn_edge_point(p2, p1, n2)
+    b021 = pn_edge_point(p2, p3, n2)
+    b012 = pn_edge_point(p3, p2, n3)
+    b102 = pn_edge_point(p3, p1, n3)
+    b201 = pn_edge_point(p1, p3, n1)
+    # Vlachos et al. 2001, §3.1: the centre moves from the flat centroid V past the mean edge point E
+    e = (b210 + b120 + b021 + b012 + b102 + b201) / 6.0
+    c = (p1 + p2 + p3) / 3.0
+    b111 = e + 0.5 * (e - c)
+    o = 10 * f
+    control[o + 0] = p1
+    control[o + 1] = p2
+    control[o + 2] = p3
+    control[o + 3] = b210
+    control[o + 4] = b120
+    control[o + 5] = b021
+    control[o + 6] = b012
+    control[o + 7] = b102
+    control[o + 8] = b201
+    control[o + 9] = b111
+    o = 6 * f
+    normal_coeffs[o + 0] = n1
+    normal_coeffs[o + 1] = n2
+    normal_coeffs[o + 2] = n3
+    normal_coeffs[o + 3] = pn_edge_normal(p1, p2, n1, n2)
+    normal_coeffs[o + 4] = pn_edge_normal(p2, p3, n2, n3)
+    normal_coeffs[o + 5] = pn_edge_normal(p3, p1, n3, n1)
+
+
+@wp.func
+def pn_point(control: wp.array(dtype=wp.vec3), f: int, bary: wp.vec3):
+    """Cubic Bezier patch of triangle f at barycentric weights (w, u, v) of corners 0, 1, 2:
+    sum over i+j+k=3 of b_ijk 3!/(i! j! k!) w^i u^j v^k (Vlachos et al. 2001, eq. 1)."""
+    w = bary[0]
+    u = bary[1]
+    v = bary[2]
+    o = 10 * f
+    return (control[o + 0] * (w * w * w) + control[o + 1] * (u * u * u) + control[o + 2] * (v * v * v)
+            + control[o + 3] * (3.0 * w * w * u) + control[o + 4] * (3.0 * w * u * u)
+            + control[o + 5] * (3.0 * u * u * v) + control[o + 6] * (3.0 * u * v * v)
+            + control[o + 7] * (3.0 * w * v * v) + control[o + 8] * (3.0 * w * w * v)
+            + control[o + 9] * (6.0 * w * u * v))
+
+
+@wp.func
+def pn_normal(normal_coeffs: wp.array(dtype=wp.vec3), f: int, bary: wp.vec3):
+    """Unit quadratic normal patch of triangle f at (w, u, v) (Vlachos et al. 2001, eq. 2): sum of
+    n200 w^2 + n020 u^2 + n002 v^2 + n110 w u + n011 u v + n101 w v, normalized. Where it vanishes
+    (corner normals pointing against each other) the interpolated corner normals stand in."""
+    w = bary[0]
+    u = bary[1]
+    v = bary[2]
+    o = 6 * f
+    n1 = normal_coeffs[o + 0]
+    n2 = normal_coeffs[o + 1]
+    n3 = normal_coeffs[o + 2]
+    n = (n1 * (w * w) + n2 * (u * u) + n3 * (v * v) + normal_coeffs[o + 3] * (w * u)
+         + normal_coeffs[o + 4] * (u * v) + normal_coeffs[o + 5] * (w * v))
+    return normalize_or(n, normalize_or(w * n1 + u * n2 + v * n3, wp.vec3(0.0, 1.0, 0.0)))
+
+
+@wp.kernel
+def coarse_vertex_normals(
+    points: wp.array(dtype=wp.vec3),
+    triangles: wp.array(dtype=wp.int32),
+    vf_start: wp.array(dtype=wp.int32),
+    vf_face: wp.array(dtype=wp.int32),
+    normals: wp.array(dtype=wp.vec3),
+):
+    """Area-weighted vertex normals, gathered over the vertex -> faces CSR (no atomics).
+
+    The sum of the face cross products (twice the area times the unit normal) is normalized. Where it
+    has no reliable direction, because the incident faces have zero area or cancel (the cloth folded
+    flat onto itself), the vertex keeps its previous normal, so the caller passes last frame's normals
+    in; a previous value that is not a unit vector becomes (0, 1, 0).
+    """
+    p = wp.tid()
+    s = wp.vec3(0.0)
+    total = float(0.0)
+    for k in range(vf_start[p], vf_start[p + 1]):
+        f = vf_face[k]
+        a = points[triangles[3 * f + 0]]
+        c = wp.cross(points[triangles[3 * f + 1]] - a, points[triangles[3 * f + 2]] - a)
+        s += c
+        total += wp.length(c)
+    length = wp.length(s)
+    if length > 1.0e-30 and length > 1.0e-6 * total:
+        normals[p] = s / length
+    elif not (wp.abs(wp.length_sq(normals[p]) - 1.0) < 1.0e-3):
+        normals[p] = wp.vec3(0.0, 1.0, 0.0)
+
+
+@wp.kernel
+def pn_coefficients(
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    triangles: wp.array(dtype=wp.int32),
+    control: wp.array(dtype=wp.vec3),
+    normal_coeffs: wp.array(dtype=wp.vec3),
+):
+    """PN coefficients of every coarse triangle: control has 10 slots per triangle, normal_coeffs 6."""
+    f = wp.tid()
+    i0 = triangles[3 * f + 0]
+    i1 = triangles[3 * f + 1]
+    i2 = triangles[3 * f + 2]
+    pn_triangle_coefficients(points[i0], points[i1], points[i2], normals[i0], normals[i1], normals[i2], f, control,
+                             normal_coeffs)
+
+
+@wp.kernel
+def pn_evaluate(
+    control: wp.array(dtype=wp.vec3),
+    normal_coeffs: wp.array(dtype=wp.vec3),
+    owner_face: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+    positions: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+):
+    """Position and unit normal of each detail vertex on the patch of its owner face.
+
+    A vertex on a coarse edge (or at a coarse corner) is evaluated from one owner face only, so the
+    detail mesh, whose faces share such vertices by index, is watertight by construction even where
+    the two patches of a seam differ (split normals); the seam then follows the owner face's curve.
+    """
+    i = wp.tid()
+    f = owner_face[i]
+    positions[i] = pn_point(control, f, bary[i])
+    normals[i] = pn_normal(normal_coeffs, f, bary[i])
+
+
+@wp.kernel
+def lift_out_of_body(
+    base: wp.array(dtype=wp.vec3),
+    direction: wp.array(dtype=wp.vec3),
+    vertices: wp.array(dtype=wp.int32),
+    owner_face: wp.array(dtype=wp.int32),
+    parent: wp.array(dtype=wp.int32),
+    face_touching: wp.array(dtype=wp.int32),
+    mesh: wp.uint64,
+    side: float,
+    margin: float,
+    band: float,
+    height: wp.array(dtype=float),
+    near: wp.array(dtype=wp.int32),
+    queries: wp.array(dtype=wp.int32),
+):
+    """Oshita & Makinouchi §4.2 for one refinement level: raise heights so detail vertices leave the body.
+
+    A vertex is queried only if its coarse face has a vertex touching the body and (for levels below
+    the top) its parent sample was near the body; `near` marks samples within `band` of the surface
+    so their children are tested next. Each vertex moves along its control direction times `side`
+    (+1 or -1: which way the garment's winding faces away from the body).
+    """
+    k = wp.tid()
+    i = vertices[k]
+    near[i] = 0
+    if face_touching[owner_face[i]] == 0:
+        # untested here, so no verdict: a child in a neighbouring face that touches decides for itself
+        near[i] = 1
+        return
+    pa = parent[i]
+    if pa >= 0:
+        if near[pa] == 0:
+            return
+    wp.atomic_add(queries, 0, 1)
+    n = direction[i] * side
+    p = base[i] + height[i] * n
+    q = wp.mesh_query_point_sign_normal(mesh, p, margin + band)
+    if q.result:
+        cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+        nb = wp.mesh_eval_face_normal(mesh, q.face)
+        sd = q.sign * wp.length(p - cp)
+        near[i] = 1
+        if sd < margin:
+            # move along the control direction until the point is `margin` outside the surface plane
+            height[i] = height[i] + (margin - sd) / wp.max(wp.dot(n, nb), 0.2)
+
+
+@wp.kernel
+def faces_touching_body(
+    triangles: wp.array(dtype=wp.int32),
+    contact: wp.array(dtype=wp.int32),
+    touching: wp.array(dtype=wp.int32),
+):
+    """A coarse face is worth testing when any of its particles touched the body in the last step."""
+    f = wp.tid()
+    touching[f] = wp.max(wp.max(contact[triangles[3 * f]], contact[triangles[3 * f + 1]]), contact[triangles[3 * f + 2]])
+
+
+@wp.kernel
+def relax_heights(height: wp.array(dtype=float), keep: float):
+    """Heights carry over between frames (eq. 3) but relax, so a lift ends when the contact does."""
+    i = wp.tid()
+    height[i] = wp.max(height[i] * keep, 0.0)
+
+
+@wp.kernel
+def displace_along_directions(
+    base: wp.array(dtype=wp.vec3),
+    direction: wp.array(dtype=wp.vec3),
+    side: float,
+    height: wp.array(dtype=float),
+    positions: wp.array(dtype=wp.vec3),
+):
+    """Final vertex P_i = P_smoothed,i + dh_i n_i (eq. 2), n_i oriented away from the body by `side`."""
+    i = wp.tid()
+    positions[i] = base[i] + height[i] * side * direction[i]
+
+
+@wp.kernel
+def surface_vertex_normals(
+    positions: wp.array(dtype=wp.vec3),
+    triangles: wp.array(dtype=wp.int32),
+    vf_start: wp.array(dtype=wp.int32),
+    vf_face: wp.array(dtype=wp.int32),
+    pn_normals: wp.array(dtype=wp.vec3),
+    height: wp.array(dtype=float),
+    h_normal: float,
+    normals: wp.array(dtype=wp.vec3),
+):
+    """Oshita & Makinouchi §4.4, eqs. 13-14: blend the displaced surface's normal with the PN normal by
+    alpha = min(1, dh / h_normal), so flat regions keep the smooth PN shading and raised ones show it."""
+    i = wp.tid()
+    n = wp.vec3(0.0)
+    for k in range(vf_start[i], vf_start[i + 1]):
+        f = vf_face[k]
+        a = positions[triangles[3 * f]]
+        n += wp.cross(positions[triangles[3 * f + 1]] - a, positions[triangles[3 * f + 2]] - a)
+    deform = pn_normals[i]
+    if wp.length(n) > 1.0e-20:
+        deform = wp.normalize(n)
+    alpha = wp.clamp(height[i] / wp.max(h_normal, 1.0e-9), 0.0, 1.0)
+    blended = alpha * deform + (1.0 - alpha) * pn_normals[i]
+    if wp.length(blended) > 1.0e-12:
+        normals[i] = wp.normalize(blended)
+    else:
+        normals[i] = pn_normals[i]
+
+
+# -- wrinkles (Oshita & Makinouchi §4.3) ------------------------------------------------------------
+# Every coarse face carries a triangular grid of (n + 1)(n + 2) / 2 detail vertices: grid point (a, b)
+# lies at barycentric weights ((n - a - b), a, b) / n of the face's corners 0, 1, 2, and face_grid maps
+# it to the welded detail vertex. Lines of the grid are where forces are carried (eq. 5).
+
+
+@wp.func
+def grid_slot(a: int, b: int, n: int):
+    return a * (n + 1) - (a * (a - 1)) // 2 + b
+
+
+@wp.func
+def transmission(p_prev: wp.vec3, p: wp.vec3, p_next: wp.vec3):
+    """Eq. 4: how much force passes a sample, the cosine of the turn between its two segments (a fold
+    passes little). Clamped so a fold sharper than 90 degrees still passes a trace."""
+    d0 = p - p_prev
+    d1 = p_next - p
+    l0 = wp.length(d0)
+    l1 = wp.length(d1)
+    if l0 < 1.0e-12 or l1 < 1.0e-12:
+        return 1.0
+    return wp.max(wp.dot(d0, d1) / (l0 * l1), 0.01)
+
+
+@wp.func
+def line_point(face: int, n: int, a0: int, b0: int, da: int, db: int, k: int, face_grid: wp.array(dtype=wp.int32)):
+    return face_grid[face * ((n + 1) * (n + 2) // 2) + grid_slot(a0 + k * da, b0 + k * db, n)]
+
+
+@wp.func
+def carried_force(face: int, n: int, a0: int, b0: int, da: int, db: int, count: int, i: int,
+                  face_grid: wp.array(dtype=wp.int32), positions: wp.array(dtype=wp.vec3),
+                  f_first: wp.vec3, f_last: wp.vec3):
+    """Eq. 5 along one grid line of `count` samples (0-based i): the ends' forces blended by the share
+    of transmission accumulated up to sample i (half of its own)."""
+    total = float(0.0)
+    upto = float(0.0)
+    for k in range(1, count - 1):
+        c = transmission(positions[line_point(face, n, a0, b0, da, db, k - 1, face_grid)],
+                         positions[line_point(face, n, a0, b0, da, db, k, face_grid)],
+                         positions[line_point(face, n, a0, b0, da, db, k + 1, face_grid)])
+        total += c
+        if k < i:
+            upto += c
+        elif k == i:
+            upto += 0.5 * c
+    t = float(0.5)
+    if total > 1.0e-12:
+        t = upto / total
+    return f_first + t * (f_last - f_first)
+
+
+@wp.kernel
+def carry_forces(
+    face_grid: wp.array(dtype=wp.int32),
+    owner_face: wp.array(dtype=wp.int32),
+    n: int,
+    positions: wp.array(dtype=wp.vec3),
+    corner_vertex: wp.array(dtype=wp.int32),
+    coarse_force: wp.array(dtype=wp.vec3),
+    force: wp.array(dtype=wp.vec3),
+):
+    """Elastic force at every detail sample of one coarse face (eqs. 4-5): corners take their coarse
+    particle's force, edge samples blend the edge's ends, interior samples average the blends along
+    the grid's two line directions between edge samples. Shared samples are written by their owner."""
+    f = wp.tid()
+    slots = (n + 1) * (n + 2) // 2
+    f0 = coarse_force[corner_vertex[3 * f]]
+    f1 = coarse_force[corner_vertex[3 * f + 1]]
+    f2 = coarse_force[corner_vertex[3 * f + 2]]
+    for a in range(n + 1):
+        for b in range(n + 1 - a):
+            v = face_grid[f * slots + grid_slot(a, b, n)]
+            if owner_face[v] != f:
+                continue
+            value = wp.vec3(0.0)
+            if a == 0 and b == 0:
+                value = f0
+            elif a == n:
+                value = f1
+            elif b == n:
+                value = f2
+            elif b == 0:  # edge corner 0 -> corner 1
+                value = carried_force(f, n, 0, 0, 1, 0, n + 1, a, face_grid, positions, f0, f1)
+            elif a == 0:  # edge corner 0 -> corner 2
+                value = carried_force(f, n, 0, 0, 0, 1, n + 1, b, face_grid, positions, f0, f2)
+            elif a + b == n:  # edge corner 1 -> corner 2
+                value = carried_force(f, n, n, 0, -1, 1, n + 1, b, face_grid, positions, f1, f2)
+            else:
+                # line of constant a from (a, 0) to (a, n - a), and of constant b from (0, b) to (n - b, b);
+                # their ends lie on edges, whose forces follow from the same rule
+                ea0 = carried_force(f, n, 0, 0, 1, 0, n + 1, a, face_grid, positions, f0, f1)
+                ea1 = carried_force(f, n, n, 0, -1, 1, n + 1, n - a, face_grid, positions, f1, f2)
+                eb0 = carried_force(f, n, 0, 0, 0, 1, n + 1, b, face_grid, positions, f0, f2)
+                eb1 = carried_force(f, n, n, 0, -1, 1, n + 1, b, face_grid, positions, f1, f2)
+                along_a = carried_force(f, n, a, 0, 0, 1, n - a + 1, b, face_grid, positions, ea0, ea1)
+                along_b = carried_force(f, n, 0, b, 1, 0, n - b + 1, a, face_grid, positions, eb0, eb1)
+                value = 0.5 * (along_a + along_b)
+            force[v] = value
+
+
+@wp.kernel
+def vertical_forces(
+    positions: wp.array(dtype=wp.vec3),
+    nbr_start: wp.array(dtype=wp.int32),
+    nbr: wp.array(dtype=wp.int32),
+    force: wp.array(dtype=wp.vec3),
+    vertical: wp.array(dtype=float),
+):
+    """Eqs. 6-7: v_i = sum_j (p_i - p_j)/|p_i - p_j| . ef_j. Positive when neighbours push toward i (the
+    sample bulges), negative when they pull away (it flattens)."""
+    i = wp.tid()
+    total = float(0.0)
+    for k in range(nbr_start[i], nbr_start[i + 1]):
+        j = nbr[k]
+        d = positions[i] - positions[j]
+        length = wp.length(d)
+        if length > 1.0e-12:
+            total += wp.dot(d / length, force[j])
+    vertical[i] = total
+
+
+@wp.kernel
+def edge_length_deficit(
+    face_grid: wp.array(dtype=wp.int32),
+    edge_face: wp.array(dtype=wp.int32),
+    edge_side: wp.array(dtype=wp.int32),
+    n: int,
+    positions: wp.array(dtype=wp.vec3),
+    rest_length: wp.array(dtype=float),
+    deficit: wp.array(dtype=float),
+):
+    """Eq. 8, signed so compression is positive: rest length minus the length of the detail polyline
+    along the coarse edge. edge_side: 0 = corner 0 -> 1, 1 = corner 0 -> 2, 2 = corner 1 -> 2 of edge_face."""
+    e = wp.tid()
+    f = edge_face[e]
+    side = edge_side[e]
+    a0 = int(0)
+    da = int(1)
+    db = int(0)
+    if side == 1:
+        da = 0
+        db = 1
+    elif side == 2:
+        a0 = n
+        da = -1
+        db = 1
+    length = float(0.0)
+    for k in range(n):
+        length += wp.length(positions[line_point(f, n, a0, 0, da, db, k + 1, face_grid)]
+                            - positions[line_point(f, n, a0, 0, da, db, k, face_grid)])
+    deficit[e] = rest_length[e] - length
+
+
+@wp.kernel
+def vertex_deficit(
+    ve_start: wp.array(dtype=wp.int32),
+    ve_edge: wp.array(dtype=wp.int32),
+    edge_deficit: wp.array(dtype=float),
+    out: wp.array(dtype=float),
+):
+    """A coarse vertex's required length change: the mean over its edges (§4.3.2)."""
+    i = wp.tid()
+    total = float(0.0)
+    count = float(0.0)
+    for k in range(ve_start[i], ve_start[i + 1]):
+        total += edge_deficit[ve_edge[k]]
+        count += 1.0
+    out[i] = total / wp.max(count, 1.0)
+
+
+@wp.kernel
+def wrinkle_heights(
+    owner_face: wp.array(dtype=wp.int32),
+    bary: wp.array(dtype=wp.vec3),
+    corner_vertex: wp.array(dtype=wp.int32),
+    coarse_deficit: wp.array(dtype=float),
+    nbr_start: wp.array(dtype=wp.int32),
+    nbr: wp.array(dtype=wp.int32),
+    vertical: wp.array(dtype=float),
+    height: wp.array(dtype=float),
+    k_out_plane: float,
+    dt: float,
+    change: wp.array(dtype=float),
+):
+    """Eqs. 9-12: the height change dh_deformation of each sample.
+
+    Required length change: the coarse vertices' deficits interpolated over the face (no transmission).
+    Expected change: each neighbour adds k |v_i - v_j|, positive when the sample pushed harder is
+    already the higher one (the surface spreads), negative otherwise (eq. 10). dh_length = required /
+    expected where length is missing and rising adds it (eq. 11), limited by the force-driven k v_i dt
+    (eq. 12)."""
+    i = wp.tid()
+    f = owner_face[i]
+    w = bary[i]
+    required = (w[0] * coarse_deficit[corner_vertex[3 * f]] + w[1] * coarse_deficit[corner_vertex[3 * f + 1]]
+                + w[2] * coarse_deficit[corner_vertex[3 * f + 2]])
+    expected = float(0.0)
+    for k in range(nbr_start[i], nbr_start[i + 1]):
+        j = nbr[k]
+        dv = vertical[i] - vertical[j]
+        if dv * (height[i] - height[j]) >= 0.0:
+            expected += k_out_plane * wp.abs(dv)
+        else:
+            expected -= k_out_plane * wp.abs(dv)
+    by_force = k_out_plane * vertical[i] * dt
+    if required > 0.0 and expected > 0.0:
+        change[i] = wp.min(required / expected, by_force)
+    else:
+        # eq. 11 read with §4.3.4: only missing length raises a wrinkle; where the cloth is stretched,
+        # or rising would not add length, a sample may only sink (forces pulling it flat)
+        change[i] = wp.min(0.0, by_force)
+
+
+@wp.kernel
+def constrain_heights(
+    positions: wp.array(dtype=wp.vec3),
+    nbr_start: wp.array(dtype=wp.int32),
+    nbr: wp.array(dtype=wp.int32),
+    owner_face: wp.array(dtype=wp.int32),
+    kind: wp.array(dtype=wp.int32),
+    coarse_edge: wp.array(dtype=wp.int32),
+    edge_deficit: wp.array(dtype=float),
+    face_uncompressed: wp.array(dtype=wp.int32),
+    max_slope: float,
+    height_in: wp.array(dtype=float),
+    height_out: wp.array(dtype=float),
+):
+    """§4.3.4: dh >= 0; no sample rises more than max_slope times its distance above a neighbour (the
+    neighbour-to-neighbour length limit); no wrinkle inside a face none of whose edges is compressed
+    (the paper's all-stretched faces included) nor on a coarse edge that is not compressed."""
+    i = wp.tid()
+    h = wp.max(height_in[i], 0.0)
+    if kind[i] == 2 and face_uncompressed[owner_face[i]] != 0:
+        h = 0.0
+    if kind[i] == 1:
+        if edge_deficit[coarse_edge[i]] <= 0.0:
+            h = 0.0
+    for k in range(nbr_start[i], nbr_start[i + 1]):
+        j = nbr[k]
+        h = wp.min(h, wp.max(height_in[j], 0.0) + max_slope * wp.length(positions[i] - positions[j]))
+    height_out[i] = h
+
+
+@wp.kernel
+def faces_without_compression(
+    face_edges: wp.array(dtype=wp.int32),
+    edge_deficit: wp.array(dtype=float),
+    uncompressed: wp.array(dtype=wp.int32),
+):
+    """1 for coarse faces none of whose edges is shorter than at rest (§4.3.4)."""
+    f = wp.tid()
+    s = int(1)
+    for k in range(3):
+        if edge_deficit[face_edges[3 * f + k]] > 0.0:
+            s = 0
+    uncompressed[f] = s
+
+
+@wp.kernel
+def add_heights(height: wp.array(dtype=float), change: wp.array(dtype=float)):
+    i = wp.tid()
+    height[i] = height[i] + change[i]
