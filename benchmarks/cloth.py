@@ -1,8 +1,13 @@
-"""Cloth solver throughput: a square cloth falling onto a ball, explicit RK4 with body collision.
+"""Cloth solver and detail-surface throughput.
 
-Prints one table: particles, device, substeps per frame (from the stability bound), ms/frame,
-particle-steps/s, and the paper's figure (Oshita & Makinouchi, Table 1: 20.4 ms per frame for the
-322-particle dress on a Pentium 4 2.5 GHz, 16.0 ms integration + 4.6 ms collision).
+Table 1, the coarse simulation: a square cloth falling onto a ball, explicit RK4 with body collision:
+particles, device, substeps per frame (from the stability bound), ms/frame, particle-steps/s, and
+the paper's figure (Oshita & Makinouchi, Table 1: 20.4 ms per frame for the 322-particle dress on a
+Pentium 4 2.5 GHz, 16.0 ms integration + 4.6 ms collision).
+
+Table 2, the detail surface per frame: the built-in dress on the built-in body at level 6 (the
+paper's garment: 597 coarse triangles, 10,912 detail vertices, 51.6 ms surface on the Pentium 4) and a
+1M-vertex surface; PN evaluation alone and the whole pipeline (wrinkles, lift out of the body, normals).
 
     python benchmarks/cloth.py                         # 322, 10k, 100k, 1M particles on cpu (and cuda)
     python benchmarks/cloth.py --particles 322 --device cuda
@@ -78,10 +83,65 @@ def time_substeps(model, body, min_seconds=1.0):
     return 1e3 * (time.perf_counter() - start) / done, substeps
 
 
+def time_detail(device, frames=10):
+    """The dress on the walking body, a few steps in, then the detail update timed."""
+    from sim.body import BodyAnimation, procedural_body
+    from sim.detail import ClothDetail, DetailParams
+    from sim.garment import fit_dress
+
+    body = procedural_body()
+    collider = Collider("body", body.vertices, body.faces, body.skin_indices, body.skin_weights, body.num_bones,
+                        device, sphere_leaves=0)
+    collider.set_poses(BodyAnimation.preset("walk").bone_matrices([0.0]))
+    collider.apply_pose(0)
+    model = ClothModel.from_garment(fit_dress(body), ClothParams(), device)
+    model.bind_to_mesh(body.vertices, body.faces)
+    solver = ClothSolver(model)
+    s0, s1 = model.state(), model.state()
+    for _ in range(200):
+        solver.step(s0, s1, collider, model.stable_dt)
+        s0, s1 = s1, s0
+    detail = ClothDetail(model, DetailParams(), device)
+    rows = []
+    for label, run in (("PN evaluation", lambda: detail.surface.update(s0.x)),
+                       ("detail pipeline", lambda: detail.update(model, s0, collider, 1.0 / 30.0))):
+        run()
+        wp.synchronize_device(device)
+        start = time.perf_counter()
+        for _ in range(frames):
+            run()
+        wp.synchronize_device(device)
+        rows.append((label, len(model.triangles_np), detail.surface.topology.num_vertices,
+                     1e3 * (time.perf_counter() - start) / frames))
+    return rows
+
+
+def time_detail_million(device, frames=3):
+    """PN evaluation and the pipeline without a body (no lift) on a 1M-vertex surface."""
+    from sim.detail import ClothDetail, DetailParams
+
+    model, _ = build(28_000, device)  # 167 x 167 grid: 55.8k coarse triangles -> 1.0M detail vertices at level 6
+    detail = ClothDetail(model, DetailParams(), device)
+    state = model.state()
+    rows = []
+    for label, run in (("PN evaluation", lambda: detail.surface.update(state.x)),
+                       ("detail pipeline (no body)", lambda: detail.update(model, state, None, 1.0 / 30.0))):
+        run()
+        wp.synchronize_device(device)
+        start = time.perf_counter()
+        for _ in range(frames):
+            run()
+        wp.synchronize_device(device)
+        rows.append((label, len(model.triangles_np), detail.surface.topology.num_vertices,
+                     1e3 * (time.perf_counter() - start) / frames))
+    return rows
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--particles", type=int, nargs="*", default=[322, 10_000, 100_000, 1_000_000])
     parser.add_argument("--device", nargs="*", default=None)
+    parser.add_argument("--detail-only", action="store_true", help="only the detail-surface table")
     args = parser.parse_args()
     quiet_warp()
     wp.init()
@@ -91,7 +151,7 @@ def main():
     print("| particles | springs | device | substeps/frame | ms/substep | ms/frame | particle-steps/s | "
           "paper (P4 2.5 GHz) ms/frame |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for target in args.particles:
+    for target in ([] if args.detail_only else args.particles):
         for device in devices:
             model, body = build(target, device)
             ms_sub, substeps = time_substeps(model, body)
@@ -99,6 +159,13 @@ def main():
             paper = PAPER_MS.get(target, "-")
             print(f"| {model.num_particles} | {len(model.spring_pairs_np)} | {device} | {substeps} | {ms_sub:.3f} | "
                   f"{ms_sub * substeps:.1f} | {rate:.3g} | {paper} |", flush=True)
+    print()
+    print("| detail surface | coarse triangles | detail vertices | device | ms/frame | paper (P4 2.5 GHz) ms/frame |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for device in devices:
+        for label, tris, verts, ms in time_detail(device) + time_detail_million(device):
+            paper = "51.6 (10,912 vertices)" if verts < 20_000 and label == "detail pipeline" else "-"
+            print(f"| {label} | {tris} | {verts} | {device} | {ms:.2f} | {paper} |", flush=True)
 
 
 if __name__ == "__main__":

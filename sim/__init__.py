@@ -11,6 +11,7 @@ from sim.Collider around sim.procedural_head() or sim.procedural_body().
 __version__ = "0.1.0"
 
 from .collider import Collider  # noqa: E402
+from .detail import ClothDetail, DetailParams, DetailSurface, DetailTopology  # noqa: E402
 from .errors import InputError, SimulationError  # noqa: E402
 from .hair_solver import HairParams, HairSolver  # noqa: E402
 from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp  # noqa: E402
@@ -25,7 +26,8 @@ from .strands import HairModel, HairState, StrandBuilder  # noqa: E402
 
 __all__ = [
     "BodyAnimation", "BodyAsset", "BodyConfig", "GARMENTS", "GarmentMesh", "Skeleton", "fit_dress", "fit_shirt",
-    "fit_skirt", "garment_from_file", "garment_from_usd", "procedural_body", "ClothModel", "ClothParams", "ClothSolver", "ClothState", "Collider", "GarmentConfig",
+    "fit_skirt", "garment_from_file", "garment_from_usd", "procedural_body", "ClothDetail", "ClothModel", "ClothParams", "ClothSolver", "ClothState", "Collider", "DetailParams",
+    "DetailSurface", "DetailTopology", "GarmentConfig",
     "HairModel", "HairParams", "HairSolver", "HairState", "HairstyleParams", "HeadAnimation", "HeadAsset",
     "HeadConfig", "InputError", "RunResult", "Scene", "SceneConfig", "SimulationError", "SphereTree",
     "StrandBuilder", "TimingConfig", "build_sphere_tree", "demo_scene", "grow_hairstyle", "hair_demo_scene",
