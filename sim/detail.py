@@ -237,6 +237,8 @@ class DetailParams:
     level: int = 6  # tessellation level: n x n detail triangles per coarse triangle (the paper: 6); 0 = none
     margin: float = 0.003  # m, detail vertices kept this far outside the body
     band: float = 0.01  # m, a sample this close to the body makes its finer neighbours be tested (§4.2)
+    # eq. 3 carries dh from the last frame; carrying all of it would keep a lift forever after the
+    # contact ends (only wrinkles and the dh >= 0 clamp ever lower it), so a share is carried
     height_carry: float = 0.85  # share of last frame's height carried into this frame (eq. 3)
     wrinkles: bool = True  # force-driven wrinkles (§4.3)
     k_out_plane: float = 1.0  # m/(N s), how far a sample may move per unit vertical force and time (eq. 12)
