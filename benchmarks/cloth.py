@@ -102,18 +102,9 @@ def time_detail(device, frames=10):
         solver.step(s0, s1, collider, model.stable_dt)
         s0, s1 = s1, s0
     detail = ClothDetail(model, DetailParams(), device)
-    rows = []
-    for label, run in (("PN evaluation", lambda: detail.surface.update(s0.x)),
-                       ("detail pipeline", lambda: detail.update(model, s0, collider, 1.0 / 30.0))):
-        run()
-        wp.synchronize_device(device)
-        start = time.perf_counter()
-        for _ in range(frames):
-            run()
-        wp.synchronize_device(device)
-        rows.append((label, len(model.triangles_np), detail.surface.topology.num_vertices,
-                     1e3 * (time.perf_counter() - start) / frames))
-    return rows
+    return _time_detail_runs(detail, model, (("PN evaluation", lambda: detail.surface.update(s0.x)),
+                                             ("detail pipeline", lambda: detail.update(model, s0, collider, 1 / 30))),
+                             device, frames)
 
 
 def time_detail_million(device, frames=3):
@@ -123,9 +114,15 @@ def time_detail_million(device, frames=3):
     model, _ = build(28_000, device)  # 167 x 167 grid: 55.8k coarse triangles -> 1.0M detail vertices at level 6
     detail = ClothDetail(model, DetailParams(), device)
     state = model.state()
+    return _time_detail_runs(detail, model, (("PN evaluation", lambda: detail.surface.update(state.x)),
+                                             ("detail pipeline (no body)",
+                                              lambda: detail.update(model, state, None, 1 / 30))), device, frames)
+
+
+def _time_detail_runs(detail, model, runs, device, frames):
+    """(label, coarse triangles, detail vertices, ms per call) for each (label, callable), warmed up once."""
     rows = []
-    for label, run in (("PN evaluation", lambda: detail.surface.update(state.x)),
-                       ("detail pipeline (no body)", lambda: detail.update(model, state, None, 1.0 / 30.0))):
+    for label, run in runs:
         run()
         wp.synchronize_device(device)
         start = time.perf_counter()
