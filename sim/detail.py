@@ -243,6 +243,7 @@ class DetailParams:
     wrinkles: bool = True  # force-driven wrinkles (§4.3)
     k_out_plane: float = 1.0  # m/(N s), how far a sample may move per unit vertical force and time (eq. 12)
     max_slope: float = 0.6  # a sample rises at most this times its distance above a neighbour (§4.3.4)
+    smoothing: int = 2  # Jacobi passes over the heights before the constraints (0: the paper's model)
     h_normal: float = 0.004  # m, height at which the displaced surface's normal fully takes over (eq. 13)
 
     def __post_init__(self):
@@ -250,6 +251,8 @@ class DetailParams:
             raise ValueError("level must be 0 (no detail surface) or positive")
         if not (0.0 <= self.height_carry <= 1.0):
             raise ValueError("height_carry must be in [0, 1]")
+        if self.smoothing < 0:
+            raise ValueError("smoothing must be zero or positive")
         for name in ("margin", "band", "k_out_plane", "max_slope", "h_normal"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"{name} must be zero or positive")
@@ -397,6 +400,9 @@ class ClothDetail:
                                                 self.nbr_start, self.nbr, self.vertical, self.height, p.k_out_plane,
                                                 dt, self.change], device=dev)
         wp.launch(kernels.add_heights, nv, [self.height, self.change], device=dev)
+        for _ in range(p.smoothing):
+            wp.launch(kernels.smooth_heights, nv, [self.nbr_start, self.nbr, self.height, self.height_tmp], device=dev)
+            self.height, self.height_tmp = self.height_tmp, self.height
         wp.launch(kernels.constrain_heights, nv, [base, self.nbr_start, self.nbr, self.owner_face, self.kind,
                                                   self.coarse_edge, self.edge_deficit, self.uncompressed, p.max_slope,
                                                   self.height, self.height_tmp], device=dev)

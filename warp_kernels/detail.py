@@ -561,3 +561,24 @@ def faces_without_compression(
 def add_heights(height: wp.array(dtype=float), change: wp.array(dtype=float)):
     i = wp.tid()
     height[i] = height[i] + change[i]
+
+
+@wp.kernel
+def smooth_heights(
+    nbr_start: wp.array(dtype=wp.int32),
+    nbr: wp.array(dtype=wp.int32),
+    height_in: wp.array(dtype=float),
+    height_out: wp.array(dtype=float),
+):
+    """One Jacobi pass halfway to the neighbours' mean height: per-sample forces are noisy, and
+    unsmoothed heights read as pimples rather than folds."""
+    i = wp.tid()
+    total = float(0.0)
+    count = float(0.0)
+    for k in range(nbr_start[i], nbr_start[i + 1]):
+        total += height_in[nbr[k]]
+        count += 1.0
+    h = height_in[i]
+    if count > 0.0:
+        h = 0.5 * h + 0.5 * total / count
+    height_out[i] = h
