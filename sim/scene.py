@@ -337,9 +337,6 @@ class Scene:
         n = np.einsum("nk,nkj->nj", bary, normals[self.head.faces[face]])
         return closest, n / np.linalg.norm(n, axis=1, keepdims=True)
 
-    def substep_dt(self):
-        return 1.0 / (self.config.timing.fps * self.config.solver.substeps)
-
     def advance(self, duration, animate=True):
         """Simulate `duration` seconds; with animate=False the collider holds its pose (preroll).
         Hair and cloth each take their own substeps across the frame against the same collider."""
