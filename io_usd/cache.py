@@ -10,7 +10,7 @@ import os
 from dataclasses import dataclass, field
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, Vt
+from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
 
 ROLES = ("hair", "cloth", "cloth_detail", "collider", "face", "hair_card")
 ROOT = "/World"
@@ -100,8 +100,7 @@ class CacheWriter:
         mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
         mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
         mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
-        if color is not None:
-            mesh.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([Gf.Vec3f(*color)])
+        _display_color(mesh, color)
         if normals:
             mesh.CreateNormalsAttr()
             mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
@@ -111,6 +110,66 @@ class CacheWriter:
             mesh.CreatePointsAttr(pts)
             mesh.CreateExtentAttr(_extent(pts))
         return mesh
+
+    def add_blend_shape_rig(self, name, points, faces, shape_names, offsets, color=None, joint="head"):
+        """A UsdSkel rig that replays a blend-shape animation: SkelRoot `name` with a one-joint
+        Skeleton, a SkelAnimation (joint transform and blendShapeWeights per frame), and the mesh in
+        its rest pose with one BlendShape per shape (offsets (S, V, 3), stored sparsely).
+
+        It carries no cfx:role and is invisible: it is the same animation as the role-tagged mesh, in
+        the form DCCs retarget (shape keys), not a second copy to draw."""
+        base = f"{ROOT}/{name}"
+        root = UsdSkel.Root.Define(self.stage, base)
+        root.CreateVisibilityAttr(UsdGeom.Tokens.invisible)
+        skel = UsdSkel.Skeleton.Define(self.stage, f"{base}/skeleton")
+        identity = Vt.Matrix4dArray([Gf.Matrix4d(1.0)])
+        skel.CreateJointsAttr([joint])
+        skel.CreateBindTransformsAttr(identity)
+        skel.CreateRestTransformsAttr(identity)
+        anim = UsdSkel.Animation.Define(self.stage, f"{base}/skeleton/animation")
+        anim.CreateJointsAttr([joint])
+        anim.CreateBlendShapesAttr(list(shape_names))
+        anim.CreateTranslationsAttr()
+        anim.CreateRotationsAttr()
+        anim.CreateScalesAttr()
+        anim.CreateBlendShapeWeightsAttr()
+        UsdSkel.BindingAPI.Apply(skel.GetPrim()).CreateAnimationSourceRel().SetTargets([anim.GetPath()])
+
+        mesh = UsdGeom.Mesh.Define(self.stage, f"{base}/mesh")
+        faces = np.asarray(faces)
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(faces), faces.shape[1], np.int32)))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(faces.reshape(-1).astype(np.int32)))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        pts = _vec3f(points)
+        mesh.CreatePointsAttr(pts)
+        mesh.CreateExtentAttr(_extent(pts))
+        _display_color(mesh, color)
+        binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+        binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+        binding.CreateJointIndicesPrimvar(True, 1).Set(Vt.IntArray([0]))
+        binding.CreateJointWeightsPrimvar(True, 1).Set(Vt.FloatArray([1.0]))
+        binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+        binding.CreateBlendShapesAttr(list(shape_names))
+        targets = []
+        for shape_name, offset in zip(shape_names, np.asarray(offsets)):
+            moved = np.nonzero(np.abs(offset).max(axis=1) > 0.0)[0]
+            shape = UsdSkel.BlendShape.Define(self.stage, f"{base}/mesh/{shape_name}")
+            shape.CreateOffsetsAttr(_vec3f(offset[moved]))
+            shape.CreatePointIndicesAttr(Vt.IntArray.FromNumpy(moved.astype(np.int32)))
+            targets.append(shape.GetPath())
+        binding.CreateBlendShapeTargetsRel().SetTargets(targets)
+        self._prims[name] = dict(prim=anim, kind="skel")
+        return root
+
+    def write_blend_shape_frame(self, name, frame, weights, transform):
+        """One frame of a blend-shape rig: shape weights and the joint's 4x4 transform (column vectors)."""
+        anim = self._prims[name]["prim"]
+        t = Usd.TimeCode(float(frame))
+        m = np.asarray(transform, np.float64)
+        anim.GetTranslationsAttr().Set(Vt.Vec3fArray([Gf.Vec3f(*m[:3, 3])]), t)
+        anim.GetRotationsAttr().Set(Vt.QuatfArray([Gf.Quatf(Gf.Matrix4d(m.T.tolist()).ExtractRotationQuat())]), t)
+        anim.GetScalesAttr().Set(Vt.Vec3hArray([Gf.Vec3h(1.0, 1.0, 1.0)]), t)
+        anim.GetBlendShapeWeightsAttr().Set(Vt.FloatArray.FromNumpy(np.asarray(weights, np.float32)), t)
 
     def add_curves(self, name, role, counts, widths, color=None):
         """Linear, nonperiodic BasisCurves with per-vertex widths [m]; points come per frame."""
@@ -186,6 +245,17 @@ class CacheWriter:
         return False
 
 
+def _display_color(gprim, color):
+    """A constant colour (3,) or per-vertex colours (V, 3)."""
+    if color is None:
+        return
+    color = np.asarray(color, np.float32)
+    if color.ndim == 1:
+        gprim.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([Gf.Vec3f(*color.tolist())])
+    else:
+        gprim.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(_vec3f(color))
+
+
 def _usd_dict(d):
     """customLayerData accepts nested dicts of bool, int, float, str; tuples become float lists."""
     out = {}
@@ -215,6 +285,7 @@ class CachePrim:
     indices: np.ndarray = field(default=None)  # faceVertexIndices (meshes)
     widths: np.ndarray = field(default=None)  # curves
     color: tuple = field(default=None)
+    vertex_colors: np.ndarray = field(default=None)  # (V, 3) where displayColor is per vertex
 
 
 class CacheReader:
@@ -241,11 +312,15 @@ class CacheReader:
                 continue
             name = prim.GetName()
             role = str(role_attr.Get())
-            color = None
+            color = vertex_colors = None
             gprim = UsdGeom.Gprim(prim)
             dc = gprim.GetDisplayColorPrimvar()
             if dc and dc.HasAuthoredValue():
-                color = tuple(float(c) for c in dc.Get()[0])
+                values = np.array(dc.Get(), np.float32)
+                if dc.GetInterpolation() == UsdGeom.Tokens.vertex:
+                    vertex_colors = values
+                else:
+                    color = tuple(float(c) for c in values[0])
             if prim.IsA(UsdGeom.BasisCurves):
                 c = UsdGeom.BasisCurves(prim)
                 counts = np.array(c.GetCurveVertexCountsAttr().Get(), np.int32)
@@ -258,7 +333,8 @@ class CacheReader:
                 indices = np.array(m.GetFaceVertexIndicesAttr().Get(), np.int32)
                 pts = m.GetPointsAttr().Get(Usd.TimeCode(self.start_frame))
                 self.prims[name] = CachePrim(name, str(prim.GetPath()), role, "mesh",
-                                             0 if pts is None else len(pts), counts, indices=indices, color=color)
+                                             0 if pts is None else len(pts), counts, indices=indices, color=color,
+                                             vertex_colors=vertex_colors)
 
     @property
     def complete(self):

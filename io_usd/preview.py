@@ -280,7 +280,8 @@ class SceneBuilder:
     def _material(self, prim, pyrender):
         if prim.name not in self._materials:
             curves = prim.kind == "curves"
-            rgb = (1.0, 1.0, 1.0) if curves else self._color(prim)  # curves carry vertex colours
+            painted = curves or prim.vertex_colors is not None  # these carry vertex colours
+            rgb = (1.0, 1.0, 1.0) if painted else self._color(prim)
             self._materials[prim.name] = pyrender.MetallicRoughnessMaterial(
                 baseColorFactor=(*rgb, 1.0), metallicFactor=0.0, roughnessFactor=0.45 if curves else 0.65,
                 doubleSided=prim.role != "collider")
@@ -310,7 +311,9 @@ class SceneBuilder:
             normals = self.reader.normals(name, frame) if prim.role == "cloth_detail" else None
             if normals is None or len(normals) != len(points):
                 normals = _smooth_normals(points.astype(np.float64), faces)
-            vertices, colors = points, None
+            vertices, colors = points, prim.vertex_colors
+            if colors is not None and len(colors) != len(points):
+                colors = None
         primitive = pyrender.Primitive(positions=vertices, normals=normals, indices=faces, color_0=colors,
                                        material=self._material(prim, pyrender))
         return pyrender.Mesh([primitive], name=name)

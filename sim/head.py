@@ -65,6 +65,25 @@ def _smoothstep(t):
     return t * t * (3.0 - 2.0 * t)
 
 
+def bust_surface(y, theta):
+    """Points (len(y), len(theta), 3) of the bust's smooth surface at heights y [m] and ring angles
+    theta [rad] (pi/2 faces front, +Z). Each ring is a superellipse pushed out radially by the bumps."""
+    y, theta = np.atleast_1d(np.asarray(y, np.float64)), np.atleast_1d(np.asarray(theta, np.float64))
+    prof = PchipInterpolator(_PROFILE[:, 0], _PROFILE[:, 1:], axis=0)
+    a, b, cz, e = prof(y).T
+    c, s = np.cos(theta)[None, :], np.sin(theta)[None, :]
+    ex = 2.0 / e[:, None]
+    x = a[:, None] * np.sign(c) * np.abs(c) ** ex
+    z = b[:, None] * np.sign(s) * np.abs(s) ** ex
+    bump = np.zeros((len(y), len(theta)))
+    for hy, ang, amp, sy, sa in _BUMPS:
+        d_ang = np.angle(np.exp(1j * (theta[None, :] - ang)))
+        bump += amp * np.exp(-0.5 * ((y[:, None] - hy) / sy) ** 2 - 0.5 * (d_ang / sa) ** 2)
+    r = np.hypot(x, z)
+    scale = (r + bump) / np.maximum(r, 1e-9)
+    return np.stack([x * scale, np.repeat(y[:, None], len(theta), 1), z * scale + cz[:, None]], -1)
+
+
 def procedural_head(rings=72, segments=64):
     """The built-in bust: about rings x segments vertices, closed and consistently wound."""
     prof = PchipInterpolator(_PROFILE[:, 0], _PROFILE[:, 1:], axis=0)
@@ -73,19 +92,8 @@ def procedural_head(rings=72, segments=64):
     p = prof(y_dense)
     arc = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(y_dense), np.diff(p[:, 0])))])
     y = np.interp(np.linspace(0.0, arc[-1], rings + 2)[1:-1], arc, y_dense)
-    a, b, cz, e = prof(y).T
     theta = np.linspace(0.0, 2.0 * np.pi, segments, endpoint=False)
-    c, s = np.cos(theta)[None, :], np.sin(theta)[None, :]
-    ex = 2.0 / e[:, None]
-    x = a[:, None] * np.sign(c) * np.abs(c) ** ex
-    z = b[:, None] * np.sign(s) * np.abs(s) ** ex
-    bump = np.zeros((rings, segments))
-    for hy, ang, amp, sy, sa in _BUMPS:
-        d_ang = np.angle(np.exp(1j * (theta[None, :] - ang)))
-        bump += amp * np.exp(-0.5 * ((y[:, None] - hy) / sy) ** 2 - 0.5 * (d_ang / sa) ** 2)
-    r = np.hypot(x, z)
-    scale = (r + bump) / np.maximum(r, 1e-9)
-    ring_pts = np.stack([x * scale, np.repeat(y[:, None], segments, 1), z * scale + cz[:, None]], -1)
+    ring_pts = bust_surface(y, theta)
 
     bottom = np.array([[0.0, 0.0, 0.0]])
     top = np.array([[0.0, _PROFILE[-1, 0], _PROFILE[-1, 3]]])

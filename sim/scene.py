@@ -8,7 +8,7 @@ run_scene(config, "out.usdc").
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 import warp as wp
@@ -19,6 +19,7 @@ from .collider import Collider
 from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
 from .errors import InputError
+from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
 from .hair_solver import HairParams, HairSolver
 from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp, scalp_area
 from .head import HeadAnimation, mesh_head, procedural_head
@@ -113,6 +114,7 @@ class SceneConfig:
     cloth: GarmentConfig = field(default_factory=GarmentConfig)
     cloth_solver: ClothParams = field(default_factory=ClothParams)
     cloth_detail: DetailParams = field(default_factory=DetailParams)
+    face: FaceConfig = field(default_factory=FaceConfig)
 
     def settings(self):
         """Everything that determines the result, for the cache's customLayerData."""
@@ -123,12 +125,17 @@ class SceneConfig:
         if self.cloth.enabled:
             out.update(cloth=asdict(self.cloth), cloth_solver=asdict(self.cloth_solver),
                        cloth_detail=asdict(self.cloth_detail))
+        if self.face.enabled:
+            face = asdict(self.face)
+            face["expressions"] = [{"frame": k.frame, "emotion": k.emotion, "weight": k.weight,
+                                    "aus": {str(a): v for a, v in k.action_units}} for k in self.face.expressions]
+            out["face"] = face
         return out
 
 
 SECTIONS = {"scene": ("timing", TimingConfig), "head": ("head", HeadConfig),
             "hair": ("hair", HairstyleParams), "solver": ("solver", HairParams),
-            "body": ("body", BodyConfig), "cloth": ("cloth", GarmentConfig)}
+            "body": ("body", BodyConfig), "cloth": ("cloth", GarmentConfig), "face": ("face", FaceConfig)}
 
 
 def load_scene(path, overrides=None):
@@ -164,6 +171,13 @@ def _build_config(source, data, overrides):
         data["cloth"] = {"enabled": True, **cloth_table}
     if "body" in data:
         data["body"] = {"enabled": True, **data["body"]}
+    expressions = ()
+    if "face" in data:
+        face_table = dict(data["face"]) if isinstance(data["face"], dict) else data["face"]
+        if isinstance(face_table, dict):
+            expressions = parse_expressions(face_table.pop("expressions", []), source)
+            face_table = {"enabled": True, **face_table}
+        data["face"] = face_table
     parts = {}
     for section, (attr, cls) in SECTIONS.items():
         parts[attr] = from_table(cls, data.get(section, {}), source, section, overrides.get(section))
@@ -171,16 +185,30 @@ def _build_config(source, data, overrides):
                                        overrides.get("cloth.solver"))
     parts["cloth_detail"] = from_table(DetailParams, detail_table, source, "cloth.detail",
                                        overrides.get("cloth.detail"))
+    if expressions:
+        parts["face"] = replace(parts["face"], expressions=expressions)
     config = SceneConfig(source=source, **parts)
     base = os.path.dirname(os.path.abspath(source)) if source != "<demo>" else os.getcwd()
     files = [("head", k, getattr(config.head, k)) for k in ("mesh", "scalp_faces", "roots")]
     files += [("body", k, getattr(config.body, k)) for k in ("mesh", "points")]
     files += [("cloth", k, getattr(config.cloth, k)) for k in ("pinned",)]
+    files += [("face", k, getattr(config.face, k)) for k in ("mesh", "features")]
+    if config.face.audio != "builtin":
+        files.append(("face", "audio", config.face.audio))
+    if os.sep in config.face.voice or config.face.voice.startswith("."):
+        files.append(("face", "voice", config.face.voice))
     if config.cloth.garment not in _garment_names():
         files.append(("cloth", "garment", config.cloth.garment))
     for section, key, value in files:
         if value and value != "builtin" and not os.path.exists(os.path.join(base, value)):
             raise InputError(source, f"{section}.{key}", f"file not found: {value}")
+    f = config.face
+    if f.enabled and f.mesh == "builtin" and (config.head.mesh != "builtin" if not config.body.enabled
+                                              else config.body.mesh != "builtin"):
+        raise InputError(source, "face.mesh", "the built-in face fits only the built-in head and body: give "
+                                              "face.mesh and face.features for your own head")
+    if f.enabled and f.mesh != "builtin" and not f.features:
+        raise InputError(source, "face.features", "a face mesh needs its feature-point map (JSON name -> vertex)")
     if config.cloth.enabled and not config.body.enabled and config.cloth.garment in _garment_names():
         raise InputError(source, "cloth.garment", "built-in garments are fitted to the built-in body: add a [body] table")
     return config
@@ -302,6 +330,40 @@ class Scene:
             self.cloth_substeps = self.cloth_model.substeps_for(1.0 / config.timing.fps)
             if config.cloth_detail.level > 0:
                 self.cloth_detail = ClothDetail(self.cloth_model, config.cloth_detail, device)
+        self.face_rig = self.face_animation = None
+        if config.face.enabled:
+            self.face_rig = FaceRig(self._face_mesh(), device)
+            self.face_rig.attach(self.collider)
+            self.face_animation = FaceAnimation(config.face.expressions, _mouth_track(config),
+                                                config.face.audio_start)
+
+    def _face_mesh(self):
+        cfg = self.config
+        if cfg.face.mesh != "builtin":
+            try:
+                return face_from_file(_resolve(cfg, cfg.face.mesh), _resolve(cfg, cfg.face.features))
+            except (OSError, ValueError) as err:
+                raise InputError(cfg.source, "face.mesh", str(err)) from None
+        import trimesh
+
+        normals = trimesh.Trimesh(self.head.vertices, self.head.faces, process=False).vertex_normals
+
+        def project(points):
+            closest, face, bary = self.collider.closest_points(points)
+            n = np.einsum("nk,nkj->nj", bary, normals[self.head.faces[face]])
+            return closest, n / np.linalg.norm(n, axis=1, keepdims=True)
+
+        offset = getattr(self.head, "head_offset", (0.0, 0.0, 0.0)) if cfg.body.enabled else (0.0, 0.0, 0.0)
+        return builtin_face(project, cfg.face.lift, offset, cfg.face.resolution)
+
+    def face_frame(self, frame):
+        """The face at time code `frame` on the collider's current pose: (points (V, 3), shape
+        weights (S,), head transform 4x4), or None without a face."""
+        if self.face_rig is None:
+            return None
+        weights = self.face_animation.weights(self.face_rig, frame)
+        transform = self.face_rig.head_transform(self.collider)
+        return self.face_rig.posed_points(self.collider, weights).numpy().copy(), weights, transform
 
     def _pose(self, times):
         """Pose the collider for each of `times` (uploaded once; apply_pose(k) picks one)."""
@@ -569,6 +631,11 @@ def run_scene(config, out_path, progress=True, on_frame=None):
         if scene.cloth_detail is not None:
             writer.add_mesh("cloth_detail", "cloth_detail", None, scene.cloth_detail.triangles_np, color=CLOTH_COLOR,
                             normals=True)
+        if scene.face_rig is not None:
+            rig = scene.face_rig
+            writer.add_mesh("face", "face", None, rig.mesh.faces, color=rig.mesh.colors)
+            writer.add_blend_shape_rig("face_rig", rig.mesh.vertices, rig.mesh.faces, rig.shape_names, rig.offsets,
+                                       color=rig.mesh.colors)
         for i in range(t.frames):
             frame = t.start_frame + i
             if i > 0:
@@ -584,6 +651,11 @@ def run_scene(config, out_path, progress=True, on_frame=None):
                 detail = scene.update_detail()
                 if detail is not None:
                     samples["cloth_detail"], normals["cloth_detail"] = detail[0].numpy(), detail[1].numpy()
+            face = scene.face_frame(frame)
+            if face is not None:
+                _check_finite(face[0], frame, "/World/face")
+                samples["face"] = face[0]
+                writer.write_blend_shape_frame("face_rig", frame, face[1], face[2])
             writer.write_frame(frame, samples, normals)
             if t.stats:
                 for key, value in scene.measure().items():
@@ -609,6 +681,27 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     cloth = scene.cloth_model.num_particles if scene.cloth_model is not None else 0
     return RunResult(os.fspath(out_path), t.frames, strands, particles, time.perf_counter() - started, worst, cloth,
                      config.cloth_solver.substeps > 0)
+
+
+def _check_finite(points, frame, prim):
+    from .errors import SimulationError
+
+    if not np.all(np.isfinite(points)):
+        raise SimulationError(frame, prim, "non-finite positions")
+
+
+def _mouth_track(config):
+    """Mouth parameters (T, 13) [mm] per frame from the face's audio, or None without audio."""
+    f = config.face
+    if not f.audio:
+        return None
+    from . import lipsync
+
+    path = lipsync.DEMO_LINE if f.audio == "builtin" else _resolve(config, f.audio)
+    samples = lipsync.load_audio(path)
+    weights = lipsync.weights_for_voice(f.voice if os.sep not in f.voice else _resolve(config, f.voice),
+                                        source=config.source)
+    return lipsync.mouth_track(samples, config.timing.fps, weights)
 
 
 def quiet_warp():

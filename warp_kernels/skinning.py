@@ -82,3 +82,52 @@ def compute_bindings(
     f = bind_triangle[b]
     frame = face_frame(mesh_points, mesh_indices, f)
     bind_local[b] = wp.transpose(frame) * (positions[b] - face_point(mesh_points, mesh_indices, f, bind_barycentric[b]))
+
+
+@wp.func
+def blended_offset(shape_start: wp.array(dtype=wp.int32), shape_index: wp.array(dtype=wp.int32),
+                   shape_offset: wp.array(dtype=wp.vec3), weights: wp.array(dtype=float), v: int):
+    """Sum of vertex v's blend-shape offsets (stored per vertex, CSR) times the shapes' weights."""
+    d = wp.vec3(0.0)
+    for k in range(shape_start[v], shape_start[v + 1]):
+        d += weights[shape_index[k]] * shape_offset[k]
+    return d
+
+
+@wp.kernel
+def blend_shape_points(
+    rest_points: wp.array(dtype=wp.vec3),
+    shape_start: wp.array(dtype=wp.int32),
+    shape_index: wp.array(dtype=wp.int32),
+    shape_offset: wp.array(dtype=wp.vec3),
+    weights: wp.array(dtype=float),
+    points: wp.array(dtype=wp.vec3),
+):
+    """Rest points plus weighted blend-shape offsets, in the rig's own (rest) frame."""
+    v = wp.tid()
+    points[v] = rest_points[v] + blended_offset(shape_start, shape_index, shape_offset, weights, v)
+
+
+@wp.kernel
+def blend_shape_bound_points(
+    shape_start: wp.array(dtype=wp.int32),
+    shape_index: wp.array(dtype=wp.int32),
+    shape_offset: wp.array(dtype=wp.vec3),
+    weights: wp.array(dtype=float),
+    rest_mesh_points: wp.array(dtype=wp.vec3),
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+):
+    """A blend-shape rig riding a deforming mesh: each vertex is bound to a triangle (evaluate_bindings)
+    and its offset, authored in the rest pose, turns with that triangle's frame."""
+    v = wp.tid()
+    f = bind_triangle[v]
+    d = blended_offset(shape_start, shape_index, shape_offset, weights, v)
+    rest_frame = face_frame(rest_mesh_points, mesh_indices, f)
+    frame = face_frame(mesh_points, mesh_indices, f)
+    points[v] = face_point(mesh_points, mesh_indices, f, bind_barycentric[v]) + frame * (
+        bind_local[v] + wp.transpose(rest_frame) * d)

@@ -1,0 +1,281 @@
+"""The face rig: action units, mouth parameters, emotions, the Warp kernels against NumPy, the posed
+face on a moving head, and the UsdSkel blend-shape export against the rig."""
+
+import numpy as np
+import pytest
+
+from sim.errors import InputError
+from sim.face import (ACTION_UNITS, EMOTIONS, FEATURE_POINTS, ExpressionKey, FaceAnimation, FaceRig,
+                      builtin_face, interpolate_shape, rigid_fit)
+from sim.mouth import MOUTH_PARAMETERS, VOWEL_SHAPES, VOWELS, mouth_from_weights, nearest_vowel
+
+
+@pytest.fixture(scope="module")
+def rig():
+    from sim.scene import quiet_warp
+
+    quiet_warp()
+    return FaceRig(builtin_face(resolution=1), "cpu")
+
+
+def _expected_feature_moves(rig, definition):
+    """Feature name -> displacement [m] straight from the authored (outward, up, forward) mm."""
+    out = {}
+    for name, (o, u, f) in definition.vectors.items():
+        names = [name] if name in rig.mesh.features else [name + "_l", name + "_r"]
+        for n in names:
+            sign = -1.0 if n.endswith("_r") else 1.0
+            out[n] = 1e-3 * np.array([sign * o, u, f])
+    return out
+
+
+def test_face_has_the_papers_feature_points(rig):
+    assert len(FEATURE_POINTS) == 48
+    assert set(rig.mesh.features) == set(FEATURE_POINTS)
+    assert len(set(rig.mesh.features.values())) == 48
+    # left features sit at +X, their twins mirrored
+    v = rig.mesh.vertices
+    for name in FEATURE_POINTS:
+        if name.endswith("_l"):
+            a, b = v[rig.mesh.features[name]], v[rig.mesh.features[name[:-2] + "_r"]]
+            assert a[0] > 0.005 and b[0] < -0.005
+            np.testing.assert_allclose(a * [-1, 1, 1], b, atol=2e-3)
+
+
+@pytest.mark.parametrize("au", sorted(ACTION_UNITS))
+def test_action_unit_moves_its_features_exactly_and_nothing_outside(rig, au):
+    k = rig.au_numbers.index(au)
+    weights = np.zeros(rig.num_shapes)
+    weights[k] = 1.0
+    moved = rig.deform(weights) - rig.mesh.vertices.astype(np.float32)  # float32, as the kernel sees them
+    expected = _expected_feature_moves(rig, ACTION_UNITS[au])
+    for name, vec in expected.items():
+        np.testing.assert_allclose(moved[rig.mesh.features[name]], vec, atol=1e-6)
+    # the feature points it holds (within its radius) stay put
+    for name in rig.constrained[k]:
+        if name not in expected:
+            np.testing.assert_allclose(moved[rig.mesh.features[name]], 0.0, atol=1e-6)
+    # vertices farther than the radius from every constrained point do not move at all
+    uv = rig.mesh.surface_uv
+    centres = uv[[rig.mesh.features[n] for n in rig.constrained[k]]]
+    far = np.linalg.norm(uv[:, None] - centres[None], axis=-1).min(1) >= ACTION_UNITS[au].radius
+    assert far.sum() > 100
+    assert np.all(moved[far] == 0.0)
+    # and it does move a neighbourhood, smoothly (no vertex beyond 1.5x the largest authored move)
+    biggest = max(np.linalg.norm(v) for v in expected.values())
+    assert np.linalg.norm(moved, axis=1).max() <= 1.5 * biggest
+
+
+def test_kernel_matches_float64_blend_of_offsets(rig):
+    rng = np.random.default_rng(3)
+    w = rng.uniform(-1.0, 1.0, rig.num_shapes)
+    w[len(rig.au_numbers):] *= 8.0  # mouth parameters in mm
+    ref = rig.mesh.vertices + np.einsum("s,svk->vk", w, rig.offsets)
+    np.testing.assert_allclose(rig.deform(w), ref, atol=2e-6)
+
+
+def test_mouth_parameters_move_their_control_points_in_millimetres(rig):
+    mouth = np.zeros(len(MOUTH_PARAMETERS))
+    mouth[MOUTH_PARAMETERS.index("jaw_vertical")] = -12.0
+    mouth[MOUTH_PARAMETERS.index("corner_horizontal")] = 5.0
+    moved = rig.deform(rig.weights(None, mouth)) - rig.mesh.vertices
+    f = rig.mesh.features
+    np.testing.assert_allclose(moved[f["chin"]], [0.0, -0.012, 0.0], atol=1e-6)
+    np.testing.assert_allclose(moved[f["mouth_corner_l"]], [0.005, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(moved[f["mouth_corner_r"]], [-0.005, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(moved[f["upper_lip_bottom"]], 0.0, atol=1e-6)  # held: the jaw opens below it
+
+
+def test_vowel_bases_interpolate_and_open_the_mouth(rig):
+    f = rig.mesh.features
+    gap = {}
+    for v in VOWELS:
+        p = rig.deform(rig.weights(None, VOWEL_SHAPES[VOWELS.index(v)]))
+        gap[v] = p[f["upper_lip_bottom"], 1] - p[f["lower_lip_top"], 1]
+    assert gap["closed"] == pytest.approx(0.0, abs=1e-6)
+    assert gap["a"] > gap["o"] > gap["e"] > gap["i"] > 0.0  # /a/ opens widest
+    halfway = mouth_from_weights([0.5, 0, 0, 0, 0, 0.5])  # half /a/, half closed
+    np.testing.assert_allclose(halfway, 0.5 * VOWEL_SHAPES[0])
+    assert list(nearest_vowel(VOWEL_SHAPES)) == list(range(6))
+
+
+def test_emotions_are_the_facs_mixes():
+    as_sets = {k: set(v) for k, v in EMOTIONS.items()}
+    assert as_sets["happiness"] == {6, 12}
+    assert as_sets["sadness"] == {1, 4, 15}
+    assert as_sets["surprise"] == {1, 2, 5, 26}
+    assert as_sets["fear"] == {1, 2, 4, 5, 20, 26}
+    assert as_sets["anger"] == {4, 5, 7, 23}
+    assert as_sets["disgust"] == {9, 15, 16}
+
+
+def test_expressions_blend_with_smoothstep(rig):
+    anim = FaceAnimation([ExpressionKey(1.0, "neutral"), ExpressionKey(11.0, "happiness", weight=0.8)])
+    assert anim.action_units(0.0) == {}
+    assert anim.action_units(6.0)[12] == pytest.approx(0.4)  # smoothstep(0.5) = 0.5
+    assert anim.action_units(3.5)[12] == pytest.approx(0.8 * 0.15625)  # smoothstep(0.25)
+    assert anim.action_units(20.0) == {6: 0.8, 12: 0.8}
+    w = anim.weights(rig, 11.0)
+    assert w[rig.au_numbers.index(12)] == pytest.approx(0.8)
+
+
+def test_editing_an_action_unit_changes_the_rig(rig):
+    rig2 = FaceRig(rig.mesh, "cpu")
+    rig2.set_action_unit(12, {"mouth_corner": (0.0, 10.0, 0.0)})
+    moved = rig2.deform(rig2.weights({12: 1.0})) - rig2.mesh.vertices
+    np.testing.assert_allclose(moved[rig2.mesh.features["mouth_corner_r"]], [0.0, 0.010, 0.0], atol=1e-6)
+    with pytest.raises(KeyError):
+        rig2.weights({27: 1.0})
+
+
+def test_posed_face_rides_a_rigidly_moving_head(rig):
+    """On a head turned and nodded rigidly, the bound face is the rest-frame face moved by the same
+    rigid transform, and head_transform recovers that transform."""
+    from sim.collider import Collider
+    from sim.head import HeadAnimation, procedural_head
+
+    head = procedural_head()
+    weights = np.zeros((len(head.vertices), 4))
+    weights[:, 0] = 1.0
+    index = np.tile([1, 0, 0, 0], (len(head.vertices), 1))
+    col = Collider("head", head.vertices, head.faces, index, weights, 2, "cpu", sphere_leaves=0)
+    face = FaceRig(builtin_face(resolution=1, project=lambda p: _project(col, head, p)), "cpu")
+    face.attach(col)
+    M = HeadAnimation(turn_degrees=30.0, nod_degrees=12.0).bone_matrices([0.7])
+    col.set_poses(M)
+    col.apply_pose(0)
+    w = face.weights(EMOTIONS["surprise"], VOWEL_SHAPES[0])
+    posed = face.posed_points(col, w).numpy().copy()
+    T = M[0, 1]
+    ref = face.deform(w).astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    np.testing.assert_allclose(posed, ref, atol=1e-5)
+    np.testing.assert_allclose(face.head_transform(col), T, atol=1e-5)
+
+
+def _project(collider, head, points):
+    import trimesh
+
+    normals = trimesh.Trimesh(head.vertices, head.faces, process=False).vertex_normals
+    closest, f, bary = collider.closest_points(points)
+    n = np.einsum("nk,nkj->nj", bary, normals[head.faces[f]])
+    return closest, n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def test_rigid_fit_recovers_a_transform():
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(50, 3))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = q, [0.1, -0.2, 0.3]
+    np.testing.assert_allclose(rigid_fit(a, a @ q.T + T[:3, 3]), T, atol=1e-12)
+
+
+def test_interpolation_is_compact(rig):
+    d = ACTION_UNITS[5]
+    offsets, names = interpolate_shape(rig.mesh, d)
+    assert set(names) >= {"eye_upper_l", "eye_upper_r"}
+    assert (np.abs(offsets).max(1) > 0).sum() < 0.1 * rig.mesh.num_vertices  # the lids, not the face
+
+
+# -- scenes and USD ----------------------------------------------------------------------------
+
+
+def _face_scene(tmp_path, extra=""):
+    path = tmp_path / "face.toml"
+    path.write_text(f"""
+[scene]
+frames = 6
+preroll = 0.0
+stats = false
+
+[head]
+animation = "turn_nod"
+
+[hair]
+enabled = false
+
+[face]
+resolution = 1
+
+[[face.expressions]]
+frame = 1
+emotion = "neutral"
+
+[[face.expressions]]
+frame = 6
+emotion = "fear"
+{extra}
+""")
+    return path
+
+
+def _usdskel_points(stage, time):
+    """The exported rig evaluated by UsdSkel itself: blend shapes, then skinning."""
+    from pxr import Usd, UsdGeom, UsdSkel, Vt
+
+    root = UsdSkel.Root(stage.GetPrimAtPath("/World/face_rig"))
+    cache = UsdSkel.Cache()
+    cache.Populate(root, Usd.PrimDefaultPredicate)
+    binding = cache.ComputeSkelBindings(root, Usd.PrimDefaultPredicate)[0]
+    skel = cache.GetSkelQuery(binding.GetSkeleton())
+    target = binding.GetSkinningTargets()[0]
+    query = UsdSkel.BlendShapeQuery(UsdSkel.BindingAPI(target.GetPrim()))
+    t = Usd.TimeCode(time)
+    weights = skel.GetAnimQuery().ComputeBlendShapeWeights(t)
+    mapper = target.GetBlendShapeMapper()
+    if mapper and not mapper.IsNull():
+        weights = mapper.Remap(weights)
+    sub_weights, shape_idx, sub_idx = query.ComputeSubShapeWeights(weights)
+    pts = Vt.Vec3fArray(UsdGeom.Mesh(target.GetPrim()).GetPointsAttr().Get(t))
+    assert query.ComputeDeformedPoints(sub_weights, shape_idx, sub_idx, query.ComputeBlendShapePointIndices(),
+                                       query.ComputeSubShapePointOffsets(), pts)
+    blended = np.array(pts, np.float64)
+    assert target.ComputeSkinnedPoints(skel.ComputeSkinningTransforms(t), pts, t)
+    return blended, np.array(pts, np.float64)
+
+
+def test_usdskel_blend_shapes_equal_the_rig(tmp_path):
+    from pxr import Usd, UsdGeom
+
+    from sim.scene import Scene, load_scene, run_scene
+
+    path = _face_scene(tmp_path)
+    out = tmp_path / "face.usdc"
+    run_scene(load_scene(path), out, progress=False)
+    stage = Usd.Stage.Open(str(out))
+    face = UsdGeom.Mesh(stage.GetPrimAtPath("/World/face"))
+    assert face.GetPrim().GetAttribute("cfx:role").Get() == "face"
+    assert len(face.GetPointsAttr().GetTimeSamples()) == 6
+    rig = Scene(load_scene(path)).face_rig
+    anim = FaceAnimation(load_scene(path).face.expressions)
+    for frame in (1, 4, 6):
+        blended, skinned = _usdskel_points(stage, frame)
+        # the blend shapes alone are the rig's own deformation in its rest frame
+        np.testing.assert_allclose(blended, rig.deform(anim.weights(rig, frame)), atol=1e-5)
+        # and skinned by the head joint they are the cached face on the turning, nodding head
+        np.testing.assert_allclose(skinned, np.array(face.GetPointsAttr().Get(frame)), atol=1e-5)
+    # the face really changes: fear opens the jaw by about a centimetre
+    f = rig.mesh.features
+    p1, p6 = (np.array(face.GetPointsAttr().Get(t)) for t in (1, 6))
+    gap = lambda p: np.linalg.norm(p[f["upper_lip_bottom"]] - p[f["lower_lip_top"]])  # noqa: E731
+    assert gap(p1) < 1e-4 and gap(p6) > 0.007
+    from io_usd.validate import validation_errors
+
+    assert validation_errors(str(out)) == []
+
+
+def test_bad_face_input_is_one_clear_error(tmp_path):
+    from sim.scene import load_scene
+
+    path = _face_scene(tmp_path, '\n[[face.expressions]]\nframe = 9\nemotion = "smug"\n')
+    with pytest.raises(InputError) as err:
+        load_scene(path)
+    assert "face.expressions[2].emotion" in str(err.value) and "smug" in str(err.value)
+    path.write_text('[hair]\nenabled = false\n[face]\n[[face.expressions]]\nframe = 1\naus = { "99" = 1.0 }\n')
+    with pytest.raises(InputError, match=r"face.expressions\[0\].aus.99"):
+        load_scene(path)
+    path.write_text('[head]\nmesh = "head.obj"\n[face]\n')
+    (tmp_path / "head.obj").write_text("v 0 0 0\n")
+    with pytest.raises(InputError, match="face.mesh"):
+        load_scene(path)
