@@ -414,21 +414,31 @@ def render_frame(reader, frame, camera, renderer=None, **style):
         return own.render(frame, camera)
 
 
-def scene_points(reader, frames):
-    """All prims' points over `frames`, stacked (N, 3); a unit box's corners for an empty cache."""
-    chunks = [reader.points(name, frame) for frame in frames for name in reader.prims]
+def scene_points(reader, frames, names=None):
+    """The points of prims `names` (default all) over `frames`, stacked (N, 3); a unit box's corners
+    for an empty cache."""
+    chunks = [reader.points(name, frame) for frame in frames for name in (names or reader.prims)]
     chunks = [c.reshape(-1, 3) for c in chunks if len(c)]
     if not chunks:
         return np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
     return np.concatenate(chunks)
 
 
-def auto_camera(reader, width, height, frames=None, **view):
-    """A camera framing everything over `frames` (default: all), sampling at most five of them;
-    view keywords (yaw_degrees, pitch_degrees, yfov, margin) go to Camera.frame_points."""
+def auto_camera(reader, width, height, frames=None, names=None, **view):
+    """A camera framing prims `names` (default: everything) over `frames` (default: all), sampling at
+    most five of them; view keywords (yaw_degrees, pitch_degrees, yfov, margin) go to Camera.frame_points."""
     frames = list(frames) if frames else reader.frames()
     picks = sorted({frames[int(round(k))] for k in np.linspace(0, len(frames) - 1, min(5, len(frames)))})
-    return Camera.frame_points(scene_points(reader, picks), width, height, **view)
+    return Camera.frame_points(scene_points(reader, picks, names), width, height, **view)
+
+
+def focus_prims(reader, focus):
+    """Names of the prims called `focus` or with role `focus` (e.g. "face"); ValueError if none."""
+    names = [n for n, p in reader.prims.items() if focus in (n, p.role)]
+    if not names:
+        known = sorted(set(reader.prims) | {p.role for p in reader.prims.values()})
+        raise ValueError(f"{reader.path}: nothing to focus on called '{focus}' (prims and roles: {', '.join(known)})")
+    return names
 
 
 # -- output -----------------------------------------------------------------------------------------
@@ -513,14 +523,15 @@ def _write(images, labels, tmp, ext, fps, columns):
 
 
 def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720, columns=None, camera=None,
-            shadows=True, follow=False):
+            shadows=True, follow=False, focus=None):
     """Render a cache to an image or a movie and return out_path.
 
     The extension picks the output: .png is one frame (default the last) or, when `frames` lists
     several, a contact sheet of width x height tiles labelled with their frame numbers; .mp4 and .gif
     play `frames` (default all) at the cache's fps. A given camera sets the image size and view;
     otherwise one frames the whole scene, or with follow=True each frame on its own (a camera that
-    tracks a walking character). shadows=False roughly halves the render time on software GL. The
+    tracks a walking character); focus (a prim name or role, e.g. "face") frames just those prims.
+    shadows=False roughly halves the render time on software GL. The
     file appears only once fully written.
     """
     cache_path, out_path = os.fspath(cache_path), os.fspath(out_path)
@@ -533,10 +544,11 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     if not reader.prims:
         raise ValueError(f"{cache_path}: the cache has no cfx prims to draw")
     chosen = _choose_frames(cache_path, reader.frames(), ext, frame, frames)
+    names = focus_prims(reader, focus) if focus else None
     if camera is None:
         if width <= 0 or height <= 0:
             raise ValueError(f"{out_path}: image size must be positive, got {width}x{height}")
-        camera = auto_camera(reader, int(width), int(height), chosen)
+        camera = auto_camera(reader, int(width), int(height), chosen, names)
     if ext == ".mp4" and (camera.width % 2 or camera.height % 2):
         raise ValueError(f"{out_path}: MP4 needs an even width and height, got {camera.width}x{camera.height}")
 
@@ -550,7 +562,7 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     try:
         with FrameRenderer(reader, camera.width, camera.height, shadows=shadows) as renderer:
             def view(f):
-                return auto_camera(reader, camera.width, camera.height, [f]) if follow else camera
+                return auto_camera(reader, camera.width, camera.height, [f], names) if follow else camera
 
             images = (renderer.render(f, view(f)) for f in progress)
             _write(images, [f"frame {f}" for f in chosen], tmp, ext, reader.fps or 24.0, columns)

@@ -44,11 +44,16 @@ def _report(result):
         parts.append(f"{result.strands} strands ({result.particles} particles)")
     if result.cloth_particles:
         parts.append(f"{result.cloth_particles} cloth particles")
+    if result.face_vertices:
+        parts.append("a face")
     print(f"wrote {result.path}: {result.frames} frames, {', '.join(parts)} in {result.seconds:.1f} s",
           file=sys.stderr)
     if "max_stretch" in s:
         print(f"  hair: max segment stretch {100 * s['max_stretch']:.3f}%, roots within 5 mm of the surface "
               f"{100 * s['root_within_5mm']:.2f}%, points >1 mm inside {100 * s['inside_1mm']:.3f}%", file=sys.stderr)
+    if result.face_vertices:
+        print(f"  face: {result.face_vertices} vertices, largest move from rest {1e3 * s.get('face_max_offset', 0.0):.1f} mm",
+              file=sys.stderr)
     if "cloth_substeps" in s:
         chosen = "set by the scene" if result.cloth_substeps_fixed else "from the RK4 stability bound"
         print(f"  cloth: {s['cloth_substeps']} substeps per frame, {chosen} (stable dt <= "
@@ -84,17 +89,44 @@ def cmd_demo(args):
     return cmd_run(args, config)
 
 
-def _preview(cache, out, frames, quiet, size=(960, 720), follow=False):
+def cmd_lipsync(args):
+    """Speak a WAV with the built-in head: lip sync from the audio, an optional expression, no hair
+    unless asked, the head still unless asked."""
+    import math
+
+    import sim
+    from sim import lipsync
+
+    samples = lipsync.load_audio(args.audio)
+    seconds = len(samples) / lipsync.SAMPLE_RATE
+    start = 1.0
+    frames = int(math.ceil(seconds * args.fps)) + 2  # the mouth closes again after the last word
+    face = {"audio": os.path.abspath(args.audio), "audio_start": start, "voice": args.voice}
+    if args.expression != "neutral":
+        face["expressions"] = [{"frame": start, "emotion": args.expression, "weight": args.intensity}]
+    data = {"scene": {"frames": frames, "fps": args.fps, "preroll": 0.0 if not args.hair else 1.0},
+            "head": {"animation": args.head_motion}, "hair": {"enabled": bool(args.hair)}, "face": face}
+    if args.device:
+        data["scene"]["device"] = args.device
+    config = sim.scene._build_config("<lipsync>", data, None)
+    result = sim.run_scene(config, args.output, progress=not args.quiet)
+    _report(result)
+    if args.preview:
+        _preview(result.path, args.preview, frames=None, quiet=args.quiet, focus="face")
+    return 0
+
+
+def _preview(cache, out, frames, quiet, size=(960, 720), follow=False, focus=None):
     from io_usd.preview import preview
 
-    preview(cache, out, frames=frames, width=size[0], height=size[1], follow=follow)
+    preview(cache, out, frames=frames, width=size[0], height=size[1], follow=follow, focus=focus)
     if not quiet:
         print(f"wrote {out}", file=sys.stderr)
 
 
 def cmd_preview(args):
     frames = _frames(args.frames) if args.frames else None
-    _preview(args.cache, args.output, frames, args.quiet, _size(args.size), args.follow)
+    _preview(args.cache, args.output, frames, args.quiet, _size(args.size), args.follow, args.focus)
     return 0
 
 
@@ -139,7 +171,7 @@ def cmd_info(args):
 
 
 def build_parser():
-    parser = argparse.ArgumentParser(prog="cfx", description="Warp CFX: hair simulation to USD caches.")
+    parser = argparse.ArgumentParser(prog="cfx", description="Warp CFX: hair, cloth and faces simulated to USD caches.")
     parser.add_argument("--version", action="version", version=_version())
     sub = parser.add_subparsers(dest="command", required=True)
 
@@ -161,6 +193,23 @@ def build_parser():
     sim_options(p)
     p.set_defaults(func=cmd_demo)
 
+    p = sub.add_parser("lipsync", help="make the built-in head speak a WAV (lip sync) to a USD cache")
+    p.add_argument("audio", help="a WAV file at any sample rate (mixed to mono, resampled to 16 kHz)")
+    p.add_argument("-o", "--output", required=True, help="cache path (.usdc, .usd or .usda)")
+    p.add_argument("--fps", type=float, default=24.0)
+    p.add_argument("--voice", default="general",
+                   help="lip-sync weights: general, a training voice, or a folder with a.wav i.wav u.wav e.wav o.wav "
+                        "of this speaker (speaker adaptation picks the best weight set)")
+    p.add_argument("--expression", default="neutral", help="emotion held while speaking",
+                   choices=("neutral", "happiness", "sadness", "surprise", "fear", "anger", "disgust"))
+    p.add_argument("--intensity", type=float, default=0.7, help="strength of the expression, 0..1")
+    p.add_argument("--head-motion", default="none", choices=("none", "nod", "turn", "turn_nod"))
+    p.add_argument("--hair", action="store_true", help="grow and simulate the default hairstyle too")
+    p.add_argument("--device", help="cpu, cuda or cuda:N")
+    p.add_argument("--preview", help="also render this preview of the face (.png/.mp4/.gif)")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=cmd_lipsync)
+
     p = sub.add_parser("preview", help="render a cache offscreen to .png, .mp4 or .gif")
     p.add_argument("cache")
     p.add_argument("-o", "--output", required=True)
@@ -168,6 +217,7 @@ def build_parser():
                                     "several frames in a .png make a contact sheet")
     p.add_argument("--size", default="960x720", help="WIDTHxHEIGHT in pixels")
     p.add_argument("--follow", action="store_true", help="frame every frame on its own (a tracking camera)")
+    p.add_argument("--focus", help="frame only this prim or role, e.g. face")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=cmd_preview)
 

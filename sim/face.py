@@ -377,6 +377,11 @@ def interpolate_shape(mesh, definition):
     centres = uv[[mesh.features[n] for n in names]]
     values = np.zeros((len(names), 3))
     values[:len(moved)] = [moved[n] for n in moved]
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.eye(len(names))
+    i, j = np.unravel_index(np.argmin(gaps), gaps.shape)
+    if gaps[i, j] < 1e-5:
+        raise ValueError(f"{definition.name}: feature points '{names[i]}' and '{names[j]}' coincide in the face's "
+                         "surface coordinates; parted lips need separate vertices")
     A = _wendland(np.linalg.norm(centres[:, None] - centres[None], axis=-1) / R)
     coeffs = np.linalg.solve(A, values)
     B = _wendland(np.linalg.norm(uv[:, None] - centres[None], axis=-1) / R)

@@ -596,6 +596,7 @@ class RunResult:
     stats: dict
     cloth_particles: int = 0
     cloth_substeps_fixed: bool = False
+    face_vertices: int = 0
 
 
 def run_scene(config, out_path, progress=True, on_frame=None):
@@ -656,6 +657,10 @@ def run_scene(config, out_path, progress=True, on_frame=None):
                 _check_finite(face[0], frame, "/World/face")
                 samples["face"] = face[0]
                 writer.write_blend_shape_frame("face_rig", frame, face[1], face[2])
+                if t.stats:  # how far the expression and speech move the face, in its own frame
+                    local = (face[0] - face[2][:3, 3]) @ face[2][:3, :3]
+                    move = float(np.linalg.norm(local - scene.face_rig.mesh.vertices, axis=1).max())
+                    worst["face_max_offset"] = max(worst.get("face_max_offset", 0.0), move)
             writer.write_frame(frame, samples, normals)
             if t.stats:
                 for key, value in scene.measure().items():
@@ -679,8 +684,9 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     strands = scene.model.num_strands if scene.model is not None else 0
     particles = scene.model.num_particles if scene.model is not None else 0
     cloth = scene.cloth_model.num_particles if scene.cloth_model is not None else 0
+    face = scene.face_rig.mesh.num_vertices if scene.face_rig is not None else 0
     return RunResult(os.fspath(out_path), t.frames, strands, particles, time.perf_counter() - started, worst, cloth,
-                     config.cloth_solver.substeps > 0)
+                     config.cloth_solver.substeps > 0, face)
 
 
 def _check_finite(points, frame, prim):

@@ -279,3 +279,30 @@ def test_bad_face_input_is_one_clear_error(tmp_path):
     (tmp_path / "head.obj").write_text("v 0 0 0\n")
     with pytest.raises(InputError, match="face.mesh"):
         load_scene(path)
+
+
+def test_a_users_face_mesh_and_feature_map(tmp_path):
+    """A face brought as a mesh file plus a JSON feature map rides the head like the built-in one."""
+    import json
+
+    import trimesh
+
+    from sim.scene import Scene, load_scene
+
+    face = builtin_face(resolution=1)
+    v = face.vertices.copy()
+    # part the lips in the file: the lower-lip and lining twins (the last 3 x 9 vertices) drop 1 mm
+    twins = np.arange(len(v)) >= len(v) - 3 * 9
+    v[twins, 1] -= 0.001
+    trimesh.Trimesh(v, face.faces, process=False).export(tmp_path / "face.obj")
+    (tmp_path / "face.json").write_text(json.dumps(face.features))
+    path = _face_scene(tmp_path, "")
+    path.write_text(path.read_text().replace("resolution = 1", 'mesh = "face.obj"\nfeatures = "face.json"'))
+    scene = Scene(load_scene(path))
+    assert scene.face_rig.mesh.num_vertices == len(v)
+    moved = scene.face_rig.deform(scene.face_rig.weights({26: 1.0})) - scene.face_rig.mesh.vertices
+    np.testing.assert_allclose(moved[face.features["chin"]], [0.0, -0.010, -0.0015], atol=1e-6)
+
+    (tmp_path / "face.json").write_text(json.dumps({k: i for k, i in list(face.features.items())[:10]}))
+    with pytest.raises(InputError, match="missing feature points"):
+        Scene(load_scene(path))
