@@ -266,8 +266,9 @@ def _smooth_normals(vertices, faces):
 class SceneBuilder:
     """Turns one cache frame into pyrender meshes. Topology and hair colours are computed once."""
 
-    def __init__(self, reader, seed=0, hair_pixels=HAIR_PIXELS):
+    def __init__(self, reader, seed=0, hair_pixels=HAIR_PIXELS, names=None):
         self.reader = reader
+        self.names = names  # draw only these prims (default: all)
         self.seed = seed
         self.hair_pixels = hair_pixels
         self._triangles = {}
@@ -321,7 +322,8 @@ class SceneBuilder:
     def meshes(self, frame, eye, focal):
         # a garment's detail surface replaces its coarse simulation mesh in the picture
         has_detail = any(p.role == "cloth_detail" for p in self.reader.prims.values())
-        names = [n for n, p in self.reader.prims.items() if not (has_detail and p.role == "cloth")]
+        names = [n for n, p in self.reader.prims.items() if not (has_detail and p.role == "cloth")
+                 and (self.names is None or n in self.names)]
         out = {name: self.mesh(name, frame, eye, focal) for name in names}
         return {k: v for k, v in out.items() if v is not None}
 
@@ -378,9 +380,9 @@ class FrameRenderer:
     """One offscreen GL context for rendering many frames of one cache. Use as a context manager."""
 
     def __init__(self, reader, width, height, background=BACKGROUND, seed=0, hair_pixels=HAIR_PIXELS,
-                 shadows=True):
+                 shadows=True, names=None):
         pyrender = _pyrender()
-        self.builder = SceneBuilder(reader, seed=seed, hair_pixels=hair_pixels)
+        self.builder = SceneBuilder(reader, seed=seed, hair_pixels=hair_pixels, names=names)
         self.background = background
         # shadow maps are what separate the outer hair from the inner and ground it on the skin
         self.flags = pyrender.RenderFlags.SHADOWS_DIRECTIONAL if shadows else pyrender.RenderFlags.NONE
@@ -497,7 +499,7 @@ def _choose_frames(cache_path, available, ext, frame, frames):
     return chosen
 
 
-def _write(images, labels, tmp, ext, fps, columns):
+def write_images(images, labels, tmp, ext, fps, columns):
     """Write the rendered images (an iterable, consumed once) to tmp; movies stream frame by frame."""
     from PIL import Image
 
@@ -565,7 +567,7 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
                 return auto_camera(reader, camera.width, camera.height, [f], names) if follow else camera
 
             images = (renderer.render(f, view(f)) for f in progress)
-            _write(images, [f"frame {f}" for f in chosen], tmp, ext, reader.fps or 24.0, columns)
+            write_images(images, [f"frame {f}" for f in chosen], tmp, ext, reader.fps or 24.0, columns)
         os.replace(tmp, out_path)
     finally:
         progress.close()

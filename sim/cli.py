@@ -210,6 +210,12 @@ def build_parser():
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=cmd_lipsync)
 
+    p = sub.add_parser("mask", help="render projector frames that put the face on a tracked, moving mask (MP4)")
+    from .mask import add_mask_arguments, run_mask
+
+    add_mask_arguments(p)
+    p.set_defaults(func=run_mask)
+
     p = sub.add_parser("preview", help="render a cache offscreen to .png, .mp4 or .gif")
     p.add_argument("cache")
     p.add_argument("-o", "--output", required=True)
