@@ -147,12 +147,16 @@ def load_scene(path, overrides=None):
     return _build_config(str(path), data, overrides)
 
 
-DEMO = {"body": {"animation": "walk"}, "cloth": {"garment": "dress", "solver": {"strain_limit": 0.03}},
-        "hair": {"count": 2000}}
+DEMO = {"scene": {"frames": 84}, "body": {"animation": "walk"},
+        "cloth": {"garment": "dress", "solver": {"strain_limit": 0.03}}, "hair": {"count": 2000},
+        "face": {"audio": "builtin", "audio_start": 4.0,
+                 "expressions": [{"frame": 1, "emotion": "neutral"}, {"frame": 24, "emotion": "happiness", "weight": 0.8},
+                                 {"frame": 70, "emotion": "surprise", "weight": 0.5}]}}
 
 
 def demo_scene(overrides=None):
-    """The built-in scene: the character walks in a one-piece dress, with wavy shoulder-length hair."""
+    """The built-in scene: the character walks in a one-piece dress, with wavy shoulder-length hair,
+    and says a line, smiling."""
     return _build_config("<demo>", {k: dict(v) for k, v in DEMO.items()}, overrides)
 
 
@@ -163,7 +167,7 @@ def hair_demo_scene(overrides=None):
 
 def _build_config(source, data, overrides):
     overrides = overrides or {}
-    data = dict(data)
+    data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
     cloth_table = dict(data.get("cloth", {}))
     solver_table = cloth_table.pop("solver", {})
     detail_table = cloth_table.pop("detail", {})
@@ -195,8 +199,6 @@ def _build_config(source, data, overrides):
     files += [("face", k, getattr(config.face, k)) for k in ("mesh", "features")]
     if config.face.audio != "builtin":
         files.append(("face", "audio", config.face.audio))
-    if os.sep in config.face.voice or config.face.voice.startswith("."):
-        files.append(("face", "voice", config.face.voice))
     if config.cloth.garment not in _garment_names():
         files.append(("cloth", "garment", config.cloth.garment))
     for section, key, value in files:
@@ -703,11 +705,30 @@ def _mouth_track(config):
         return None
     from . import lipsync
 
-    path = lipsync.DEMO_LINE if f.audio == "builtin" else _resolve(config, f.audio)
-    samples = lipsync.load_audio(path)
-    weights = lipsync.weights_for_voice(f.voice if os.sep not in f.voice else _resolve(config, f.voice),
-                                        source=config.source)
-    return lipsync.mouth_track(samples, config.timing.fps, weights)
+    samples = lipsync.load_audio(lipsync.DEMO_LINE_PATH if f.audio == "builtin" else _resolve(config, f.audio))
+    return lipsync.mouth_track(samples, config.timing.fps, _lipsync_weights(config))
+
+
+def _lipsync_weights(config):
+    """The face.voice setting: the general set, a training voice's set, or the set that best
+    reproduces a speaker's five vowels (a folder of a.wav ... o.wav: speaker adaptation)."""
+    from . import lipsync
+
+    voice = config.face.voice
+    bank = lipsync.load_bank()
+    if voice in bank.names:
+        return bank.sets[bank.names.index(voice)]
+    folder = _resolve(config, voice)
+    if not os.path.isdir(folder):
+        raise InputError(config.source, "face.voice",
+                         f"expected one of {', '.join(bank.names)} or a folder of a.wav i.wav u.wav e.wav o.wav")
+    vowels = {}
+    for v in lipsync.SPOKEN_VOWELS:
+        path = os.path.join(folder, f"{v}.wav")
+        if not os.path.isfile(path):
+            raise InputError(config.source, "face.voice", f"{voice} has no {v}.wav (speaker adaptation needs all five vowels)")
+        vowels[v] = lipsync.load_audio(path)
+    return lipsync.choose_weights(bank, vowels).weights
 
 
 def quiet_warp():

@@ -45,7 +45,7 @@ def test_demo_walks_the_dress_with_stretch_and_penetration_in_bounds(tmp_path):
     result = sim.run_scene(config, out, progress=False)
     assert validation_errors(out) == []
     reader = CacheReader(out)
-    assert set(reader.prims) == {"body", "hair", "cloth", "cloth_detail"}
+    assert set(reader.prims) == {"body", "hair", "cloth", "cloth_detail", "face"}
     assert reader.prims["cloth"].role == "cloth" and reader.prims["body"].role == "collider"
     frames = reader.frames("cloth")
     assert len(frames) >= 48 and reader.fps >= 24
@@ -72,6 +72,16 @@ def test_demo_walks_the_dress_with_stretch_and_penetration_in_bounds(tmp_path):
         sdf, _ = signed_distance(x, warp_mesh(body, faces), max_dist=1.0)
         assert np.mean(sdf < -0.002) < 0.005, frame
     assert result.stats["walk_agreement"] >= 0.99
+    # the character talks: the lips part and close again, and the face rides the walking head
+    assert reader.prims["face"].role == "face" and len(reader.frames("face")) == len(frames)
+    rig = Scene(config).face_rig
+    upper, lower = rig.mesh.features["upper_lip_bottom"], rig.mesh.features["lower_lip_top"]
+    gaps = np.array([np.linalg.norm(np.subtract(*reader.points("face", f)[[upper, lower]])) for f in frames])
+    assert gaps.max() > 0.005 and gaps.min() < 0.0005 and np.mean(gaps > 0.002) > 0.2
+    for frame in frames[::12]:
+        body = warp_mesh(reader.points("body", frame), faces)
+        sdf, _ = signed_distance(reader.points("face", frame), body, max_dist=1.0)
+        assert np.percentile(sdf, 5) > 0.0 and np.percentile(sdf, 50) < 0.004, frame
     # the detail surface: 8x the coarse vertices or more, unit normals, manifold, outside the body
     detail = reader.prims["cloth_detail"]
     assert reader.prims["cloth_detail"].role == "cloth_detail"
