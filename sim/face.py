@@ -10,8 +10,8 @@ applied by warp_kernels.skinning.blend_shape_bound_points on the posed head, and
 as UsdSkel blend shapes.
 
 Units: metres for geometry, millimetres for the authored displacement vectors (at AU intensity 1, or
-per millimetre of a mouth parameter). Head-local axes: Y up, the face looks down +Z, +X is the
-character's left.
+per millimetre of a mouth parameter), given in each feature point's surface frame. Head-local axes:
+Y up, the face looks down +Z, +X is the character's left.
 """
 
 from dataclasses import dataclass, field
@@ -33,6 +33,7 @@ _ROWS = (0.240, 0.248, 0.256, 0.264, 0.270, 0.275, 0.2795, 0.2835, 0.287, 0.2905
 _HALF_COLUMNS = (0.0, 0.06, 0.12, 0.18, 0.24, 0.30, 0.36, 0.42, 0.48, 0.55, 0.63, 0.72, 0.84, 0.98, 1.15, 1.35)
 _MOUTH_ROW = 9  # the lips part along this row
 _CORNER = 0.30  # ring-angle offset of the mouth corners [rad]
+_MUZZLE = 0.004  # m the face rises over the bust around the mouth
 _LIP_GAP = 0.008  # the lips' separation in the unrolled coordinates [m], so upper and lower lip interpolate apart
 
 # name: (ring-angle offset [rad], height [m], lip) with lip "upper"/"lower" for the parted row;
@@ -68,7 +69,9 @@ def _expand_sides(table):
 FEATURE_POINTS = tuple(_expand_sides(_FEATURES))  # 48 names
 
 # -- shapes: action units and mouth parameters ----------------------------------------------------
-# Vectors are (outward, up, forward) in millimetres: "outward" is +X on the left side, -X on the right.
+# Vectors are (outward, up, forward) in millimetres in each feature point's surface frame (feature_frame):
+# forward along the surface normal, up and outward in the tangent plane ("outward" is toward +X on the
+# left side, -X on the right), so authored motions slide along the face rather than into it.
 # A name without _l/_r that has sided twins ("brow_inner") moves both, mirrored.
 
 
@@ -182,6 +185,7 @@ class FaceMesh:
     features: dict  # name -> vertex index
     surface_uv: np.ndarray  # (V, 2) unrolled surface coordinates [m] the interpolation measures in
     colors: np.ndarray  # (V, 3) display colours
+    normals: np.ndarray  # (V, 3) unit surface normals, outward: "forward" of the feature frames
     name: str = "builtin"
 
     @property
@@ -267,9 +271,17 @@ def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resoluti
         surface, normals = project(vertices)
     else:
         surface, normals = vertices, _analytic_normals(vertices - np.asarray(head_offset), rows, cols, index, n0, mouth_row)
-    lifted = surface + lift * normals
+    # the bust has no mouth: raise a muzzle under the lips (as teeth and gums do), so lips that move
+    # back or slide over the curved face stay in front of the head; the lining sits deeper, behind them
+    k = len(inner)
+    col = np.concatenate([np.tile(cols, nr), np.tile(cols[inner], 3)])
+    row = np.concatenate([np.repeat(rows, nc), np.full(3 * k, rows[mouth_row])])
+    dy = row - rows[mouth_row]
+    e = (col / (1.5 * _CORNER)) ** 2 + (dy / np.where(dy > 0.0, 0.018, 0.032)) ** 2  # down over the chin
+    muzzle = _MUZZLE * _smoothstep(1.0 - e)
+    lifted = surface + (lift + muzzle)[:, None] * normals
     lining = np.array(list(lining_up.values()) + list(lining_lo.values()))
-    lifted[lining] = surface[lining] + 0.4 * lift * normals[lining]
+    lifted[lining] = surface[lining] + (0.25 * lift + muzzle[lining])[:, None] * normals[lining]
 
     features = {}
     for name, (dt, y, lip) in _expand_sides(_FEATURES).items():
@@ -282,7 +294,7 @@ def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resoluti
         raise AssertionError("two feature points share a vertex")
 
     colors = _paint(vertices - np.asarray(head_offset), rows, cols, index, lower, lining, mouth_row)
-    return FaceMesh(lifted, faces, features, surface_uv, colors)
+    return FaceMesh(lifted, faces, features, surface_uv, colors, normals)
 
 
 def _analytic_normals(vertices, rows, cols, index, n0, mouth_row):
@@ -347,17 +359,28 @@ def _wendland(r):
     return (1.0 - r) ** 4 * (4.0 * r + 1.0)
 
 
-def _feature_vectors(definition, features):
+def feature_frame(mesh, name):
+    """Columns (outward, up, forward) at a feature point: forward is the surface normal, up the
+    head's +Y and outward its +X (mirrored on the right side) laid into the tangent plane, so a
+    feature moved "up" slides along the face instead of sinking into it."""
+    n = mesh.normals[mesh.features[name]]
+    up = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    up /= np.linalg.norm(up)
+    side = np.array([-1.0 if name.endswith("_r") else 1.0, 0.0, 0.0])
+    out = side - np.dot(side, n) * n - np.dot(side, up) * up
+    out /= np.linalg.norm(out)
+    return np.stack([out, up, n], 1)
+
+
+def _feature_vectors(definition, mesh):
     """Expand sided base names; returns {feature name: displacement [m] in head axes}."""
     out = {}
     for name, vec in definition.vectors.items():
-        names = [name] if name in features else [name + "_l", name + "_r"]
+        names = [name] if name in mesh.features else [name + "_l", name + "_r"]
         for n in names:
-            if n not in features:
+            if n not in mesh.features:
                 raise KeyError(f"{definition.name}: unknown feature point '{name}'")
-            out_, up, fwd = vec
-            sign = -1.0 if n.endswith("_r") else 1.0
-            out[n] = 1e-3 * np.array([sign * out_, up, fwd])
+            out[n] = feature_frame(mesh, n) @ (1e-3 * np.asarray(vec, np.float64))
     return out
 
 
@@ -366,7 +389,7 @@ def interpolate_shape(mesh, definition):
     feature points within its radius, zero farther than its radius from all of those.
 
     Returns (offsets, constrained feature names)."""
-    moved = _feature_vectors(definition, mesh.features)
+    moved = _feature_vectors(definition, mesh)
     uv = mesh.surface_uv
     R = definition.radius
     all_names = list(mesh.features)
@@ -660,4 +683,6 @@ def face_from_file(mesh_path, features_path):
                          + (f" and {len(missing) - 4} more" if len(missing) > 4 else ""))
     v = np.asarray(mesh.vertices, np.float64)
     colors = np.tile(np.asarray(SKIN, np.float64), (len(v), 1))
-    return FaceMesh(v, np.asarray(mesh.faces, np.int64), features, v[:, :2].copy(), colors, str(mesh_path))
+    normals = np.asarray(mesh.vertex_normals, np.float64)
+    normals = np.where((normals[:, 2:3] < 0.0), -normals, normals)  # the face looks down +Z
+    return FaceMesh(v, np.asarray(mesh.faces, np.int64), features, v[:, :2].copy(), colors, normals, str(mesh_path))

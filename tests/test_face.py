@@ -6,7 +6,7 @@ import pytest
 
 from sim.errors import InputError
 from sim.face import (ACTION_UNITS, EMOTIONS, FEATURE_POINTS, ExpressionKey, FaceAnimation, FaceRig,
-                      builtin_face, interpolate_shape, rigid_fit)
+                      builtin_face, feature_frame, interpolate_shape, rigid_fit)
 from sim.mouth import MOUTH_PARAMETERS, VOWEL_SHAPES, VOWELS, mouth_from_weights, nearest_vowel
 
 
@@ -19,14 +19,22 @@ def rig():
 
 
 def _expected_feature_moves(rig, definition):
-    """Feature name -> displacement [m] straight from the authored (outward, up, forward) mm."""
+    """Feature name -> displacement [m] from the authored (outward, up, forward) mm in its surface frame."""
     out = {}
-    for name, (o, u, f) in definition.vectors.items():
+    for name, vec in definition.vectors.items():
         names = [name] if name in rig.mesh.features else [name + "_l", name + "_r"]
         for n in names:
-            sign = -1.0 if n.endswith("_r") else 1.0
-            out[n] = 1e-3 * np.array([sign * o, u, f])
+            out[n] = feature_frame(rig.mesh, n) @ (1e-3 * np.asarray(vec))
     return out
+
+
+def test_feature_frames_follow_the_surface(rig):
+    for name in ("upper_lip_top", "chin", "mouth_corner_l", "mouth_corner_r", "brow_mid_l", "ear_r"):
+        F = feature_frame(rig.mesh, name)
+        np.testing.assert_allclose(F.T @ F, np.eye(3), atol=1e-9)  # orthonormal
+        np.testing.assert_allclose(F[:, 2], rig.mesh.normals[rig.mesh.features[name]])
+        assert F[1, 1] > 0.5  # "up" is mostly +Y
+        assert F[0, 0] * (-1 if name.endswith("_r") else 1) > 0.0  # "outward" leaves the midline
 
 
 def test_face_has_the_papers_feature_points(rig):
@@ -80,10 +88,14 @@ def test_mouth_parameters_move_their_control_points_in_millimetres(rig):
     mouth[MOUTH_PARAMETERS.index("corner_horizontal")] = 5.0
     moved = rig.deform(rig.weights(None, mouth)) - rig.mesh.vertices
     f = rig.mesh.features
-    np.testing.assert_allclose(moved[f["chin"]], [0.0, -0.012, 0.0], atol=1e-6)
-    np.testing.assert_allclose(moved[f["mouth_corner_l"]], [0.005, 0.0, 0.0], atol=1e-6)
-    np.testing.assert_allclose(moved[f["mouth_corner_r"]], [-0.005, 0.0, 0.0], atol=1e-6)
-    np.testing.assert_allclose(moved[f["upper_lip_bottom"]], 0.0, atol=1e-6)  # held: the jaw opens below it
+    frame = lambda n: feature_frame(rig.mesh, n)  # noqa: E731
+    np.testing.assert_allclose(moved[f["chin"]], frame("chin") @ [0.0, -0.012, 0.0], atol=1e-6)
+    np.testing.assert_allclose(moved[f["mouth_corner_l"]], frame("mouth_corner_l") @ [0.005, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(moved[f["mouth_corner_r"]], frame("mouth_corner_r") @ [0.005, 0.0, 0.0], atol=1e-6)
+    assert moved[f["mouth_corner_l"], 0] > 0.004 and moved[f["mouth_corner_r"], 0] < -0.004  # mirrored
+    jaw_only = rig.weights(None, np.eye(len(MOUTH_PARAMETERS))[MOUTH_PARAMETERS.index("jaw_vertical")] * -12.0)
+    held = rig.deform(jaw_only) - rig.mesh.vertices
+    np.testing.assert_allclose(held[f["upper_lip_bottom"]], 0.0, atol=1e-6)  # the jaw opens below the upper lip
 
 
 def test_vowel_bases_interpolate_and_open_the_mouth(rig):
@@ -123,7 +135,8 @@ def test_editing_an_action_unit_changes_the_rig(rig):
     rig2 = FaceRig(rig.mesh, "cpu")
     rig2.set_action_unit(12, {"mouth_corner": (0.0, 10.0, 0.0)})
     moved = rig2.deform(rig2.weights({12: 1.0})) - rig2.mesh.vertices
-    np.testing.assert_allclose(moved[rig2.mesh.features["mouth_corner_r"]], [0.0, 0.010, 0.0], atol=1e-6)
+    up = feature_frame(rig2.mesh, "mouth_corner_r")[:, 1]
+    np.testing.assert_allclose(moved[rig2.mesh.features["mouth_corner_r"]], 0.010 * up, atol=1e-6)
     with pytest.raises(KeyError):
         rig2.weights({27: 1.0})
 
@@ -301,8 +314,24 @@ def test_a_users_face_mesh_and_feature_map(tmp_path):
     scene = Scene(load_scene(path))
     assert scene.face_rig.mesh.num_vertices == len(v)
     moved = scene.face_rig.deform(scene.face_rig.weights({26: 1.0})) - scene.face_rig.mesh.vertices
-    np.testing.assert_allclose(moved[face.features["chin"]], [0.0, -0.010, -0.0015], atol=1e-6)
+    chin = feature_frame(scene.face_rig.mesh, "chin") @ [0.0, -0.010, -0.0015]
+    np.testing.assert_allclose(moved[face.features["chin"]], chin, atol=1e-6)
 
     (tmp_path / "face.json").write_text(json.dumps({k: i for k, i in list(face.features.items())[:10]}))
     with pytest.raises(InputError, match="missing feature points"):
         Scene(load_scene(path))
+
+
+def test_no_expression_or_mouth_shape_sinks_the_face_into_the_head():
+    """The face floats over the head: every emotion and vowel (and their extremes mixed) keeps every
+    vertex, lips and mouth lining included, outside the bust it was built on."""
+    from sim.head import procedural_head
+    from sim.sphere_tree import signed_distance, warp_mesh
+
+    head = procedural_head()
+    rig = FaceRig(builtin_face(resolution=1), "cpu")
+    mesh = warp_mesh(head.vertices, head.faces)
+    shapes = [rig.weights(EMOTIONS[e], VOWEL_SHAPES[v]) for e in EMOTIONS for v in range(len(VOWELS))]
+    for w in shapes:
+        sdf, _ = signed_distance(rig.deform(w), mesh)
+        assert sdf.min() > 0.0003
