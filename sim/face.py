@@ -604,7 +604,8 @@ class FaceConfig:
     resolution: int = 2  # built-in face: grid refinement (1: ~830 vertices, 2: ~3200)
     lift: float = 0.002  # m the face floats off the head surface, so it draws over it
     audio: str = ""  # a WAV the character speaks (lip sync); "builtin" for the demo line
-    audio_start: float = 1.0  # frame at which the audio starts
+    mouth: str = ""  # instead of audio: .npy or .csv of (T, 13) mouth parameters [mm], one row per frame
+    audio_start: float = 1.0  # frame at which the audio (or the mouth track) starts
     voice: str = "general"  # lip-sync weights: "general", a training voice's name, or a folder of
     #                         a.wav i.wav u.wav e.wav o.wav to choose the best set for (speaker adaptation)
     expressions: tuple = ()  # ExpressionKey, from [[face.expressions]]
@@ -614,6 +615,8 @@ class FaceConfig:
             raise ValueError("resolution must be 1, 2, 3 or 4")
         if self.lift < 0.0:
             raise ValueError("lift must be zero or positive")
+        if self.audio and self.mouth:
+            raise ValueError("audio and mouth both drive the mouth: give one")
 
 
 def parse_expressions(entries, source):

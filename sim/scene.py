@@ -196,7 +196,7 @@ def _build_config(source, data, overrides):
     files = [("head", k, getattr(config.head, k)) for k in ("mesh", "scalp_faces", "roots")]
     files += [("body", k, getattr(config.body, k)) for k in ("mesh", "points")]
     files += [("cloth", k, getattr(config.cloth, k)) for k in ("pinned",)]
-    files += [("face", k, getattr(config.face, k)) for k in ("mesh", "features")]
+    files += [("face", k, getattr(config.face, k)) for k in ("mesh", "features", "mouth")]
     if config.face.audio != "builtin":
         files.append(("face", "audio", config.face.audio))
     if config.cloth.garment not in _garment_names():
@@ -701,6 +701,15 @@ def _check_finite(points, frame, prim):
 def _mouth_track(config):
     """Mouth parameters (T, 13) [mm] per frame from the face's audio, or None without audio."""
     f = config.face
+    if f.mouth:
+        path = _resolve(config, f.mouth)
+        try:
+            track = np.load(path) if path.endswith(".npy") else np.loadtxt(path, delimiter=",", ndmin=2)
+        except (OSError, ValueError) as err:
+            raise InputError(config.source, "face.mouth", f"cannot read {f.mouth}: {err}") from None
+        if track.ndim != 2 or track.shape[1] != 13 or not np.all(np.isfinite(track)):
+            raise InputError(config.source, "face.mouth", f"expected (frames, 13) finite mouth parameters, got {track.shape}")
+        return track.astype(np.float64)
     if not f.audio:
         return None
     from . import lipsync

@@ -335,3 +335,30 @@ def test_no_expression_or_mouth_shape_sinks_the_face_into_the_head():
     for w in shapes:
         sdf, _ = signed_distance(rig.deform(w), mesh)
         assert sdf.min() > 0.0003
+
+
+def test_a_mouth_track_drives_the_mouth_and_bad_tracks_are_named(tmp_path):
+    from sim.scene import Scene, load_scene
+
+    track = np.zeros((6, 13))
+    track[2:] = VOWEL_SHAPES[VOWELS.index("a")]
+    np.save(tmp_path / "mouth.npy", track)
+    path = _face_scene(tmp_path, "")
+    path.write_text(path.read_text().replace("resolution = 1", 'resolution = 1\nmouth = "mouth.npy"\naudio_start = 1'))
+    scene = Scene(load_scene(path))
+    rig, anim = scene.face_rig, scene.face_animation
+    np.testing.assert_allclose(anim.weights(rig, 4.0)[len(rig.au_numbers):], VOWEL_SHAPES[0])  # row 3
+    np.testing.assert_allclose(anim.weights(rig, 2.0)[len(rig.au_numbers):], 0.0)
+    np.save(tmp_path / "mouth.npy", np.zeros((6, 12)))
+    with pytest.raises(InputError, match=r"face.mouth.*\(6, 12\)"):
+        Scene(load_scene(path))
+
+
+def test_example_face_scene_loads():
+    from pathlib import Path
+
+    from sim.scene import load_scene
+
+    config = load_scene(Path(__file__).resolve().parents[1] / "examples" / "scenes" / "face_talk.toml")
+    assert config.face.enabled and config.face.audio == "builtin"
+    assert [k.emotion for k in config.face.expressions] == ["neutral", "happiness", "surprise"]

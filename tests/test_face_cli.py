@@ -1,0 +1,46 @@
+"""The face from the command line: cfx lipsync end to end, its errors, and previews focused on the face."""
+
+import numpy as np
+import pytest
+
+from io_usd import CacheReader
+from sim.cli import main
+
+
+def test_lipsync_writes_a_talking_face(tmp_path):
+    from sim import lipsync
+
+    wav = tmp_path / "line.wav"
+    samples = lipsync.load_audio(lipsync.DEMO_LINE_PATH)[: int(1.2 * lipsync.SAMPLE_RATE)]
+    lipsync.write_wav(wav, samples)
+    out = tmp_path / "talk.usdc"
+    png = tmp_path / "talk.png"
+    assert main(["lipsync", str(wav), "-o", str(out), "--fps", "12", "--expression", "happiness",
+                 "--preview", str(png), "-q"]) == 0
+    reader = CacheReader(str(out))
+    assert reader.prims["face"].role == "face"
+    frames = reader.frames("face")
+    assert len(frames) == int(np.ceil(1.2 * 12)) + 2
+    p = np.stack([reader.points("face", f) for f in frames])
+    moved = np.linalg.norm(p - p[:1], axis=2).max(axis=1)
+    assert moved.max() > 0.004  # the mouth moves with the words
+    assert png.stat().st_size > 10_000
+
+
+def test_lipsync_rejects_a_file_that_is_not_audio(tmp_path, capsys):
+    bad = tmp_path / "notes.wav"
+    bad.write_text("not audio")
+    assert main(["lipsync", str(bad), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "notes.wav" in err and err.count("\n") == 1
+    assert not (tmp_path / "x.usdc").exists()
+
+
+def test_preview_focus_names_what_it_cannot_find(tmp_path, capsys):
+    import sim
+
+    out = tmp_path / "head.usdc"
+    sim.run_scene(sim.hair_demo_scene({"scene": {"frames": 1, "preroll": 0.0}, "hair": {"enabled": False}}), out,
+                  progress=False)
+    assert main(["preview", str(out), "-o", str(tmp_path / "p.png"), "--focus", "face", "-q"]) == 2
+    assert "nothing to focus on called 'face'" in capsys.readouterr().err
