@@ -37,6 +37,7 @@ class HairParams:
     collision_margin: float = 0.0015  # m, hair kept this far outside the collider
     collision_search: float = 0.02  # m, mesh queries look this far: deeper penetrations go unseen
     max_speed: float = 100.0  # m/s, faster particles are reported as an explosion
+    guide_stiffness: float = 20.0  # 1/s, how fast strands take their captured guides' shape ([hair] guides)
 
     def __post_init__(self):
         if self.shape_matching not in SHAPE_MATCHING:
@@ -55,6 +56,8 @@ class HairParams:
             raise ValueError("shape_iterations must be at least 1")
         if self.substeps < 1:
             raise ValueError("substeps must be at least 1")
+        if self.guide_stiffness < 0.0:
+            raise ValueError("guide_stiffness must be zero or positive")
 
     def as_dict(self):
         return asdict(self)
@@ -85,8 +88,9 @@ class HairSolver:
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=device)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=device)
 
-    def step(self, state_in, state_out, collider, dt, time=0.0):
-        """One substep. The collider must already be posed for the end of the substep."""
+    def step(self, state_in, state_out, collider, dt, time=0.0, guides=None):
+        """One substep. The collider must already be posed for the end of the substep; guides (a
+        sim.guides.GuideTargets) pull the strands toward captured motion at `time`."""
         m, p, dev = self.model, self.params, self.model.device
         wp.launch(strands.integrate_particles, m.num_particles,
                   [state_in.x, state_in.v, m.inv_mass, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag,
@@ -101,6 +105,11 @@ class HairSolver:
                           [state_out.x, m.particle_strand, m.strand_start, m.root_binding, m.bind_triangle,
                            collider.points, collider.indices, m.root_local, self.hold, p.root_stiffness],
                           device=dev)
+        if guides is not None and p.guide_stiffness > 0.0:
+            wp.launch(strands.follow_guides, m.num_particles,
+                      [state_out.x, m.inv_mass, m.particle_strand, m.strand_start, guides.strand_guides,
+                       guides.strand_guide_weights, guides.particle_param, guides.at(time), guides.vertices,
+                       float(1.0 - np.exp(-p.guide_stiffness * dt))], device=dev)
         variant = SHAPE_MATCHING[p.shape_matching]
         win = self.windows
         for _ in range(p.shape_iterations if variant >= 0 and win.count > 0 else 0):

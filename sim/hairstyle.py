@@ -32,6 +32,8 @@ class HairstyleParams:
     tip_width: float = 4.0e-5  # m
     clearance: float = 0.003  # m, rest shape kept this far off the head
     seed: int = 1
+    guides: str = ""  # a cache with captured guide curves (cfx capture solve) the strands follow
+    guide_prim: str = "hair_guides"  # the curves prim in that cache
 
     def __post_init__(self):
         if self.style not in STYLES:

@@ -196,6 +196,7 @@ def _build_config(source, data, overrides):
     files = [("head", k, getattr(config.head, k)) for k in ("mesh", "scalp_faces", "roots")]
     files += [("body", k, getattr(config.body, k)) for k in ("mesh", "points")]
     files += [("cloth", k, getattr(config.cloth, k)) for k in ("pinned",)]
+    files += [("hair", "guides", config.hair.guides)]
     files += [("face", k, getattr(config.face, k)) for k in ("mesh", "features", "mouth")]
     if config.face.audio != "builtin":
         files.append(("face", "audio", config.face.audio))
@@ -314,11 +315,20 @@ class Scene:
         self.collider.apply_pose(0)
         self.collider.reset_motion()
 
-        self.model = self.solver = self.state = None
+        self.model = self.solver = self.state = self.guides = None
         if config.hair.enabled:
             self.model = self._groom()
             self.solver = HairSolver(self.model, config.solver)
             self.state, self._scratch = self.model.state(), self.model.state()
+            self.guides = None
+            if config.hair.guides:
+                from .guides import GuideTargets, read_guides
+
+                try:
+                    frames, fps = read_guides(_resolve(config, config.hair.guides), config.hair.guide_prim)
+                    self.guides = GuideTargets(self.model, frames, fps)
+                except ValueError as err:
+                    raise InputError(config.source, "hair.guides", str(err)) from None
         self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = None
         if config.cloth.enabled:
             garment = _load_garment(config, self.head)
@@ -428,7 +438,7 @@ class Scene:
             step(dt, float(times[k]))
 
     def _step_hair(self, dt, t):
-        self.solver.step(self.state, self._scratch, self.collider, dt, t)
+        self.solver.step(self.state, self._scratch, self.collider, dt, t, self.guides)
         self.state, self._scratch = self._scratch, self.state
 
     def _step_cloth(self, dt, t):

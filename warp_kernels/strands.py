@@ -346,3 +346,43 @@ def count_unhealthy(
     if (not finite) or wp.length(vel) > max_speed:
         wp.atomic_add(bad_count, 0, 1)
         wp.atomic_min(first_bad, 0, i)
+
+
+@wp.func
+def guide_point(guide_points: wp.array(dtype=wp.vec3), g: int, count: int, s: float):
+    """Point at normalised arc parameter s in [0, 1] along guide g (count vertices, evenly spaced)."""
+    u = wp.clamp(s, 0.0, 1.0) * float(count - 1)
+    k = wp.min(int(u), count - 2)
+    t = u - float(k)
+    return (1.0 - t) * guide_points[g * count + k] + t * guide_points[g * count + k + 1]
+
+
+@wp.kernel
+def follow_guides(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    particle_strand: wp.array(dtype=wp.int32),
+    strand_start: wp.array(dtype=wp.int32),
+    strand_guides: wp.array(dtype=wp.vec3i),
+    strand_guide_weights: wp.array(dtype=wp.vec3),
+    particle_param: wp.array(dtype=float),
+    guide_points: wp.array(dtype=wp.vec3),
+    guide_vertices: int,
+    stiffness: float,
+):
+    """Pull each free particle toward its captured guides' shape: the strand's own root plus the
+    weighted guides' offsets from their roots at the particle's normalised arc position. stiffness is
+    the fraction of the way moved this substep."""
+    i = wp.tid()
+    if inv_mass[i] == 0.0:
+        return
+    strand = particle_strand[i]
+    g = strand_guides[strand]
+    w = strand_guide_weights[strand]
+    s = particle_param[i]
+    offset = wp.vec3(0.0)
+    for k in range(3):
+        if w[k] > 0.0:
+            offset += w[k] * (guide_point(guide_points, g[k], guide_vertices, s) - guide_points[g[k] * guide_vertices])
+    target = x[strand_start[strand]] + offset
+    x[i] = x[i] + stiffness * (target - x[i])

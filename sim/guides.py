@@ -1,0 +1,91 @@
+"""Captured guide strands driving simulated hair (beyond the capture paper, which leaves this open).
+
+Each simulated strand follows up to three captured guides whose roots are nearest its own,
+weighted by inverse distance: at normalised arc position s its target is its own root plus the
+guides' offsets from their roots at s. The solver pulls free particles toward the target with a
+stiffness in 1/s before shape matching and the length constraint, so the hair keeps its own length,
+collisions and detail while moving as the capture did.
+"""
+
+import numpy as np
+import warp as wp
+from scipy.spatial import cKDTree
+
+
+class GuideTargets:
+    """guide_frames (F, G, M, 3) sampled at `fps` from time 0; each guide resampled to M evenly
+    spaced vertices along its arc length."""
+
+    def __init__(self, model, guide_frames, fps, neighbours=3):
+        frames = np.asarray(guide_frames, np.float64)
+        if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[2] < 2 or not np.all(np.isfinite(frames)):
+            raise ValueError("guides must be finite (frames, guides, vertices >= 2, 3) positions")
+        self.frames = np.stack([[_even(g) for g in f] for f in frames])
+        self.fps = float(fps)
+        self.num_guides, self.vertices = self.frames.shape[1], self.frames.shape[2]
+        device = model.device
+        roots = model.rest_positions_np[model.strand_start_np[:-1]].astype(np.float64)
+        k = min(neighbours, self.num_guides)
+        dist, idx = cKDTree(self.frames[0, :, 0]).query(roots, k=k)
+        dist, idx = np.asarray(dist).reshape(len(roots), k), np.asarray(idx).reshape(len(roots), k)
+        w = 1.0 / np.maximum(dist, 1e-4) ** 2
+        w /= w.sum(1, keepdims=True)
+        guides = np.zeros((len(roots), 3), np.int32)
+        weights = np.zeros((len(roots), 3), np.float32)
+        guides[:, :k], weights[:, :k] = idx, w
+        # normalised arc length of each particle along its strand's rest shape
+        rest = model.rest_positions_np.astype(np.float64)
+        seg = np.linalg.norm(np.diff(rest, axis=0), axis=1)
+        seg[model.strand_start_np[1:-1] - 1] = 0.0  # no segment across strands
+        arc = np.concatenate([[0.0], np.cumsum(seg)])
+        start = model.strand_start_np
+        base = np.repeat(arc[start[:-1]], model.counts)
+        total = np.repeat(arc[start[1:] - 1] - arc[start[:-1]], model.counts)
+        param = (arc - base) / np.maximum(total, 1e-9)
+        self.strand_guides = wp.array(guides, dtype=wp.vec3i, device=device)
+        self.strand_guide_weights = wp.array(weights, dtype=wp.vec3, device=device)
+        self.particle_param = wp.array(param.astype(np.float32), dtype=float, device=device)
+        self.points = wp.zeros(self.num_guides * self.vertices, dtype=wp.vec3, device=device)
+
+    def at(self, time):
+        """Upload the guides at `time` [s] (linear between captured frames, held past the ends)."""
+        u = np.clip(time * self.fps, 0.0, len(self.frames) - 1)
+        k = min(int(u), len(self.frames) - 2) if len(self.frames) > 1 else 0
+        t = u - k
+        g = self.frames[k] if len(self.frames) == 1 else (1.0 - t) * self.frames[k] + t * self.frames[k + 1]
+        self.points.assign(g.reshape(-1, 3).astype(np.float32))
+        return self.points
+
+
+def _even(points):
+    """A polyline resampled to the same vertex count, evenly spaced along its arc length."""
+    return _resample(points, len(points))
+
+
+def read_guides(path, prim="hair_guides"):
+    """(frames, guides, vertices, 3) and fps from a cache's curves prim (e.g. a `cfx capture solve`
+    result). Guides with different vertex counts are resampled to the largest count."""
+    from io_usd.cache import CacheReader
+
+    reader = CacheReader(path)
+    if prim not in reader.prims or reader.prims[prim].kind != "curves":
+        curves = [n for n, p in reader.prims.items() if p.kind == "curves"]
+        raise ValueError(f"{path}: no curves prim '{prim}' (curves here: {', '.join(curves) or 'none'})")
+    counts = reader.prims[prim].counts
+    m = int(counts.max())
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    frames = []
+    for f in reader.frames(prim):
+        pts = reader.points(prim, f).astype(np.float64)
+        frames.append([_resample(pts[a:b], m) for a, b in zip(starts[:-1], starts[1:])])
+    return np.asarray(frames), reader.fps or 24.0
+
+
+def _resample(points, count):
+    """`count` points evenly spaced along a polyline's arc length (a point stays a point)."""
+    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
+    arc = np.concatenate([[0.0], np.cumsum(seg)])
+    if arc[-1] <= 0.0:
+        return np.repeat(points[:1], count, 0)
+    s = np.linspace(0.0, arc[-1], count)
+    return np.stack([np.interp(s, arc, points[:, c]) for c in range(3)], 1)
