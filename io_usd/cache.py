@@ -86,9 +86,10 @@ class CacheWriter:
         return prim
 
     def add_mesh(self, name, role, points, faces, color=None, animated=True, face_counts=None, face_indices=None,
-                 normals=False):
+                 normals=False, uvs=None):
         """A mesh from faces (F, k) or a list of index lists, or from USD-style face_counts and
-        face_indices (mixed quads and triangles). normals=True: per-vertex normals come with each frame."""
+        face_indices (mixed quads and triangles). normals=True: per-vertex normals come with each frame.
+        uvs: (V, 2) static per-vertex texture coordinates, written as the `st` primvar."""
         mesh = UsdGeom.Mesh.Define(self.stage, f"{ROOT}/{name}")
         if face_counts is not None:
             counts, indices = np.asarray(face_counts), np.asarray(face_indices)
@@ -104,6 +105,8 @@ class CacheWriter:
         if normals:
             mesh.CreateNormalsAttr()
             mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+        if uvs is not None:
+            _texture_coordinates(mesh, uvs)
         self._tag(mesh, name, role, "mesh", animated=animated)
         if not animated and points is not None:
             pts = _vec3f(points)
@@ -254,6 +257,16 @@ def _display_color(gprim, color):
         gprim.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([Gf.Vec3f(*color.tolist())])
     else:
         gprim.CreateDisplayColorPrimvar(UsdGeom.Tokens.vertex).Set(_vec3f(color))
+
+
+def _texture_coordinates(mesh, uvs):
+    """Per-vertex `primvars:st` (TexCoord2f), the name renderers and DCCs look for."""
+    uvs = np.ascontiguousarray(uvs, dtype=np.float32)
+    if uvs.ndim != 2 or uvs.shape[1] != 2:
+        raise ValueError(f"uvs: expected (V, 2) texture coordinates, got shape {uvs.shape}")
+    primvar = UsdGeom.PrimvarsAPI(mesh.GetPrim()).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray,
+                                                                 UsdGeom.Tokens.vertex)
+    primvar.Set(Vt.Vec2fArray.FromNumpy(uvs))
 
 
 def _usd_dict(d):

@@ -216,6 +216,18 @@ def build_parser():
     add_mask_arguments(p)
     p.set_defaults(func=run_mask)
 
+    p = sub.add_parser("capture", help="hair motion capture: synthesise a stripe-dyed capture, solve one to USD")
+    capture = p.add_subparsers(dest="capture_command", required=True)
+    from .capture_rig import add_synth_arguments, run_synth
+    from .capture_solve import add_solve_arguments, run_solve
+
+    q = capture.add_parser("synth", help="simulate a scene and render its dyed guide hairs from calibrated cameras")
+    add_synth_arguments(q)
+    q.set_defaults(func=run_synth)
+    q = capture.add_parser("solve", help="segment, track and triangulate a capture directory into strands and cards")
+    add_solve_arguments(q)
+    q.set_defaults(func=run_solve)
+
     p = sub.add_parser("preview", help="render a cache offscreen to .png, .mp4 or .gif")
     p.add_argument("cache")
     p.add_argument("-o", "--output", required=True)

@@ -19,6 +19,7 @@ from .collider import Collider
 from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
 from .errors import InputError
+from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
 from .hair_solver import HairParams, HairSolver
 from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp, scalp_area
@@ -115,6 +116,7 @@ class SceneConfig:
     cloth_solver: ClothParams = field(default_factory=ClothParams)
     cloth_detail: DetailParams = field(default_factory=DetailParams)
     face: FaceConfig = field(default_factory=FaceConfig)
+    capture: CaptureConfig = field(default_factory=CaptureConfig)  # cfx capture synth only
 
     def settings(self):
         """Everything that determines the result, for the cache's customLayerData."""
@@ -135,7 +137,8 @@ class SceneConfig:
 
 SECTIONS = {"scene": ("timing", TimingConfig), "head": ("head", HeadConfig),
             "hair": ("hair", HairstyleParams), "solver": ("solver", HairParams),
-            "body": ("body", BodyConfig), "cloth": ("cloth", GarmentConfig), "face": ("face", FaceConfig)}
+            "body": ("body", BodyConfig), "cloth": ("cloth", GarmentConfig), "face": ("face", FaceConfig),
+            "capture": ("capture", CaptureConfig)}
 
 
 def load_scene(path, overrides=None):
