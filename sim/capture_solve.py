@@ -444,6 +444,11 @@ class TrackParams:
     max_search_frames: int = 3  # after missed frames the search radius grows up to this many jumps
     use_3d: bool = True  # predict from the other cameras' triangulation where there is one
     reproject_px: float = 12.0  # search radius around a prediction projected from 3D
+    ambiguous_px: float = 8.0  # a blob this near another same-colour stripe's prediction is suspect
+    # (crossed stripes merge into one blob; predictions miss by a few px, neighbouring stripes by more)
+    max_jump_3d: float = 0.01  # m per frame since last trusted: farthest a triangulated marker may land
+    # from its 3D prediction (stripe centres accelerate by a few mm per frame; a label that took
+    # another stripe of its colour lands centimetres away, even where two cameras agree on it)
 
 
 class LabelTracker:
@@ -536,9 +541,11 @@ def label_capture(capture, params, progress=False, roots=None):
     """Segment every image and label its stripes, frame by frame (Section 4.2).
 
     With `params.track.use_3d`, each frame's labels are triangulated at once (leaving out blobs whose
-    area is off the label's median so far, and markers that break their guide's chain, see
-    `chain_outliers`); an observation the other cameras outvote is forgotten by its camera's tracker,
-    and the next frame's labels are looked for where the markers' 3D tracks project.
+    area is off the label's median so far or that lie near another same-colour stripe's prediction,
+    see `_ambiguous_labels`, and markers that break their guide's chain, see `chain_outliers`, or
+    land farther from their 3D prediction than `max_jump_3d` allows); an observation the other
+    cameras outvote is forgotten by its camera's tracker, and the next frame's labels are looked for
+    where the markers' 3D tracks project (a marker lost last frame: where it was last trusted).
     roots: (F, G, 3) the guides' roots per frame (default: capture.roots, still).
     Returns uv (C, F, M, 2), blob areas (C, F, M), rejected (C, F, M) bool, blobs found (C, F)."""
     F, M, C = len(capture.frames), capture.num_markers, len(capture.cameras)
@@ -553,33 +560,60 @@ def label_capture(capture, params, progress=False, roots=None):
     rejected = np.zeros((C, F, M), bool)
     blob_counts = np.zeros((C, F), np.int64)
     points = np.full((F, M, 3), np.nan)  # markers trusted for predicting the next frames
+    held, held_f = np.full((M, 3), np.nan), np.full(M, -1, np.int64)  # each marker's last trusted point
+    ambiguous = np.zeros((C, M), bool)
+    same = (capture.marker_channel[:, None] == capture.marker_channel[None, :]) & ~np.eye(M, dtype=bool)
     bar = _progress(F, progress, "labelling")
     for f, frame in enumerate(capture.frames):
         ahead = _predict_points(points, f, params.track.predict_motion) if params.track.use_3d and f > 0 else None
+        if ahead is not None:
+            # a marker missing last frame is looked for where it was last trusted, not by 2D history
+            # alone, which would lead its labels to whichever blob of its colour lies near
+            ahead = np.where(np.isfinite(ahead), ahead, held)
         for c, cam in enumerate(capture.cameras):
             blobs = segment_image(read_image(capture.image_path(cam.name, frame), capture.image_size),
                                   backgrounds[c], params.segment)
             projected = _project_in_front(cam, ahead) if ahead is not None else None
             uv[c, f], index = trackers[c].update(blobs, projected)
+            if projected is not None:
+                ambiguous[c] = _ambiguous_labels(uv[c, f], projected, same, params.track.ambiguous_px)
             area[c, f, index >= 0] = blobs.area[index[index >= 0]]
             blob_counts[c, f] = len(blobs)
         if params.track.use_3d:
-            suspect = suspect_areas(area[:, :f + 1], params.area_ratio)[:, -1]
+            suspect = suspect_areas(area[:, :f + 1], params.area_ratio)[:, -1] | ambiguous
             x, views, _, used = _triangulate(uv[:, f], capture.cameras, params.refine, params.outlier_px,
                                              suspect=suspect, consensus=params.consensus)
             broken = chain_outliers(x[None], roots[f][None], capture, params.chain_tolerance)[0] \
                 if params.chain_tolerance > 0 else np.zeros(M, bool)
+            if ahead is not None and params.track.max_jump_3d > 0:
+                # two cameras whose labels took the same wrong stripe agree with each other, so no vote
+                # can catch them; the marker's own 3D track can
+                since = np.where(held_f >= 0, f - held_f, 1)
+                jump = np.linalg.norm(x - ahead, axis=1)
+                broken |= np.isfinite(jump) & (jump > params.track.max_jump_3d * since)
             seen = np.all(np.isfinite(uv[:, f]), -1)
             outvoted = seen & ((~used.T & (views >= 2)[None]) | broken[None])  # (C, M)
-            rejected[:, f] = outvoted
+            rejected[:, f] = outvoted | (ambiguous & seen)
             for c in np.nonzero(outvoted.any(1))[0]:
                 trackers[c].reject(outvoted[c])
             # only markers from clean views predict: a merged blob's centroid would lead its label astray
             clean = ~broken & ~np.any(used.T & suspect, axis=0)
             points[f] = np.where(clean[:, None], x, np.nan)
+            trusted = np.all(np.isfinite(points[f]), 1)
+            held[trusted], held_f[trusted] = points[f, trusted], f
         bar.update(1)
     bar.close()
     return uv, area, rejected, blob_counts
+
+
+def _ambiguous_labels(uv, projected, same, radius_px):
+    """Labels (M,) whose blob lies within `radius_px` of the predicted projection of another stripe
+    of its colour (same: (M, M) bool): two stripes that cross in a view merge into one blob whose
+    centroid lies between them, its area steady while they stay crossed, and either label may hold
+    it. Such a view is left out of triangulation wherever two others remain."""
+    other = np.linalg.norm(uv[:, None] - projected[None], axis=2)
+    other = np.where(same & np.isfinite(other), other, np.inf).min(1)
+    return np.all(np.isfinite(uv), 1) & (other <= radius_px)
 
 
 def _predict_points(points, f, moving):
@@ -1357,8 +1391,10 @@ rmse_mm               {stereo, ring: 3D error of the triangulated points (gaps n
                        ring_filled: of the chosen method after gap filling}
 marker_error_mm       {marker: {stereo_rmse, stereo_max, ring_rmse, ring_max, filled_max}}
 label_swaps           {count: runs of observations labelled with another stripe's name, summed over
-                       cameras; mislabelled: such observations; by_camera: {camera: {swaps,
-                       mislabelled, events: [{frame, marker}]}}}
+                       cameras, judged on labels not marked suspect; mislabelled: such observations;
+                       count_with_suspect, mislabelled_with_suspect: the same over every label;
+                       by_camera: {camera: {swaps, mislabelled, swaps_with_suspect,
+                       mislabelled_with_suspect, events: [{frame, marker}]}}}
 guide_distance_mm     {mean, max}: output guide vertices to the true guide strands
 """
 
@@ -1421,11 +1457,18 @@ def build_report(capture, params, markers, guides, solved, edges, num_strands, o
         # a merged or half-hidden blob's centroid lies between stripes: judge identities on clean blobs
         clean = np.where(m.suspect[c][..., None], np.nan, m.uv[c])
         wrong, events = label_swaps(clean, cam.project(truth), capture.marker_channel, params.swap_tolerance_px)
+        # the same judged on every label, suspect ones included, so the clean count hides nothing
+        wrong_all, events_all = label_swaps(m.uv[c], cam.project(truth), capture.marker_channel,
+                                            params.swap_tolerance_px)
         by_camera[cam.name] = {"swaps": int(events.sum()), "mislabelled": int(wrong.sum()),
+                               "swaps_with_suspect": int(events_all.sum()),
+                               "mislabelled_with_suspect": int(wrong_all.sum()),
                                "events": [{"frame": int(frames[f]), "marker": names[i]}
                                           for f, i in zip(*np.nonzero(events))]}
     report["label_swaps"] = {"count": sum(v["swaps"] for v in by_camera.values()),
                              "mislabelled": sum(v["mislabelled"] for v in by_camera.values()),
+                             "count_with_suspect": sum(v["swaps_with_suspect"] for v in by_camera.values()),
+                             "mislabelled_with_suspect": sum(v["mislabelled_with_suspect"] for v in by_camera.values()),
                              "by_camera": by_camera}
     if "guide_points" in capture.truth:
         report["guide_distance_mm"] = _guide_distance_mm(guides, capture.truth["guide_points"][:, solved])
@@ -1545,5 +1588,6 @@ def summary(result):
     if r["label_swaps"] is not None:
         rmse = {k: "n/a" if v is None else f"{v:.2f} mm" for k, v in result.rmse_mm.items()}
         lines.append(f"  against truth: ring RMSE {rmse['ring']}, stereo RMSE {rmse['stereo']}, "
-                     f"label swaps {result.label_swaps}")
+                     f"label swaps {result.label_swaps} ({r['label_swaps']['count_with_suspect']} counting the "
+                     f"labels marked suspect, which triangulation down-weights)")
     return "\n".join(lines)

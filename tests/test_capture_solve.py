@@ -352,6 +352,18 @@ def test_a_blob_that_jumps_too_far_is_missing_for_that_frame():
     assert tracker.update(blob(115.0))[1][0] == 0  # 12 px after a missed frame: within 2 x 10 px
 
 
+def test_a_blob_near_another_same_colour_stripes_prediction_is_ambiguous():
+    from sim.capture_solve import _ambiguous_labels
+
+    channel = np.array([0, 0, 1, 0])
+    same = (channel[:, None] == channel[None, :]) & ~np.eye(4, dtype=bool)
+    projected = np.array([[100.0, 100.0], [106.0, 100.0], [101.0, 100.0], [300.0, 100.0]])
+    uv = np.array([[103.0, 100.0], [np.nan, np.nan], [101.0, 100.0], [300.0, 100.0]])
+    # marker 0's blob sits between its own prediction and marker 1's (crossed, merged stripes); marker
+    # 2 is as near but another colour; marker 3 is alone; marker 1 has no blob
+    assert _ambiguous_labels(uv, projected, same, 8.0).tolist() == [True, False, False, False]
+
+
 # --------------------------------------------------------------------------------------------------
 # 4. Gaps
 # --------------------------------------------------------------------------------------------------
