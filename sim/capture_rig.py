@@ -715,69 +715,6 @@ def _replace_dir(tmp, out_dir):
         shutil.rmtree(old, ignore_errors=True)
 
 
-# -- reading a capture back -------------------------------------------------------------------------
-@dataclass
-class Capture:
-    """A capture directory read back: capture.json with NumPy arrays, and where its files are."""
-
-    path: str
-    fps: float
-    frames: np.ndarray  # (F,) time codes
-    image_size: tuple  # (width, height)
-    stripe_width: float  # m
-    colors: tuple
-    guides: list  # {"name", "root" (3,), "stripes"}
-    cameras: list  # CaptureCamera, in file order
-    stereo: dict  # {"left", "right", "baseline"}
-    labels: dict  # camera name -> {"guide" (N,), "stripe" (N,), "uv" (N, 2)}, the first frame's naming
-
-    def camera(self, name):
-        for cam in self.cameras:
-            if cam.name == name:
-                return cam
-        raise KeyError(name)
-
-    def image_path(self, camera, frame):
-        return os.path.join(self.path, "images", camera, f"{int(frame):04d}.png")
-
-    def background_path(self, camera):
-        return os.path.join(self.path, "background", f"{camera}.png")
-
-    def truth(self):
-        """truth.npz as a dict of arrays, or None for a real capture."""
-        path = os.path.join(self.path, "truth.npz")
-        if not os.path.isfile(path):
-            return None
-        with np.load(path) as data:
-            return {k: data[k] for k in data.files}
-
-
-def load_capture(path):
-    """Read a capture directory's capture.json; InputError naming the key when it is malformed."""
-    path = os.fspath(path)
-    source = os.path.join(path, "capture.json")
-    try:
-        with open(source) as f:
-            data = json.load(f)
-    except FileNotFoundError:
-        raise InputError(path, None, "no capture.json: not a capture directory (or an unfinished one)") from None
-    except json.JSONDecodeError as err:
-        raise InputError(source, None, f"not valid JSON: {err}") from None
-    try:
-        labels = {}
-        for name, items in data.get("first_frame_labels", {}).items():
-            labels[name] = {"guide": np.array([int(i["guide"]) for i in items], np.int64),
-                            "stripe": np.array([int(i["stripe"]) for i in items], np.int64),
-                            "uv": np.array([i["uv"] for i in items], np.float64).reshape(-1, 2)}
-        return Capture(path, float(data["fps"]), np.asarray(data["frames"], np.int64), tuple(data["image_size"]),
-                       float(data["stripe"]["width"]), tuple(data["stripe"]["colors"]),
-                       [{"name": g["name"], "root": np.asarray(g["root"], np.float64), "stripes": int(g["stripes"])}
-                        for g in data["guides"]],
-                       [CaptureCamera.from_json(cam) for cam in data["cameras"]], dict(data.get("stereo", {})), labels)
-    except (KeyError, TypeError, ValueError) as err:
-        raise InputError(source, None, f"malformed capture description: {err!r}") from None
-
-
 # -- scene files and the command line ---------------------------------------------------------------
 def load_capture_scene(path, overrides=None, capture_overrides=None):
     """A scene file with a [capture] table -> (SceneConfig, CaptureConfig). overrides as for

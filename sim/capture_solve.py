@@ -838,7 +838,6 @@ def chain_outliers(markers, roots, capture, tolerance=1.25, slack=0.003):
     centre beyond `tolerance` times the hair length (plus `slack` m) from the last consistent point
     is an outlier (a label that took another guide's stripe). Returns (F, M) bool."""
     markers = np.asarray(markers, np.float64)
-    F = markers.shape[0]
     w = capture.stripe_width
     out = np.zeros(markers.shape[:2], bool)
     anchor = np.array(roots, np.float64, copy=True)  # (F, G, 3)

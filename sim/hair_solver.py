@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import warp as wp
 
-from warp_kernels import collision, skinning, strands
+from warp_kernels import skinning, strands
 
 from .errors import SimulationError
 

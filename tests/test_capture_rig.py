@@ -10,8 +10,9 @@ import pytest
 from PIL import Image
 
 from sim.capture_rig import (DYES, STRIPE_COLORS, CaptureCamera, CaptureConfig, Studio, arc_lengths, intrinsics,
-                             load_capture, load_capture_scene, occlusion_mask, points_at, project, rig_cameras,
-                             run_synth, stripe_centres, synthesize)
+                             load_capture_scene, occlusion_mask, points_at, project, rig_cameras, run_synth,
+                             stripe_centres, synthesize)
+from sim.capture_solve import load_capture
 from sim.errors import InputError
 
 W, H = 320, 180
@@ -147,13 +148,12 @@ def test_stripe_centres_of_a_straight_strand_sit_at_the_stripe_midpoints():
 
 def test_truth_centres_lie_on_their_stripes_about_one_stripe_width_apart(capture):
     _, cap, _ = capture
-    truth = cap.truth()
+    truth = cap.truth
     w = cap.stripe_width
     centres, guides = truth["stripe_centres"], truth["guide_points"]
     spacing, straight_gap = [], []
     for f in range(len(cap.frames)):
-        for g, guide in enumerate(cap.guides):
-            count = guide["stripes"]
+        for g, count in enumerate(cap.stripes):
             s = (np.arange(count)[:, None] + np.linspace(0.0, 1.0, 4001)[None, :]) * w
             dense = points_at(guides[f, g][None], s.reshape(1, -1))[0].reshape(count, -1, 3)
             gap = np.linalg.norm(dense - centres[f, g, :count, None], axis=2).min(1)
@@ -183,6 +183,12 @@ def test_occlusion_hides_runs_of_frames_never_the_first_and_only_real_stripes():
 
 
 # -- the capture directory --------------------------------------------------------------------------
+def _first_frame_labels(cap, camera):
+    """The first frame's naming in one camera as guide and stripe indices and pixel positions."""
+    markers, uv = cap.first_frame_labels[camera]
+    return {"guide": cap.marker_guide[markers], "stripe": cap.marker_stripe[markers], "uv": uv}
+
+
 def test_synthesize_writes_the_documented_layout(capture):
     result, cap, config = capture
     folder = result.path
@@ -206,8 +212,8 @@ def test_synthesize_writes_the_documented_layout(capture):
     assert os.path.isfile(os.path.join(folder, "simulation.usdc"))
     assert not [p for p in os.listdir(os.path.dirname(folder)) if "partial" in p or ".old-" in p]
 
-    truth = cap.truth()
-    k_max = max(g["stripes"] for g in cap.guides)
+    truth = cap.truth
+    k_max = int(cap.stripes.max())
     assert truth["stripe_centres"].shape == (3, 6, k_max, 3) and truth["stripe_centres"].dtype == np.float64
     assert truth["guide_points"].shape == (3, 6, 12, 3)
     assert truth["occluded"].shape == (3, 10, 6, k_max) and truth["occluded"].dtype == bool
@@ -216,15 +222,15 @@ def test_synthesize_writes_the_documented_layout(capture):
     assert np.all(truth["visible"][truth["occluded"]] == 0.0)
     np.testing.assert_array_equal(truth["frames"], [1, 2, 3])
     np.testing.assert_array_equal(truth["cameras"], names)
-    np.testing.assert_allclose([g["root"] for g in cap.guides], truth["guide_points"][0, :, 0])
+    np.testing.assert_allclose(cap.roots, truth["guide_points"][0, :, 0])
 
 
 def test_first_frame_labels_are_the_visible_stripes_at_their_centres_projections(capture):
     _, cap, _ = capture
-    truth = cap.truth()
+    truth = cap.truth
     labelled = 0
     for index, cam in enumerate(cap.cameras):
-        labels = cap.labels[cam.name]
+        labels = _first_frame_labels(cap, cam.name)
         expected = project(cam, truth["stripe_centres"][0, labels["guide"], labels["stripe"]])
         assert np.abs(labels["uv"] - expected).max() < 1.5
         seen = truth["visible"][0, index][labels["guide"], labels["stripe"]]
@@ -234,7 +240,7 @@ def test_first_frame_labels_are_the_visible_stripes_at_their_centres_projections
         named[labels["guide"], labels["stripe"]] = True
         assert not (named & hidden).any()
         labelled += len(labels["uv"])
-    assert labelled > 0.3 * len(cap.cameras) * sum(g["stripes"] for g in cap.guides)
+    assert labelled > 0.3 * len(cap.cameras) * cap.stripes.sum()
 
 
 def test_each_label_sits_on_pixels_of_its_stripes_dye(capture):
@@ -242,7 +248,7 @@ def test_each_label_sits_on_pixels_of_its_stripes_dye(capture):
     hits, total, seen_colors = 0, 0, set()
     for cam in cap.cameras:
         image = np.asarray(Image.open(cap.image_path(cam.name, cap.frames[0])), np.float64)
-        labels = cap.labels[cam.name]
+        labels = _first_frame_labels(cap, cam.name)
         for stripe, (u, v) in zip(labels["stripe"], labels["uv"]):
             color = STRIPE_COLORS[stripe % 3]
             channel = int(np.argmax(DYES[color]))

@@ -1,7 +1,6 @@
 """The detail surface over a simulated garment: wrinkles, lifting out of the body, blended normals."""
 
 import numpy as np
-import warp as wp
 
 from sim.cloth import ClothModel, ClothParams, ClothSolver
 from sim.detail import ClothDetail, DetailParams

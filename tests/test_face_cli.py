@@ -1,7 +1,6 @@
 """The face from the command line: cfx lipsync end to end, its errors, and previews focused on the face."""
 
 import numpy as np
-import pytest
 
 from io_usd import CacheReader
 from sim.cli import main
