@@ -125,18 +125,23 @@ class CaptureCamera:
         r, t = self.world_to_camera[:3, :3], self.world_to_camera[:3, 3]
         return -r.T @ t
 
+    @property
+    def projection(self):
+        """The 3x4 matrix K [R | t]."""
+        return self.K @ self.world_to_camera[:3]
+
     def to_camera(self, points):
-        points = np.asarray(points, np.float64).reshape(-1, 3)
+        """World points (..., 3) in camera coordinates (..., 3)."""
+        points = np.asarray(points, np.float64)
         return points @ self.world_to_camera[:3, :3].T + self.world_to_camera[:3, 3]
 
     def project(self, points):
-        """World points (N, 3) to pixels (N, 2); NaN for points not in front of the camera."""
+        """World points (..., 3) to pixels (..., 2); NaN for points not in front of the camera."""
         local = self.to_camera(points)
-        z = local[:, 2:3]
+        z = local[..., 2:3]
         with np.errstate(divide="ignore", invalid="ignore"):
-            uv = (local[:, :2] / z) @ self.K[:2, :2].T + self.K[:2, 2]
-        uv[z[:, 0] <= 0.0] = np.nan
-        return uv
+            uv = (local[..., :2] / z) @ self.K[:2, :2].T + self.K[:2, 2]
+        return np.where(z > 1e-9, uv, np.nan)
 
     def gl_pose(self):
         """Camera-to-world in OpenGL's axes (x right, y up, looking down -z), as pyrender wants it."""
@@ -153,7 +158,7 @@ class CaptureCamera:
 
 
 def project(camera, points):
-    """Pixel coordinates (N, 2) of world points (N, 3) in `camera` (a CaptureCamera)."""
+    """Pixel coordinates (..., 2) of world points (..., 3) in `camera` (a CaptureCamera)."""
     return camera.project(points)
 
 

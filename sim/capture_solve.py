@@ -41,6 +41,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from .capture_rig import CaptureCamera
 from .errors import InputError
 
 COLOR_CHANNELS = {"red": 0, "green": 1, "blue": 2}
@@ -58,29 +59,6 @@ SKIN_COLOR = (0.86, 0.7, 0.6)
 
 
 @dataclass(frozen=True, eq=False)
-class Camera:
-    """A calibrated pinhole camera in OpenCV's convention (x right, y down, z forward)."""
-
-    name: str
-    group: str  # "stereo" or "ring"
-    K: np.ndarray  # (3, 3) intrinsics [px]
-    world_to_camera: np.ndarray  # (4, 4) rigid, metres
-
-    @property
-    def projection(self):
-        """The 3x4 matrix K [R | t]."""
-        return self.K @ self.world_to_camera[:3]
-
-    def to_camera(self, points):
-        return np.asarray(points, np.float64) @ self.world_to_camera[:3, :3].T + self.world_to_camera[:3, 3]
-
-    def project(self, points):
-        """Pixel coordinates (..., 2) of world points (..., 3)."""
-        uvw = self.to_camera(points) @ self.K.T
-        return uvw[..., :2] / uvw[..., 2:3]
-
-
-@dataclass(frozen=True, eq=False)
 class Capture:
     """A capture directory read and checked (see docs/capture_format.md)."""
 
@@ -93,7 +71,7 @@ class Capture:
     guide_names: tuple
     roots: np.ndarray  # (G, 3) at the first frame, m
     stripes: np.ndarray  # (G,) whole stripes per guide
-    cameras: tuple  # Camera, ...
+    cameras: tuple  # CaptureCamera, ...
     stereo: tuple  # (left index, right index, baseline m) or None
     first_frame_labels: dict  # camera name -> (marker indices (n,), uv (n, 2))
     truth: dict = field(default=None)  # truth.npz arrays, or None for a real capture
@@ -216,7 +194,7 @@ def load_capture(capture_dir, check_images=True):
         group = cam.get("group", "ring")
         if group not in GROUPS:
             raise InputError(source, f"{key}.group", f"expected one of {', '.join(GROUPS)}, got {group!r}")
-        cameras.append(Camera(str(cam["name"]), group, K, M))
+        cameras.append(CaptureCamera(str(cam["name"]), group, K, M))
     camera_names = [c.name for c in cameras]
     if len(set(camera_names)) != len(camera_names):
         raise InputError(source, "cameras", "camera names must be unique")
@@ -573,7 +551,7 @@ def label_capture(capture, params, progress=False, roots=None):
         for c, cam in enumerate(capture.cameras):
             blobs = segment_image(read_image(capture.image_path(cam.name, frame), capture.image_size),
                                   backgrounds[c], params.segment)
-            projected = _project_in_front(cam, ahead) if ahead is not None else None
+            projected = cam.project(ahead) if ahead is not None else None
             uv[c, f], index = trackers[c].update(blobs, projected)
             if projected is not None:
                 ambiguous[c] = _ambiguous_labels(uv[c, f], projected, same, params.track.ambiguous_px)
@@ -623,14 +601,6 @@ def _predict_points(points, f, moving):
         return last
     step = last - points[f - 2]
     return np.where(np.isfinite(step), last + step, last)
-
-
-def _project_in_front(camera, points):
-    """Pixel coordinates of points, NaN for points behind the camera."""
-    z = camera.to_camera(points)[..., 2]
-    uv = camera.project(points)
-    uv[~(z > 1e-6)] = np.nan
-    return uv
 
 
 def label_swaps(uv, truth_uv, marker_channel, tolerance_px=5.0):

@@ -9,7 +9,8 @@ import os
 import numpy as np
 import pytest
 
-from sim.capture_solve import (Blobs, Camera, LabelTracker, SegmentParams, TrackParams, camera_to_world,
+from sim.capture_rig import CaptureCamera
+from sim.capture_solve import (Blobs, LabelTracker, SegmentParams, TrackParams, camera_to_world,
                                fill_gaps, inner_layers, interpolate_strands, label_swaps, load_capture,
                                normalise_lengths, reject_kinks, resample_strands, segment_angles, segment_image,
                                stereo_triangulate, strand_neighbours, triangulate)
@@ -48,12 +49,12 @@ def rig_cameras(size=(320, 240), baseline=0.12):
     left = look_at((-baseline / 2, 0.02, 0.7), (-baseline / 2, 0.02, 0.0))
     right = left.copy()
     right[:3, 3] -= [baseline, 0.0, 0.0]  # centre `baseline` along the left camera's +x
-    cams = [Camera("stereo_l", "stereo", K, left), Camera("stereo_r", "stereo", K, right)]
+    cams = [CaptureCamera("stereo_l", "stereo", K, left), CaptureCamera("stereo_r", "stereo", K, right)]
     target = np.array([0.0, 0.02, 0.0])
     for name, azimuth, elevation in (("ring_a", -45, 5), ("ring_b", 45, -5), ("ring_c", 150, 10), ("ring_d", 10, 40)):
         a, e = math.radians(azimuth), math.radians(elevation)
         eye = target + 0.7 * np.array([math.sin(a) * math.cos(e), math.sin(e), math.cos(a) * math.cos(e)])
-        cams.append(Camera(name, "ring", K, look_at(eye, target)))
+        cams.append(CaptureCamera(name, "ring", K, look_at(eye, target)))
     return cams
 
 
@@ -240,7 +241,7 @@ def test_parallel_stereo_formulas_recover_a_point_exactly():
     b = 0.15
     right = left.copy()
     right[:3, 3] -= [b, 0.0, 0.0]
-    cl, cr = Camera("l", "stereo", K, left), Camera("r", "stereo", K, right)
+    cl, cr = CaptureCamera("l", "stereo", K, left), CaptureCamera("r", "stereo", K, right)
     points = np.random.default_rng(0).uniform(-0.2, 0.2, (50, 3))
     uvl, uvr = cl.project(points), cr.project(points)
     assert np.allclose(uvl[:, 1], uvr[:, 1])  # rectified: same rows
@@ -250,7 +251,7 @@ def test_parallel_stereo_formulas_recover_a_point_exactly():
     # the paper's eq. 2 verbatim for square pixels: X = b u/(u-u'), Y = b v/(u-u'), Z = b f/(u-u')
     Ks = K.copy()
     Ks[1, 1] = Ks[0, 0]
-    cl, cr = Camera("l", "stereo", Ks, left), Camera("r", "stereo", Ks, right)
+    cl, cr = CaptureCamera("l", "stereo", Ks, left), CaptureCamera("r", "stereo", Ks, right)
     u, v = (cl.project(points) - Ks[:2, 2]).T
     u2 = cr.project(points)[:, 0] - Ks[0, 2]
     expected = np.stack([b * u / (u - u2), b * v / (u - u2), b * Ks[0, 0] / (u - u2)], 1)
