@@ -690,6 +690,20 @@ def drawn_face(width=FACE_SIZE[0], height=FACE_SIZE[1], time=0.0):
     return out
 
 
+def builtin_face_cache(path, fps):
+    """The built-in head (no hair, still) speaking the demo line with a smile, simulated to a cache at
+    `path`: the face `cfx mask` projects when no cache is given."""
+    from .lipsync import DEMO_LINE_PATH, SAMPLE_RATE, load_audio
+    from .scene import _build_config, run_scene
+
+    seconds = len(load_audio(DEMO_LINE_PATH)) / SAMPLE_RATE
+    data = {"scene": {"frames": int(math.ceil(seconds * fps)) + 2, "fps": float(fps), "preroll": 0.0, "stats": False},
+            "head": {"animation": "none"}, "hair": {"enabled": False},
+            "face": {"audio": "builtin", "expressions": [{"frame": 1, "emotion": "happiness", "weight": 0.7}]}}
+    run_scene(_build_config("<mask>", data, None), path, progress=False)
+    return path
+
+
 class CacheFace:
     """Frontal renders of the head in a USD cache (io_usd.preview), one per display time; the
     cache's timeline loops. Only the face meshes are drawn (role "face", else the "collider"): hair
@@ -850,7 +864,10 @@ def add_mask_arguments(parser):
     parser.add_argument("track", nargs="?", help="recorded LED track (.json or .csv); default: a synthetic, "
                                                  "seeded performance")
     parser.add_argument("-o", "--output", required=True, help="projector frames as .mp4")
-    parser.add_argument("--cache", help="USD cache whose head is rendered as the face (default: a drawn face)")
+    parser.add_argument("--cache", help="USD cache whose face (or head) is rendered onto the mask")
+    parser.add_argument("--face", choices=("builtin", "drawn"), default="builtin",
+                        help="without --cache: the built-in face speaking its demo line (default), or a flat "
+                             "drawn test face with corner markers")
     parser.add_argument("--latency", type=float, default=0.1, help="seconds from capture to projection (default 0.1)")
     parser.add_argument("--frames", type=int, help="frames to render (default: the whole track, or 150 synthetic)")
     parser.add_argument("--fps", type=float, default=30.0, help="capture rate of a synthetic track, Hz (default 30)")
@@ -954,7 +971,14 @@ def run_mask(args):
     if calibration_alone is not None:
         errors["calibration alone"] = calibration_alone
 
-    face = CacheFace(args.cache) if args.cache else None
+    scratch = None
+    cache = args.cache
+    if not cache and args.face == "builtin":
+        import tempfile
+
+        scratch = tempfile.TemporaryDirectory(prefix="cfx-mask-")
+        cache = builtin_face_cache(os.path.join(scratch.name, "face.usdc"), track.fps)
+    face = CacheFace(cache) if cache else None
     draw_face = face if face is not None else (lambda t: drawn_face(time=t))
     display = track.times + opts.latency
     progress = tqdm(range(len(track)), desc=f"mask {os.path.basename(opts.output)}", unit="frame", file=sys.stderr,
@@ -972,6 +996,8 @@ def run_mask(args):
         progress.close()
         if face is not None:
             face.close()
+        if scratch is not None:
+            scratch.cleanup()
 
     mode = "without prediction" if args.no_predict else f"with {args.model} Kalman prediction"
     print(f"wrote {opts.output}: {len(track)} projector frames {width}x{height} at {track.fps:g} fps, {mode}",

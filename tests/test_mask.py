@@ -288,6 +288,8 @@ def test_missing_track_file_raises_input_error(tmp_path):
 def _args(*argv):
     parser = argparse.ArgumentParser()
     add_mask_arguments(parser)
+    if "--cache" not in argv and "--face" not in argv:
+        argv = (*argv, "--face", "drawn")  # the flat test face: no simulation needed
     return parser.parse_args([str(a) for a in argv])
 
 
@@ -371,3 +373,14 @@ def test_synthetic_track_is_seeded():
     b = synthetic_track(rig, MaskMotion(seed=9), frames=5, seed=9)
     assert isinstance(a, LedTrack)
     np.testing.assert_array_equal(a.leds, b.leds)
+
+
+def test_run_mask_projects_the_built_in_talking_face_by_default(tmp_path):
+    out = tmp_path / "mask.mp4"
+    assert run_mask(_args("-o", out, "--face", "builtin", "--size", "320x240", "--frames", 3, "-q")) == 0
+    import imageio.v3 as iio
+
+    frames = iio.imread(out)
+    assert frames.shape[0] == 3
+    skin = frames[..., 0].astype(int) - frames[..., 2].astype(int)
+    assert (skin > 30).sum() > 50  # warm skin tones of the rendered face land in the projector image
