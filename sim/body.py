@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
-from .head import _scalp_faces, procedural_head
+from .head import _scalp_faces, _smoothstep, procedural_head
 from .sphere_tree import signed_distance, warp_mesh
 
 HEIGHT = 1.70  # crown height [m]
@@ -400,11 +400,6 @@ def _skin_weights(mesh, parts, sk, falloff=0.012, smooth_iterations=8):
     w /= w.sum(1, keepdims=True)
     idx[w == 0.0] = 0
     return idx.astype(np.int64), w
-
-
-def _smoothstep(t):
-    t = np.clip(t, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
 
 
 def _landmarks(v, sk, parts):

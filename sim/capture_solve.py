@@ -43,6 +43,7 @@ import numpy as np
 
 from .capture_rig import CaptureCamera
 from .errors import InputError
+from .rigid import rigid_fit
 
 COLOR_CHANNELS = {"red": 0, "green": 1, "blue": 2}
 GROUPS = ("stereo", "ring")
@@ -1132,26 +1133,10 @@ def load_head(capture, scalp_radius=0.06):
 
     near = cKDTree(capture.roots).query(points[0], distance_upper_bound=scalp_radius)[0] < np.inf
     scalp = points[:, near] if near.sum() >= 8 else points
-    transforms = _kabsch(scalp[0], scalp)
+    transforms = rigid_fit(scalp[0], scalp)
     centre = _sphere_centre(scalp[0]) if near.sum() >= 8 else points[0].mean(0)
     color = collider.color if collider.color is not None else SKIN_COLOR
     return HeadTrack(transforms, centre, collider.name, points, collider.counts, collider.indices, color)
-
-
-def _kabsch(rest, frames):
-    """Rigid transforms (F, 4, 4) taking rest (P, 3) best onto each frames[f] (P, 3)."""
-    c0 = rest.mean(0)
-    c = frames.mean(1)
-    H = np.einsum("pi,fpj->fij", rest - c0, frames - c[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(np.einsum("fij,fjk->fik", Vt.transpose(0, 2, 1), U.transpose(0, 2, 1))))
-    D = np.tile(np.eye(3), (len(frames), 1, 1))
-    D[:, 2, 2] = d
-    R = Vt.transpose(0, 2, 1) @ D @ U.transpose(0, 2, 1)
-    T = np.tile(np.eye(4), (len(frames), 1, 1))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = c - np.einsum("fij,j->fi", R, c0)
-    return T
 
 
 def _sphere_centre(points):

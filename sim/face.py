@@ -21,8 +21,9 @@ import warp as wp
 
 from warp_kernels import skinning
 
-from .head import bust_surface
+from .head import _smoothstep, bust_surface
 from .mouth import MOUTH_PARAMETERS, NUM_MOUTH_PARAMETERS, VOWEL_SHAPES
+from .rigid import rigid_fit
 
 # -- the built-in face: a grid over the front of the bust ---------------------------------------
 
@@ -514,23 +515,7 @@ class FaceRig:
         return rigid_fit(rest, posed)
 
 
-def rigid_fit(a, b):
-    """4x4 rigid transform T minimising |T a - b| over point sets (N, 3)."""
-    ca, cb = a.mean(0), b.mean(0)
-    U, _, Vt = np.linalg.svd((a - ca).T @ (b - cb))
-    d = np.sign(np.linalg.det(Vt.T @ U.T))
-    R = Vt.T @ np.diag([1.0, 1.0, d]) @ U.T
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, cb - R @ ca
-    return T
-
-
 # -- animation ------------------------------------------------------------------------------------
-
-
-def _smoothstep(t):
-    t = np.clip(t, 0.0, 1.0)
-    return t * t * (3.0 - 2.0 * t)
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ class GuideTargets:
         frames = np.asarray(guide_frames, np.float64)
         if frames.ndim != 4 or frames.shape[-1] != 3 or frames.shape[2] < 2 or not np.all(np.isfinite(frames)):
             raise ValueError("guides must be finite (frames, guides, vertices >= 2, 3) positions")
-        self.frames = np.stack([[_even(g) for g in f] for f in frames])
+        self.frames = _even(frames.reshape(-1, *frames.shape[2:]), frames.shape[2]).reshape(frames.shape)
         self.fps = float(fps)
         self.num_guides, self.vertices = self.frames.shape[1], self.frames.shape[2]
         device = model.device
@@ -57,9 +57,12 @@ class GuideTargets:
         return self.points
 
 
-def _even(points):
-    """A polyline resampled to the same vertex count, evenly spaced along its arc length."""
-    return _resample(points, len(points))
+def _even(polylines, count):
+    """Polylines (P, n, 3) resampled to `count` points evenly spaced along each one's arc length."""
+    from .capture_rig import arc_lengths, points_at
+
+    total = arc_lengths(polylines)[:, -1]
+    return points_at(polylines, total[:, None] * np.linspace(0.0, 1.0, count)[None])
 
 
 def read_guides(path, prim="hair_guides"):
@@ -77,15 +80,5 @@ def read_guides(path, prim="hair_guides"):
     frames = []
     for f in reader.frames(prim):
         pts = reader.points(prim, f).astype(np.float64)
-        frames.append([_resample(pts[a:b], m) for a, b in zip(starts[:-1], starts[1:])])
+        frames.append(np.concatenate([_even(pts[None, a:b], m) for a, b in zip(starts[:-1], starts[1:])]))
     return np.asarray(frames), reader.fps or 24.0
-
-
-def _resample(points, count):
-    """`count` points evenly spaced along a polyline's arc length (a point stays a point)."""
-    seg = np.linalg.norm(np.diff(points, axis=0), axis=1)
-    arc = np.concatenate([[0.0], np.cumsum(seg)])
-    if arc[-1] <= 0.0:
-        return np.repeat(points[:1], count, 0)
-    s = np.linspace(0.0, arc[-1], count)
-    return np.stack([np.interp(s, arc, points[:, c]) for c in range(3)], 1)

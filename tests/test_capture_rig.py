@@ -15,32 +15,12 @@ from sim.capture_rig import (DYES, STRIPE_COLORS, CaptureCamera, CaptureConfig, 
 from sim.capture_solve import load_capture
 from sim.errors import InputError
 
+from capture_scenes import tiny_capture_scene  # tests/capture_scenes.py
+
 W, H = 320, 180
 CENTRE = np.array([0.0, 0.32, 0.0])
 
-SCENE = """
-[scene]
-fps = 24
-frames = 3
-preroll = 0.1
-stats = false
-
-[head]
-animation = "turn"
-turn_degrees = 8.0
-
-[hair]
-style = "straight"
-count = 60
-length = 0.2
-length_jitter = 0.05
-vertices = 12
-
-[solver]
-substeps = 2
-wind = [1.5, 0.0, 1.0]
-
-[capture]
+SCENE = tiny_capture_scene(3, 0.2, """
 guides = 6
 stripe_width = 0.04
 guide_width = 0.008
@@ -50,7 +30,7 @@ noise = 3.0
 occlusion = 0.3
 occlusion_frames = 2
 seed = 3
-"""
+""")
 
 
 def _scene_file(tmp_path, text=SCENE, name="scene.toml"):

@@ -17,6 +17,8 @@ from sim.capture_solve import (Blobs, LabelTracker, SegmentParams, TrackParams, 
 from sim.errors import InputError
 from sim.hair_cards import HairCards
 
+from capture_scenes import tiny_capture_scene  # tests/capture_scenes.py
+
 COLORS = {"red": (0.85, 0.1, 0.08), "green": (0.1, 0.72, 0.15), "blue": (0.1, 0.15, 0.85)}
 BACKGROUND = 0.92
 
@@ -635,29 +637,7 @@ def test_cli_solve_runs_and_bad_captures_raise_input_errors(solved, capsys, tmp_
     assert not list(tmp_path.glob("*.partial*"))
 
 
-RIG_SCENE = """
-[scene]
-fps = 24
-frames = 4
-preroll = 0.1
-stats = false
-
-[head]
-animation = "turn"
-turn_degrees = 8.0
-
-[hair]
-style = "straight"
-count = 60
-length = 0.16
-length_jitter = 0.05
-vertices = 12
-
-[solver]
-substeps = 2
-wind = [1.5, 0.0, 1.0]
-
-[capture]
+RIG_SCENE = tiny_capture_scene(4, 0.16, """
 guides = 4
 stripe_width = 0.04
 guide_width = 0.008
@@ -665,7 +645,7 @@ ring_cameras = 6
 width = 480
 height = 270
 seed = 1
-"""
+""")
 
 
 def test_solve_a_tiny_capture_from_the_synthetic_rig(tmp_path):

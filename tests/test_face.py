@@ -6,7 +6,8 @@ import pytest
 
 from sim.errors import InputError
 from sim.face import (ACTION_UNITS, EMOTIONS, FEATURE_POINTS, ExpressionKey, FaceAnimation, FaceRig,
-                      builtin_face, feature_frame, interpolate_shape, rigid_fit)
+                      builtin_face, feature_frame, interpolate_shape)
+from sim.rigid import rigid_fit
 from sim.mouth import MOUTH_PARAMETERS, VOWEL_SHAPES, VOWELS, mouth_from_weights, nearest_vowel
 
 
@@ -182,6 +183,9 @@ def test_rigid_fit_recovers_a_transform():
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = q, [0.1, -0.2, 0.3]
     np.testing.assert_allclose(rigid_fit(a, a @ q.T + T[:3, 3]), T, atol=1e-12)
+    # a batch of frames: each recovered, including the identity
+    batch = np.stack([a, a @ q.T + T[:3, 3]])
+    np.testing.assert_allclose(rigid_fit(a, batch), np.stack([np.eye(4), T]), atol=1e-12)
 
 
 def test_interpolation_is_compact(rig):
