@@ -208,14 +208,14 @@ class ClothSolver:
         self.acc_x, self.acc_v = z(), z()
         self.pin_target = z()
         self.fallbacks = wp.zeros(1, dtype=wp.int32, device=d)
-        self._steps = 0
+        self.step_count = wp.zeros(1, dtype=wp.int32, device=d)  # on the device: captured frames advance it
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=d)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
 
     def step(self, state_in, state_out, body, dt):
         """One step of dt. `body` (a Collider or None) must be posed for the end of the step."""
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
-        self._steps += 1
+        wp.launch(kernels.count_step, 1, [self.step_count], device=dev)
         if body is not None and p.follow:
             wp.launch(kernels.apply_follow, n,
                       [state_in.x, m.inv_mass, body.points, body.indices, state_in.follow_face,
@@ -260,7 +260,7 @@ class ClothSolver:
         wp.launch(kernels.body_collide, m.num_particles,
                   [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
                    adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, p.walk_steps,
-                   p.teleport, p.walk_trust_distance, max(1, p.walk_refresh), self._steps, p.collision_margin,
+                   p.teleport, p.walk_trust_distance, max(1, p.walk_refresh), self.step_count, p.collision_margin,
                    p.friction, dt, state.nearest, state.contact, self.fallbacks], device=m.device)
 
     def _limit_strain(self, state, dt):
@@ -276,14 +276,24 @@ class ClothSolver:
             wp.copy(state.x, src)
         wp.launch(kernels.velocity_from_correction, n, [self.x_stage, state.x, dt, state.v], device=dev)
 
-    def check_health(self, state, frame, prim):
+    def count_unhealthy(self, state):
+        """Launch the count of non-finite or too fast particles without waiting: (count, first
+        particle) as one-element device arrays, for report_unhealthy once they are read back."""
         from warp_kernels import strands
 
         self._bad_count.zero_()
         self._first_bad.fill_(np.iinfo(np.int32).max)
         wp.launch(strands.count_unhealthy, self.model.num_particles,
                   [state.x, state.v, self.params.max_speed, self._bad_count, self._first_bad], device=self.model.device)
-        bad = int(self._bad_count.numpy()[0])
+        return self._bad_count, self._first_bad
+
+    def report_unhealthy(self, bad, first, frame, prim):
+        """Raise SimulationError naming the frame and prim if count_unhealthy found any particle."""
+        bad = int(np.ravel(bad)[0])
         if bad:
             raise SimulationError(frame, prim, f"{bad} cloth particles are non-finite or faster than "
-                                  f"{self.params.max_speed} m/s (first: particle {int(self._first_bad.numpy()[0])})")
+                                  f"{self.params.max_speed} m/s (first: particle {int(np.ravel(first)[0])})")
+
+    def check_health(self, state, frame, prim):
+        bad, first = self.count_unhealthy(state)
+        self.report_unhealthy(bad.numpy(), first.numpy(), frame, prim)

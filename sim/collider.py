@@ -53,26 +53,32 @@ class Collider:
         self.sphere_skin_indices = arr(skin_indices[nearest], wp.vec4i)
         self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
         self.bone_matrices = None
+        self._pose_buffers = {}
 
     def set_point_poses(self, points):
         """points: (K, V, 3) vertex positions for K upcoming poses (a point cache, e.g. from USD)."""
         pts = np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))
         if len(pts) % len(self.rest_points_np):
             raise ValueError(f"{self.name}: point poses must have {len(self.rest_points_np)} points each")
-        if self._pose_points is None or self._pose_points.shape[0] != len(pts):
-            self._pose_points = wp.array(pts, dtype=wp.vec3, device=self.device)
-        else:
-            self._pose_points.assign(pts)
+        self._pose_points = self._pose_buffer(pts, wp.vec3)
         self.bone_matrices = None
 
     def set_poses(self, matrices):
         """matrices: (K, num_bones, 4, 4) bone transforms for K upcoming poses (e.g. substeps)."""
         m = np.ascontiguousarray(np.asarray(matrices, np.float32).reshape(-1, 4, 4))
-        if self.bone_matrices is None or self.bone_matrices.shape[0] != len(m):
-            self.bone_matrices = wp.array(m, dtype=wp.mat44, device=self.device)
-        else:
-            self.bone_matrices.assign(m)
+        self.bone_matrices = self._pose_buffer(m, wp.mat44)
         self._pose_points = None
+
+    def _pose_buffer(self, values, dtype):
+        """One device buffer per pose count, refilled in place: solvers with different substep counts
+        each keep the buffer their captured frames read."""
+        key = (dtype, values.shape)
+        buffer = self._pose_buffers.get(key)
+        if buffer is None:
+            buffer = self._pose_buffers[key] = wp.array(values, dtype=dtype, device=self.device)
+        else:
+            buffer.assign(values)
+        return buffer
 
     def apply_pose(self, k):
         wp.copy(self.prev_points, self.points)

@@ -464,6 +464,7 @@ class FaceRig:
         self.rest = wp.array(self.mesh.vertices.astype(np.float32), dtype=wp.vec3, device=self.device)
         self._weights = wp.zeros(S, dtype=float, device=self.device)
         self._out = wp.zeros(V, dtype=wp.vec3, device=self.device)
+        self._rest_out = wp.zeros(V, dtype=wp.vec3, device=self.device)  # the unexpressed face, for head_transform
 
     def weights(self, action_units=None, mouth=None):
         """Shape weights from {AU number: intensity} and 13 mouth parameters [mm]."""
@@ -494,25 +495,35 @@ class FaceRig:
                   [collider.points, collider.indices, tri, bary, self.rest, local], device=self.device)
         self._binding = (arr(collider.points.numpy(), wp.vec3), tri, bary, local)
 
-    def posed_points(self, collider, weights):
-        """World positions of the face on the collider's current pose: the rig's own wp.array,
-        overwritten by the next posed_points or head_transform call."""
+    def posed_points(self, collider, weights, out=None):
+        """World positions of the face on the collider's current pose: the rig's own wp.array (or
+        `out`), overwritten by the next posed_points or head_transform call."""
         if self._binding is None:
             self.attach(collider)
+        out = self._out if out is None else out
         rest_mesh, tri, bary, local = self._binding
         self._weights.assign(np.asarray(weights, np.float32))
         wp.launch(skinning.blend_shape_bound_points, self.mesh.num_vertices,
                   [self.shape_start, self.shape_index, self.shape_offset, self._weights, rest_mesh, collider.points,
-                   collider.indices, tri, bary, local, self._out], device=self.device)
-        return self._out
+                   collider.indices, tri, bary, local, out], device=self.device)
+        return out
+
+    def queue_frame(self, collider, weights):
+        """Launch this pose's face and its unexpressed face without waiting for either: (posed,
+        rest_posed) wp.arrays; head_transform_from(rest_posed as NumPy) gives the head transform."""
+        rest_posed = self.posed_points(collider, np.zeros(self.num_shapes), out=self._rest_out)
+        return self.posed_points(collider, weights), rest_posed
 
     def head_transform(self, collider):
         """The rigid transform (4x4, column vectors) taking the face's rest frame to the collider's
         current pose: a least-squares fit (Kabsch) over the undeformed bound face, which is exact
         where the head moves rigidly. UsdSkel drives the exported rig's single joint with it."""
-        rest = self.mesh.vertices
-        posed = self.posed_points(collider, np.zeros(self.num_shapes)).numpy().astype(np.float64)
-        return rigid_fit(rest, posed)
+        rest_posed = self.posed_points(collider, np.zeros(self.num_shapes), out=self._rest_out)
+        return self.head_transform_from(rest_posed.numpy())
+
+    def head_transform_from(self, rest_posed):
+        """head_transform from the unexpressed face's posed points (V, 3)."""
+        return rigid_fit(self.mesh.vertices, np.asarray(rest_posed, np.float64))
 
 
 # -- animation ------------------------------------------------------------------------------------

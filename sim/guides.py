@@ -45,16 +45,10 @@ class GuideTargets:
         self.strand_guides = wp.array(guides, dtype=wp.vec3i, device=device)
         self.strand_guide_weights = wp.array(weights, dtype=wp.vec3, device=device)
         self.particle_param = wp.array(param.astype(np.float32), dtype=float, device=device)
-        self.points = wp.zeros(self.num_guides * self.vertices, dtype=wp.vec3, device=device)
-
-    def at(self, time):
-        """Upload the guides at `time` [s] (linear between captured frames, held past the ends)."""
-        u = np.clip(time * self.fps, 0.0, len(self.frames) - 1)
-        k = min(int(u), len(self.frames) - 2) if len(self.frames) > 1 else 0
-        t = u - k
-        g = self.frames[k] if len(self.frames) == 1 else (1.0 - t) * self.frames[k] + t * self.frames[k + 1]
-        self.points.assign(g.reshape(-1, 3).astype(np.float32))
-        return self.points
+        # every captured frame on the device, frame-major: the kernel interpolates in time itself, so
+        # nothing is uploaded per substep and a captured frame replays at any time
+        self.num_frames = len(self.frames)
+        self.frame_points = wp.array(self.frames.reshape(-1, 3).astype(np.float32), dtype=wp.vec3, device=device)
 
 
 def _even(polylines, count):

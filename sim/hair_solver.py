@@ -87,15 +87,25 @@ class HairSolver:
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=device)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=device)
+        # time-dependent forces (gusts, captured guides) read the time from the device, so a frame's
+        # launches captured once in a CUDA graph replay at any time: step(time=t) passes t - clock
+        self.clock = wp.zeros(1, dtype=float, device=device)
+        self._clock_time = 0.0
+
+    def set_clock(self, time):
+        """Set the device clock to `time` [s] (e.g. a frame's start, before launching its graph)."""
+        self._clock_time = float(time)
+        self.clock.fill_(self._clock_time)
 
     def step(self, state_in, state_out, collider, dt, time=0.0, guides=None):
         """One substep. The collider must already be posed for the end of the substep; guides (a
         sim.guides.GuideTargets) pull the strands toward captured motion at `time`."""
         m, p, dev = self.model, self.params, self.model.device
+        offset = float(time - self._clock_time)
         wp.launch(strands.integrate_particles, m.num_particles,
                   [state_in.x, state_in.v, m.inv_mass, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag,
-                   p.damping, p.wind_turbulence, p.wind_turbulence_scale, time * p.wind_turbulence_rate, dt,
-                   state_out.x, state_out.v], device=dev)
+                   p.damping, p.wind_turbulence, p.wind_turbulence_scale, p.wind_turbulence_rate, self.clock,
+                   offset, dt, state_out.x, state_out.v], device=dev)
         if m.bind_particle is not None and collider is not None:
             wp.launch(skinning.evaluate_bindings, len(m.bind_particle),
                       [collider.points, collider.indices, m.bind_particle, m.bind_triangle,
@@ -108,7 +118,8 @@ class HairSolver:
         if guides is not None and p.guide_stiffness > 0.0:
             wp.launch(strands.follow_guides, m.num_particles,
                       [state_out.x, m.inv_mass, m.particle_strand, m.strand_start, guides.strand_guides,
-                       guides.strand_guide_weights, guides.particle_param, guides.at(time), guides.vertices,
+                       guides.strand_guide_weights, guides.particle_param, guides.frame_points,
+                       guides.num_frames, guides.num_guides, guides.vertices, guides.fps, self.clock, offset,
                        float(1.0 - np.exp(-p.guide_stiffness * dt))], device=dev)
         variant = SHAPE_MATCHING[p.shape_matching]
         win = self.windows
@@ -137,19 +148,29 @@ class HairSolver:
                    p.ftl_damping, dt, state_out.v], device=dev)
 
     def reset(self):
-        """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut)."""
+        """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut).
+        Frames captured in CUDA graphs must be captured again (sim.graphs.FrameGraphs.clear)."""
         self._rotations_exact = True
 
-    def check_health(self, state, frame, prim):
-        """Raise SimulationError naming the frame and prim if any particle is NaN or too fast."""
+    def count_unhealthy(self, state):
+        """Launch the count of non-finite or too fast particles without waiting: (count, first
+        particle) as one-element device arrays, for report_unhealthy once they are read back."""
         self._bad_count.zero_()
         self._first_bad.fill_(np.iinfo(np.int32).max)
         wp.launch(strands.count_unhealthy, self.model.num_particles,
                   [state.x, state.v, self.params.max_speed, self._bad_count, self._first_bad],
                   device=self.model.device)
-        bad = int(self._bad_count.numpy()[0])
+        return self._bad_count, self._first_bad
+
+    def report_unhealthy(self, bad, first, frame, prim):
+        """Raise SimulationError naming the frame and prim if count_unhealthy found any particle."""
+        bad, i = int(np.ravel(bad)[0]), int(np.ravel(first)[0])
         if bad:
-            i = int(self._first_bad.numpy()[0])
             strand = int(self.model.particle_strand_np[i])
             raise SimulationError(frame, prim, f"{bad} particles are non-finite or faster than "
                                   f"{self.params.max_speed} m/s (first: particle {i}, strand {strand})")
+
+    def check_health(self, state, frame, prim):
+        """Raise SimulationError naming the frame and prim if any particle is NaN or too fast."""
+        bad, first = self.count_unhealthy(state)
+        self.report_unhealthy(bad.numpy(), first.numpy(), frame, prim)

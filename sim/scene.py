@@ -18,6 +18,7 @@ from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
 from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
+from .graphs import AsyncReadback, FrameGraphs
 from .errors import InputError
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
@@ -39,6 +40,7 @@ class TimingConfig:
     preroll: float = 1.0  # s simulated before the first frame so the hair has settled
     device: str = "cpu"  # "cpu" or "cuda" (or "cuda:N")
     stats: bool = True  # measure stretch, root drift and penetration every frame
+    cuda_graphs: bool = True  # on CUDA devices, capture each solver's frame once and replay it
 
     def __post_init__(self):
         if self.fps <= 0.0:
@@ -300,6 +302,7 @@ class Scene:
             raise InputError(config.source, "scene.device", f"device '{device}' is not available") from None
         self.device = device
         self.time = 0.0
+        self.graphs = FrameGraphs(device, config.timing.cuda_graphs)
         leaves = config.head.sphere_leaves if config.hair.enabled and config.solver.collision == "sphere_tree" else 0
         if config.body.enabled:
             self.head, self._motion = _load_body(config)
@@ -371,14 +374,25 @@ class Scene:
         offset = getattr(self.head, "head_offset", (0.0, 0.0, 0.0)) if cfg.body.enabled else (0.0, 0.0, 0.0)
         return builtin_face(project, cfg.face.lift, offset, cfg.face.resolution)
 
-    def face_frame(self, frame):
-        """The face at time code `frame` on the collider's current pose: (points (V, 3), shape
-        weights (S,), head transform 4x4), or None without a face."""
-        if self.face_rig is None:
-            return None
-        weights = self.face_animation.weights(self.face_rig, frame)
-        transform = self.face_rig.head_transform(self.collider)
-        return self.face_rig.posed_points(self.collider, weights).numpy().copy(), weights, transform
+    def queue_outputs(self, frame):
+        """Launch everything a cache frame needs on the current state without waiting: ({name:
+        wp.array} to read back, face weights or None). Names: the collider's, hair, cloth,
+        cloth_detail (+ _normals), face and face_rest (the unexpressed face, for the head transform),
+        and the solvers' health counts (hair_bad/_first, cloth_bad/_first)."""
+        arrays, weights = {self.collider_name: self.collider.points}, None
+        if self.model is not None:
+            arrays["hair"] = self.state.x
+            arrays["hair_bad"], arrays["hair_first"] = self.solver.count_unhealthy(self.state)
+        if self.cloth_model is not None:
+            arrays["cloth"] = self.cloth_state.x
+            arrays["cloth_bad"], arrays["cloth_first"] = self.cloth_solver.count_unhealthy(self.cloth_state)
+            detail = self.update_detail()
+            if detail is not None:
+                arrays["cloth_detail"], arrays["cloth_detail_normals"] = detail
+        if self.face_rig is not None:
+            weights = self.face_animation.weights(self.face_rig, frame)
+            arrays["face"], arrays["face_rest"] = self.face_rig.queue_frame(self.collider, weights)
+        return arrays, weights
 
     def _pose(self, times):
         """Pose the collider for each of `times` (uploaded once; apply_pose(k) picks one)."""
@@ -416,29 +430,49 @@ class Scene:
 
     def advance(self, duration, animate=True):
         """Simulate `duration` seconds; with animate=False the collider holds its pose (preroll).
-        Hair and cloth each take their own substeps across the frame against the same collider."""
+        Hair and cloth each take their own substeps across the frame against the same collider; on a
+        CUDA device each solver's frame is one graph launch (sim.graphs)."""
         fps = self.config.timing.fps
         frame_dt = 1.0 / fps
         for _ in range(int(round(duration * fps))):
             t0 = self.time
             if self.model is not None:
-                self._advance_solver(t0, frame_dt, self.config.solver.substeps, animate, self._step_hair)
+                self.solver.set_clock(t0)
+                self._advance_solver("hair", t0, frame_dt, self.config.solver.substeps, animate, self._step_hair,
+                                     self._hair_refs)
             if self.cloth_model is not None:
-                self._advance_solver(t0, frame_dt, self.cloth_substeps, animate, self._step_cloth)
+                self._advance_solver("cloth", t0, frame_dt, self.cloth_substeps, animate, self._step_cloth,
+                                     self._cloth_refs)
             if animate:
                 self.time = t0 + frame_dt
 
-    def _advance_solver(self, t0, frame_dt, substeps, animate, step):
+    def _advance_solver(self, name, t0, frame_dt, substeps, animate, step, refs):
         dt = frame_dt / substeps
         times = t0 + dt * np.arange(0, substeps + 1) if animate else np.full(substeps + 1, t0)
-        self._pose(times)
-        # start from the frame's first pose: another solver may have left the collider at the frame's
-        # end, and surface velocities (cloth friction) come from consecutive poses
-        self.collider.apply_pose(0)
-        self.collider.reset_motion()
-        for k in range(1, substeps + 1):
-            self.collider.apply_pose(k)
-            step(dt, float(times[k]))
+        self._pose(times)  # the frame's poses, uploaded into the buffer the graph reads
+
+        def frame():
+            # start from the frame's first pose: another solver may have left the collider at the
+            # frame's end, and surface velocities (cloth friction) come from consecutive poses
+            self.collider.apply_pose(0)
+            self.collider.reset_motion()
+            for k in range(1, substeps + 1):
+                self.collider.apply_pose(k)
+                step(dt, float(times[k]))
+
+        self.graphs.run((name, animate, id(refs[0]()[0])), frame, refs)
+
+    @property
+    def _hair_refs(self):
+        def put(value):
+            self.state, self._scratch = value
+        return (lambda: (self.state, self._scratch)), put
+
+    @property
+    def _cloth_refs(self):
+        def put(value):
+            self.cloth_state, self._cloth_scratch = value
+        return (lambda: (self.cloth_state, self._cloth_scratch)), put
 
     def _step_hair(self, dt, t):
         self.solver.step(self.state, self._scratch, self.collider, dt, t, self.guides)
@@ -450,9 +484,18 @@ class Scene:
 
     def update_detail(self):
         """This frame's detail surface over the garment (positions, normals), or None."""
-        if self.cloth_detail is None:
+        detail = self.cloth_detail
+        if detail is None:
             return None
-        return self.cloth_detail.update(self.cloth_model, self.cloth_state, self.collider, 1.0 / self.config.timing.fps)
+
+        def put(value):
+            detail.height, detail.height_tmp = value
+
+        self.graphs.run(("detail", id(self.cloth_state), id(detail.height)),
+                        lambda: detail.update(self.cloth_model, self.cloth_state, self.collider,
+                                              1.0 / self.config.timing.fps),
+                        ((lambda: (detail.height, detail.height_tmp)), put))
+        return detail.positions, detail.normals
 
     def measure(self):
         """Per-frame quality numbers for hair (stretch, root drift, penetration) and cloth (edge
@@ -652,31 +695,37 @@ def run_scene(config, out_path, progress=True, on_frame=None):
             writer.add_mesh("face", "face", None, rig.mesh.faces, color=rig.mesh.colors)
             writer.add_blend_shape_rig("face_rig", rig.mesh.vertices, rig.mesh.faces, rig.shape_names, rig.offsets,
                                        color=rig.mesh.colors)
+        # one frame behind: frame i's results are copied back behind its work while the host writes
+        # frame i - 1, so USD output overlaps the next frame's simulation on a GPU
+        readback, pending = AsyncReadback(scene.device), None
+
+        def write(frame, wait, weights):
+            data = wait()
+            if scene.model is not None:
+                scene.solver.report_unhealthy(data["hair_bad"], data["hair_first"], frame, "/World/hair")
+            if scene.cloth_model is not None:
+                scene.cloth_solver.report_unhealthy(data["cloth_bad"], data["cloth_first"], frame, "/World/cloth")
+            samples = {name: data[name] for name in (scene.collider_name, "hair", "cloth", "cloth_detail")
+                       if name in data}
+            normals = {"cloth_detail": data["cloth_detail_normals"]} if "cloth_detail_normals" in data else {}
+            if weights is not None:
+                _check_finite(data["face"], frame, "/World/face")
+                transform = scene.face_rig.head_transform_from(data["face_rest"])
+                samples["face"] = data["face"]
+                writer.write_blend_shape_frame("face_rig", frame, weights, transform)
+                if t.stats:  # how far the expression and speech move the face, in its own frame
+                    local = (data["face"] - transform[:3, 3]) @ transform[:3, :3]
+                    move = float(np.linalg.norm(local - scene.face_rig.mesh.vertices, axis=1).max())
+                    worst["face_max_offset"] = max(worst.get("face_max_offset", 0.0), move)
+            writer.write_frame(frame, samples, normals)
+            bar.update(1)
+
         for i in range(t.frames):
             frame = t.start_frame + i
             if i > 0:
                 scene.advance(1.0 / t.fps)
-            samples = {name: scene.collider.posed_points()}
-            if scene.model is not None:
-                scene.solver.check_health(scene.state, frame, "/World/hair")
-                samples["hair"] = scene.state.x.numpy()
-            normals = {}
-            if scene.cloth_model is not None:
-                scene.cloth_solver.check_health(scene.cloth_state, frame, "/World/cloth")
-                samples["cloth"] = scene.cloth_state.x.numpy()
-                detail = scene.update_detail()
-                if detail is not None:
-                    samples["cloth_detail"], normals["cloth_detail"] = detail[0].numpy(), detail[1].numpy()
-            face = scene.face_frame(frame)
-            if face is not None:
-                _check_finite(face[0], frame, "/World/face")
-                samples["face"] = face[0]
-                writer.write_blend_shape_frame("face_rig", frame, face[1], face[2])
-                if t.stats:  # how far the expression and speech move the face, in its own frame
-                    local = (face[0] - face[2][:3, 3]) @ face[2][:3, :3]
-                    move = float(np.linalg.norm(local - scene.face_rig.mesh.vertices, axis=1).max())
-                    worst["face_max_offset"] = max(worst.get("face_max_offset", 0.0), move)
-            writer.write_frame(frame, samples, normals)
+            arrays, weights = scene.queue_outputs(frame)
+            ready = (frame, readback.begin(arrays), weights)
             if t.stats:
                 for key, value in scene.measure().items():
                     if key == "walk_agreement":  # reported over the whole run and for the worst frame
@@ -688,7 +737,11 @@ def run_scene(config, out_path, progress=True, on_frame=None):
                         worst[key] = max(worst[key], value) if key in larger_is_worse else min(worst[key], value)
             if on_frame:
                 on_frame(frame, scene)
-            bar.update(1)
+            if pending is not None:
+                write(*pending)
+            pending = ready
+        if pending is not None:
+            write(*pending)
         bar.close()
         if agreement:
             worst["walk_agreement"] = float(np.mean(agreement))

@@ -26,10 +26,11 @@ def test_follow_guides_matches_a_float64_reference():
     x0 = model.rest_positions_np.astype(np.float64) + rng.normal(size=(model.num_particles, 3)) * 0.01
     x = wp.array(x0.astype(np.float32), dtype=wp.vec3)
     stiffness = 0.3
-    time = 0.05  # half way between the two captured frames
+    clock = wp.array([0.04], dtype=float)  # + 0.01 offset: half way between the two captured frames
     wp.launch(kernels.follow_guides, model.num_particles,
               [x, model.inv_mass, model.particle_strand, model.strand_start, targets.strand_guides,
-               targets.strand_guide_weights, targets.particle_param, targets.at(time), targets.vertices, stiffness])
+               targets.strand_guide_weights, targets.particle_param, targets.frame_points, targets.num_frames,
+               targets.num_guides, targets.vertices, targets.fps, clock, 0.01, stiffness])
     # reference: the same rule in float64
     g = 0.5 * (targets.frames[0] + targets.frames[1])
     idx, w = targets.strand_guides.numpy(), targets.strand_guide_weights.numpy().astype(np.float64)

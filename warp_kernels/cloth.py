@@ -263,6 +263,12 @@ def walk_to_nearest_vertex(p: wp.vec3, start: int, points: wp.array(dtype=wp.vec
 
 
 @wp.kernel
+def count_step(step_count: wp.array(dtype=wp.int32)):
+    """The solver's step counter lives on the device, so a captured frame advances it on replay."""
+    step_count[0] = step_count[0] + 1
+
+
+@wp.kernel
 def body_collide(
     x: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
@@ -281,7 +287,7 @@ def body_collide(
     teleport: float,
     trust_distance: float,
     refresh: int,
-    step_index: int,
+    step_count: wp.array(dtype=wp.int32),
     margin: float,
     friction: float,
     dt: float,
@@ -319,7 +325,7 @@ def body_collide(
         else:
             reach = wp.length(xp - points[vtx])
             far = reach > trust_distance
-            if (concave[vtx] != 0 and not far) or (far and (step_index + p) % refresh == 0):
+            if (concave[vtx] != 0 and not far) or (far and (step_count[0] + p) % refresh == 0):
                 trusted = False
                 # the closest surface point is no farther than the vertex the walk reached
                 search = reach + margin

@@ -26,12 +26,16 @@ def integrate_particles(
     damping: float,
     turbulence: float,
     turbulence_scale: float,
-    time: float,
+    turbulence_rate: float,
+    clock: wp.array(dtype=float),
+    time_offset: float,
     dt: float,
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """Symplectic Euler prediction. air_drag [1/s] pulls velocity toward the local wind; damping [1/s]."""
+    """Symplectic Euler prediction. air_drag [1/s] pulls velocity toward the local wind; damping [1/s].
+    The gusts' time is clock[0] + time_offset: the clock lives on the device so a captured frame
+    replays at any time."""
     i = wp.tid()
     if inv_mass[i] == 0.0:
         x_out[i] = x[i]
@@ -42,6 +46,7 @@ def integrate_particles(
     if turbulence > 0.0:
         # gusts: smooth noise in space and time scaled by the mean wind speed
         q = p * turbulence_scale
+        time = (clock[0] + time_offset) * turbulence_rate
         speed = wp.length(wind)
         state = wp.rand_init(7)
         gust = wp.vec3(
@@ -366,16 +371,26 @@ def follow_guides(
     strand_guides: wp.array(dtype=wp.vec3i),
     strand_guide_weights: wp.array(dtype=wp.vec3),
     particle_param: wp.array(dtype=float),
-    guide_points: wp.array(dtype=wp.vec3),
+    guide_frames: wp.array(dtype=wp.vec3),
+    num_frames: int,
+    num_guides: int,
     guide_vertices: int,
+    guide_fps: float,
+    clock: wp.array(dtype=float),
+    time_offset: float,
     stiffness: float,
 ):
     """Pull each free particle toward its captured guides' shape: the strand's own root plus the
-    weighted guides' offsets from their roots at the particle's normalised arc position. stiffness is
-    the fraction of the way moved this substep."""
+    weighted guides' offsets from their roots at the particle's normalised arc position. The guides
+    are linear between captured frames (guide_frames: frame-major, held past the ends) at time
+    clock[0] + time_offset. stiffness is the fraction of the way moved this substep."""
     i = wp.tid()
     if inv_mass[i] == 0.0:
         return
+    u = wp.clamp((clock[0] + time_offset) * guide_fps, 0.0, float(num_frames - 1))
+    f = wp.min(int(u), wp.max(num_frames - 2, 0))
+    t = wp.min(u - float(f), 1.0)
+    f1 = wp.min(f + 1, num_frames - 1)
     strand = particle_strand[i]
     g = strand_guides[strand]
     w = strand_guide_weights[strand]
@@ -383,6 +398,10 @@ def follow_guides(
     offset = wp.vec3(0.0)
     for k in range(3):
         if w[k] > 0.0:
-            offset += w[k] * (guide_point(guide_points, g[k], guide_vertices, s) - guide_points[g[k] * guide_vertices])
+            a = f * num_guides + g[k]
+            b = f1 * num_guides + g[k]
+            shape = (1.0 - t) * (guide_point(guide_frames, a, guide_vertices, s) - guide_frames[a * guide_vertices])
+            shape += t * (guide_point(guide_frames, b, guide_vertices, s) - guide_frames[b * guide_vertices])
+            offset += w[k] * shape
     target = x[strand_start[strand]] + offset
     x[i] = x[i] + stiffness * (target - x[i])
