@@ -1,40 +1,63 @@
-"""Cloth solver and detail-surface throughput.
+"""Cloth throughput: our RK4 solver raced against Newton's VBD and XPBD on the same meshes, and the
+coarse-plus-detail pipeline against simulating every vertex.
 
-Table 1, the coarse simulation: a square cloth falling onto a ball, explicit RK4 with body collision:
-particles, device, substeps per frame (from the stability bound), ms/frame, particle-steps/s, and
-the paper's figure (Oshita & Makinouchi, Table 1: 20.4 ms per frame for the 322-particle dress on a
-Pentium 4 2.5 GHz, 16.0 ms integration + 4.6 ms collision).
+Table 1, the race. The same garment mesh, particle masses, gravity and pins for every engine; the
+body is static (Newton collides particles with a static mesh shape; ours uses the same mesh as its
+collider). Cases: the paper's one-piece dress (322 particles, pinned at the shoulders) on the
+built-in body, and square 1 m cloths of 1,024 to 1,048,576 particles pinned at two corners,
+falling over a 0.3 m ball (an icosphere of 10k vertices). One frame is 1/60 s: Newton takes 10
+substeps x 10 iterations (the reference setup); ours takes the substeps its RK4 stability bound asks
+for. Every engine runs the same number of frames from rest; the quality columns are measured at the
+end: max edge stretch (largest |edge / rest - 1| over the mesh's edges) and the deepest penetration
+of a particle into the body (mm, 0 = none). On a GPU every engine steps a frame as one CUDA graph.
 
-Table 2, the detail surface per frame: the built-in dress on the built-in body at level 6 (the
-paper's garment: 597 coarse triangles, 10,912 detail vertices, 51.6 ms surface on the Pentium 4) and a
-1M-vertex surface; PN evaluation alone and the whole pipeline (wrinkles, lift out of the body, normals).
+Table 2, the detail surface (the paper's §4): the dress on the walking body simulated coarse and a
+PN-triangle detail surface with wrinkles and lift out of the body evaluated each frame, at 1/30 s
+frames; the paper's garment (322 coarse / 10,912 detail vertices) and a dress of about 28k coarse
+particles whose detail surface has 1M vertices, compared with Newton VBD simulating 1M particles
+directly (Table 1's last row, same run).
 
-    python benchmarks/cloth.py                         # 322, 10k, 100k, 1M particles on cpu (and cuda)
-    python benchmarks/cloth.py --particles 322 --device cuda
+    python benchmarks/cloth.py                                  # everything, cpu (and cuda if present)
+    python benchmarks/cloth.py --device cuda --grids 1024 16384 --no-detail
 """
 
 import argparse
-import subprocess
-import time
+import sys
 
 import numpy as np
 import trimesh
 import warp as wp
 
-from sim.cloth import ClothModel, ClothParams, ClothSolver
-from sim.collider import Collider
-from sim.scene import quiet_warp
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from common import (commit, copy_bandwidth, counting_launch_bytes, device_name, fmt, kernel_profile, table,
+                    time_frames)  # noqa: E402
 
-FPS = 30.0
-PAPER_MS = {322: 20.4}
+from sim.cloth import STRETCH, ClothModel, ClothParams, ClothSolver  # noqa: E402
+from sim.collider import Collider  # noqa: E402
+from sim.graphs import FrameGraphs  # noqa: E402
+from sim.scene import Scene, demo_scene, quiet_warp  # noqa: E402
+
+RACE_DT = 1.0 / 60.0
+PROFILE = False  # --profile
+DETAIL_FPS = 30.0
 
 
-def build(particles, device):
+def static_collider(name, vertices, faces, device):
+    skin_w = np.zeros((len(vertices), 4))
+    skin_w[:, 0] = 1.0
+    body = Collider(name, vertices, faces, np.zeros((len(vertices), 4), np.int32), skin_w, 1, device, sphere_leaves=0)
+    body.set_poses(np.eye(4)[None, None])
+    body.apply_pose(0)
+    body.reset_motion()
+    return body
+
+
+def grid_case(particles, device):
+    """A 1 m square cloth of about `particles` particles 0.15 m above a 0.3 m ball, pinned at two corners."""
     n = max(3, int(round(np.sqrt(particles))))
-    size = 1.2
-    u = np.linspace(-size / 2, size / 2, n)
+    u = np.linspace(-0.5, 0.5, n)
     X, Z = np.meshgrid(u, u, indexing="ij")
-    pts = np.stack([X.ravel(), np.full(n * n, 0.32), Z.ravel()], 1)
+    pts = np.stack([X.ravel(), np.full(n * n, 0.45), Z.ravel()], 1)
     idx = np.arange(n * n).reshape(n, n)
     quads = np.stack([idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]], -1).reshape(-1, 4)
     tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
@@ -43,126 +66,173 @@ def build(particles, device):
     shear = np.concatenate([quads[:, [0, 2]], quads[:, [1, 3]]])
     bend = np.concatenate([np.stack([idx[:-2].ravel(), idx[2:].ravel()], 1),
                            np.stack([idx[:, :-2].ravel(), idx[:, 2:].ravel()], 1)])
-    # the default material at every resolution: finer cloths get lighter particles, so the stability
-    # bound (and the substep count) grows with resolution as it does for any explicit integrator
-    params = ClothParams(substeps=0)
-    model = ClothModel(pts, tris, edges, shear, bend, [], params, device)
+    model = ClothModel(pts, tris, edges, shear, bend, [idx[0, 0], idx[0, -1]], ClothParams(), device,
+                       name=f"grid{n}x{n}")
     ball = trimesh.creation.icosphere(subdivisions=5, radius=0.3)
-    skin_w = np.zeros((len(ball.vertices), 4))
-    skin_w[:, 0] = 1.0
-    body = Collider("ball", ball.vertices, ball.faces, np.zeros((len(ball.vertices), 4), np.int32), skin_w, 1,
-                    device, sphere_leaves=0)
-    body.set_poses(np.eye(4)[None, None])
-    body.apply_pose(0)
-    body.reset_motion()
-    return model, body
+    return model, static_collider("ball", ball.vertices, ball.faces, device)
 
 
-def time_substeps(model, body, min_seconds=1.0):
-    """ms per substep (body posing included) and the substeps a 1/FPS frame needs; big cloths need
-    hundreds of substeps per frame, so the frame time is the measured substep time times that count."""
-    solver = ClothSolver(model)
-    s0, s1 = model.state(), model.state()
-    substeps = model.substeps_for(1.0 / FPS)
-    dt = 1.0 / (FPS * substeps)
-
-    def substep():
-        nonlocal s0, s1
-        body.apply_pose(0)
-        solver.step(s0, s1, body, dt)
-        s0, s1 = s1, s0
-
-    for _ in range(3):  # compile, warm caches, first contacts
-        substep()
-    wp.synchronize_device(model.device)
-    start, done = time.perf_counter(), 0
-    while done < 3 or (time.perf_counter() - start < min_seconds and done < substeps):
-        substep()
-        done += 1
-        wp.synchronize_device(model.device)
-    return 1e3 * (time.perf_counter() - start) / done, substeps
-
-
-def time_detail(device, frames=10):
-    """The dress on the walking body, a few steps in, then the detail update timed."""
-    from sim.body import BodyAnimation, procedural_body
-    from sim.detail import ClothDetail, DetailParams
+def dress_case(device, particles=322):
+    from sim.body import procedural_body
     from sim.garment import fit_dress
 
     body = procedural_body()
-    collider = Collider("body", body.vertices, body.faces, body.skin_indices, body.skin_weights, body.num_bones,
-                        device, sphere_leaves=0)
-    collider.set_poses(BodyAnimation.preset("walk").bone_matrices([0.0]))
-    collider.apply_pose(0)
-    model = ClothModel.from_garment(fit_dress(body), ClothParams(), device)
+    garment = fit_dress(body, particles=particles)
+    model = ClothModel.from_garment(garment, ClothParams(), device)
+    collider = static_collider("body", body.vertices, body.faces, device)
     model.bind_to_mesh(body.vertices, body.faces)
+    return model, collider
+
+
+def quality(x, model, body):
+    """(max edge stretch, deepest penetration into the body in mm)."""
+    x = np.asarray(x, np.float64)
+    e = model.spring_pairs_np[model.spring_kind_np == STRETCH]
+    rest = model.spring_rest_np[model.spring_kind_np == STRETCH]
+    stretch = float(np.abs(np.linalg.norm(x[e[:, 0]] - x[e[:, 1]], axis=1) / rest - 1.0).max())
+    depth = float(max(0.0, -body.signed_distance(x, max_dist=0.05).min())) * 1e3
+    return stretch, depth
+
+
+def run_ours(model, body, frames):
+    """(ms/frame, substeps/frame, bytes/frame, final positions): RK4 frames of RACE_DT, graph-launched."""
     solver = ClothSolver(model)
-    s0, s1 = model.state(), model.state()
-    for _ in range(200):
-        solver.step(s0, s1, collider, model.stable_dt)
-        s0, s1 = s1, s0
-    detail = ClothDetail(model, DetailParams(), device)
-    return _time_detail_runs(detail, model, (("PN evaluation", lambda: detail.surface.update(s0.x)),
-                                             ("detail pipeline", lambda: detail.update(model, s0, collider, 1 / 30))),
-                             device, frames)
+    states = [model.state(), model.state()]
+    substeps = model.substeps_for(RACE_DT)
+    dt = RACE_DT / substeps
+    graphs = FrameGraphs(model.device)
+
+    def frame():
+        for _ in range(substeps):
+            solver.step(states[0], states[1], body, dt)
+            states.reverse()
+
+    def refs():
+        return (lambda: tuple(states)), (lambda value: states.__setitem__(slice(None), value))
+
+    def step():
+        graphs.run(("cloth", id(states[0])), frame, refs())
+
+    with counting_launch_bytes() as moved:
+        step()
+    ms = time_frames(step, model.device, frames=frames, min_seconds=0.0, max_frames=frames)
+    if PROFILE:
+        graphs.enabled = False
+        print("\n".join(kernel_profile(step, model.device)), flush=True)
+    return ms, substeps, moved[0], states[0].x.numpy()
 
 
-def time_detail_million(device, frames=3):
-    """PN evaluation and the pipeline without a body (no lift) on a 1M-vertex surface."""
-    from sim.detail import ClothDetail, DetailParams
+def run_newton(model, body, solver, frames):
+    import newton_peers
 
-    model, _ = build(28_000, device)  # 167 x 167 grid: 55.8k coarse triangles -> 1.0M detail vertices at level 6
-    detail = ClothDetail(model, DetailParams(), device)
-    state = model.state()
-    return _time_detail_runs(detail, model, (("PN evaluation", lambda: detail.surface.update(state.x)),
-                                             ("detail pipeline (no body)",
-                                              lambda: detail.update(model, state, None, 1 / 30))), device, frames)
+    peer = newton_peers.NewtonCloth(model.rest_positions_np, model.triangles_np, model.mass_np, model.pinned_np,
+                                    solver=solver, device=model.device, frame_dt=RACE_DT, substeps=10, iterations=10,
+                                    body=(body.rest_points_np, body.faces_np))
+    ms = time_frames(peer.step_frame, model.device, frames=frames, min_seconds=0.0, max_frames=frames)
+    return ms, peer.positions()
 
 
-def _time_detail_runs(detail, model, runs, device, frames):
-    """(label, coarse triangles, detail vertices, ms per call) for each (label, callable), warmed up once."""
+def race(devices, grids, frames, peers, ceilings):
+    header = ["case", "particles", "device", "engine", "substeps x iterations", "ms/frame", "particle-steps/s",
+              "GB/s", "max edge stretch", "penetration mm", "speed-up vs ours"]
+    rows, newton_1m = [], {}
+    for device in devices:
+        cases = [("dress (paper)", lambda: dress_case(device))]
+        cases += [(f"grid {p}", lambda p=p: grid_case(p, device)) for p in grids]
+        for name, build in cases:
+            model, body = build()
+            n = model.num_particles
+            f = frames if n < 200_000 else max(3, frames // 6)
+            ms, substeps, moved, x = run_ours(model, body, f)
+            stretch, depth = quality(x, model, body)
+            gbs = moved / (ms * 1e-3) / 1e9
+            rows.append([name, n, device, "ours RK4", f"{substeps} x 1", fmt(ms, 4), fmt(n * substeps / (ms * 1e-3)),
+                         f"{gbs:.0f} ({100 * gbs / ceilings[device]:.0f}%)", fmt(stretch, 2), fmt(depth, 2), "1.0x"])
+            print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
+            for solver in peers:
+                peer_ms, px = run_newton(model, body, solver, f)
+                stretch, depth = quality(px, model, body)
+                rows.append([name, n, device, f"Newton {solver.upper()}", "10 x 10", fmt(peer_ms, 4),
+                             fmt(n * 10 / (peer_ms * 1e-3)), "-", fmt(stretch, 2), fmt(depth, 2),
+                             f"{peer_ms / ms:.2f}x"])
+                print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
+                if n >= 1_000_000 and solver == "vbd":
+                    newton_1m[device] = peer_ms
+    return header, rows, newton_1m
+
+
+def detail_scene(device, particles):
+    config = demo_scene({"scene": {"device": device, "fps": DETAIL_FPS, "frames": 1, "preroll": 0.0,
+                                   "stats": False},
+                         "hair": {"enabled": False}, "face": {"enabled": False},
+                         "cloth": {"particles": particles}, "cloth.detail": {"level": 6}})
+    return Scene(config)
+
+
+def detail(devices, sizes, frames, newton_1m, ceilings):
+    header = ["garment", "coarse particles", "detail vertices", "device", "substeps/frame", "ms/frame",
+              "of which detail ms", "GB/s", "frames/s", "Newton VBD 1M particles ms/frame (table 1)", "speed-up"]
     rows = []
-    for label, run in runs:
-        run()
-        wp.synchronize_device(device)
-        start = time.perf_counter()
-        for _ in range(frames):
-            run()
-        wp.synchronize_device(device)
-        rows.append((label, len(model.triangles_np), detail.surface.topology.num_vertices,
-                     1e3 * (time.perf_counter() - start) / frames))
-    return rows
+    for device in devices:
+        for particles in sizes:
+            scene = detail_scene(device, particles)
+
+            def frame():
+                scene.advance(1.0 / DETAIL_FPS)
+                scene.update_detail()
+
+            with counting_launch_bytes() as moved:
+                frame()
+            ms = time_frames(frame, device, frames=frames)
+            ms_detail = time_frames(scene.update_detail, device, frames=frames)
+            if PROFILE:
+                scene.graphs.enabled = False
+                print("\n".join(kernel_profile(frame, device)), flush=True)
+            verts = scene.cloth_detail.surface.topology.num_vertices
+            gbs = moved[0] / (ms * 1e-3) / 1e9
+            peer = newton_1m.get(device) if verts >= 900_000 else None
+            rows.append(["dress on the walking body", scene.cloth_model.num_particles, verts, device,
+                         scene.cloth_substeps, fmt(ms, 4), fmt(ms_detail, 3),
+                         f"{gbs:.0f} ({100 * gbs / ceilings[device]:.0f}%)", fmt(1e3 / ms, 4), fmt(peer, 4),
+                         f"{peer / ms:.1f}x" if peer else "-"])
+            print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
+    return header, rows
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--particles", type=int, nargs="*", default=[322, 10_000, 100_000, 1_000_000])
+    parser.add_argument("--grids", type=int, nargs="*", default=[1024, 16384, 262144, 1048576])
     parser.add_argument("--device", nargs="*", default=None)
-    parser.add_argument("--detail-only", action="store_true", help="only the detail-surface table")
+    parser.add_argument("--frames", type=int, default=30, help="frames per engine (fewer above 200k particles)")
+    parser.add_argument("--peers", nargs="*", default=["vbd", "xpbd"], choices=["vbd", "xpbd"])
+    parser.add_argument("--detail-sizes", type=int, nargs="*", default=[322, 28000])
+    parser.add_argument("--no-race", action="store_true")
+    parser.add_argument("--no-detail", action="store_true")
+    parser.add_argument("--profile", action="store_true", help="print per-kernel device time of one frame (CUDA)")
     args = parser.parse_args()
+    global PROFILE
+    PROFILE = args.profile
     quiet_warp()
     wp.init()
+    import newton_peers
+
+    peers = args.peers if newton_peers.available() else []
     devices = args.device or (["cpu"] + (["cuda"] if wp.is_cuda_available() else []))
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
-    print(f"# cloth benchmark, commit {commit}, {FPS:g} fps, square cloth on a 10k-vertex ball")
-    print("| particles | springs | device | substeps/frame | ms/substep | ms/frame | particle-steps/s | "
-          "paper (P4 2.5 GHz) ms/frame |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
-    for target in ([] if args.detail_only else args.particles):
-        for device in devices:
-            model, body = build(target, device)
-            ms_sub, substeps = time_substeps(model, body)
-            rate = model.num_particles / (ms_sub * 1e-3)
-            paper = PAPER_MS.get(target, "-")
-            print(f"| {model.num_particles} | {len(model.spring_pairs_np)} | {device} | {substeps} | {ms_sub:.3f} | "
-                  f"{ms_sub * substeps:.1f} | {rate:.3g} | {paper} |", flush=True)
-    print()
-    print("| detail surface | coarse triangles | detail vertices | device | ms/frame | paper (P4 2.5 GHz) ms/frame |")
-    print("| --- | --- | --- | --- | --- | --- |")
+    ceilings = {}
+    print(f"# cloth benchmark, commit {commit()}, peer: {'Newton ' + newton_peers.version() if peers else 'none'}")
     for device in devices:
-        for label, tris, verts, ms in time_detail(device) + time_detail_million(device):
-            paper = "51.6 (10,912 vertices)" if verts < 20_000 and label == "detail pipeline" else "-"
-            print(f"| {label} | {tris} | {verts} | {device} | {ms:.2f} | {paper} |", flush=True)
+        ceilings[device] = copy_bandwidth(device, 1024 if wp.get_device(device).is_cuda else 128)
+        print(f"# {device}: {device_name(device)}, copy bandwidth {ceilings[device]:.0f} GB/s (read + write)",
+              flush=True)
+    newton_1m, out = {}, []
+    if not args.no_race:
+        header, rows, newton_1m = race(devices, args.grids, args.frames, peers, ceilings)
+        out.append(table(header, rows))
+    if not args.no_detail:
+        header, rows = detail(devices, args.detail_sizes, 10, newton_1m, ceilings)
+        out.append(table(header, rows))
+    print()
+    print("\n\n".join(out))
 
 
 if __name__ == "__main__":

@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import warp as wp
 
-from warp_kernels import skinning, strands
+from warp_kernels import strands
 
 from .errors import SimulationError
 
@@ -79,11 +79,10 @@ class HairSolver:
         self.params = params
         device = model.device
         self.windows = model.shape_windows(params.window_size)
-        self.targets = wp.zeros(max(self.windows.size * self.windows.count, 1), dtype=wp.vec3, device=device)
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self._rotations_exact = True
-        self.correction = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
+        self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=device)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=device)
@@ -102,50 +101,47 @@ class HairSolver:
         sim.guides.GuideTargets) pull the strands toward captured motion at `time`."""
         m, p, dev = self.model, self.params, self.model.device
         offset = float(time - self._clock_time)
-        wp.launch(strands.integrate_particles, m.num_particles,
+        variant = SHAPE_MATCHING[p.shape_matching]
+        win = self.windows
+        passes = p.shape_iterations if variant >= 0 and win.count > 0 else 0
+        # shape passes ping-pong between two buffers and must end in state_out.x: an odd number of
+        # passes starts from the scratch buffer
+        predicted, other = (state_out.x, self.shape_scratch) if passes % 2 == 0 else (self.shape_scratch, state_out.x)
+        bound = m.bind_particle is not None and collider is not None
+        c = collider
+        hold = p.root_stiffness if p.root_hold_length > 0.0 else 0.0
+        wp.launch(strands.predict_positions, m.num_particles,
                   [state_in.x, state_in.v, m.inv_mass, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag,
                    p.damping, p.wind_turbulence, p.wind_turbulence_scale, p.wind_turbulence_rate, self.clock,
-                   offset, dt, state_out.x, state_out.v], device=dev)
-        if m.bind_particle is not None and collider is not None:
-            wp.launch(skinning.evaluate_bindings, len(m.bind_particle),
-                      [collider.points, collider.indices, m.bind_particle, m.bind_triangle,
-                       m.bind_barycentric, m.bind_local, state_out.x], device=dev)
-            if p.root_stiffness > 0.0 and p.root_hold_length > 0.0:
-                wp.launch(strands.hold_root_shape, m.num_particles,
-                          [state_out.x, m.particle_strand, m.strand_start, m.root_binding, m.bind_triangle,
-                           collider.points, collider.indices, m.root_local, self.hold, p.root_stiffness],
-                          device=dev)
+                   offset, dt, int(bound), c.points if bound else None, c.indices if bound else None,
+                   m.particle_binding if bound else None, m.bind_triangle if bound else None,
+                   m.bind_barycentric if bound else None, m.bind_local if bound else None, m.particle_strand,
+                   m.root_binding if bound else None, m.root_local if bound else None, self.hold, hold,
+                   predicted, state_out.v], device=dev)
         if guides is not None and p.guide_stiffness > 0.0:
             wp.launch(strands.follow_guides, m.num_particles,
-                      [state_out.x, m.inv_mass, m.particle_strand, m.strand_start, guides.strand_guides,
+                      [predicted, m.inv_mass, m.particle_strand, m.strand_start, guides.strand_guides,
                        guides.strand_guide_weights, guides.particle_param, guides.frame_points,
                        guides.num_frames, guides.num_guides, guides.vertices, guides.fps, self.clock, offset,
                        float(1.0 - np.exp(-p.guide_stiffness * dt))], device=dev)
-        variant = SHAPE_MATCHING[p.shape_matching]
-        win = self.windows
-        for _ in range(p.shape_iterations if variant >= 0 and win.count > 0 else 0):
+        src, dst = predicted, other
+        for _ in range(passes):
             if variant == SHAPE_MATCHING["full"]:
                 wp.launch(strands.shape_match_rotations, win.count,
-                          [state_out.x, win.first, win.size, win.rest, int(self._rotations_exact),
+                          [src, win.first, win.size, win.rest, int(self._rotations_exact),
                            p.rotation_iterations, self.rotations], device=dev)
                 self._rotations_exact = False
-            wp.launch(strands.shape_match_targets, win.count,
-                      [state_out.x, win.first, win.size, win.rest, win.offsets, self.rotations, variant,
-                       self.targets], device=dev)
-            wp.launch(strands.shape_match_apply, m.num_particles,
-                      [state_out.x, m.inv_mass, m.particle_strand, win.at, win.size, self.targets,
-                       p.shape_stiffness], device=dev)
+            wp.launch(strands.shape_match_step, m.num_particles,
+                      [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets, self.rotations,
+                       variant, p.shape_stiffness, dst], device=dev)
+            src, dst = dst, src
         mode = COLLISION[p.collision] if collider is not None else 0
-        c = collider
         wp.launch(strands.follow_the_leader, m.num_strands,
-                  [state_out.x, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
+                  [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
                    c.mesh.id if c else wp.uint64(0),
                    c.sphere_centers if c else None, c.sphere_radii if c else None,
                    c.sphere_skip if c else None, c.sphere_is_leaf if c else None,
-                   p.collision_margin, p.collision_search, self.correction], device=dev)
-        wp.launch(strands.update_velocities, m.num_particles,
-                  [state_out.x, state_in.x, m.inv_mass, m.particle_strand, m.strand_start, self.correction,
-                   p.ftl_damping, dt, state_out.v], device=dev)
+                   p.collision_margin, p.collision_search, p.ftl_damping, dt, state_out.v], device=dev)
 
     def reset(self):
         """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut).

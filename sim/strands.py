@@ -95,6 +95,9 @@ class HairModel:
         tri = np.repeat(face.numpy(), k).astype(np.int32)
         bw = np.repeat(bary.numpy(), k, axis=0)
         self.bind_particle = wp.array(particle, dtype=wp.int32, device=device)
+        binding = np.full(self.num_particles, -1, np.int32)
+        binding[particle] = np.arange(len(particle), dtype=np.int32)
+        self.particle_binding = wp.array(binding, dtype=wp.int32, device=device)  # binding index or -1
         self.bind_triangle = wp.array(tri, dtype=wp.int32, device=device)
         self.bind_barycentric = wp.array(bw, dtype=wp.vec3, device=device)
         self.bind_local = wp.zeros(len(particle), dtype=wp.vec3, device=device)

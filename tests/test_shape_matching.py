@@ -1,4 +1,5 @@
-"""The shape-matching target kernel against a float64 NumPy reference, both variants."""
+"""The shape-matching pass (goals recomputed per particle, averaged, applied) against a float64 NumPy
+reference, both variants."""
 
 import numpy as np
 import pytest
@@ -53,47 +54,45 @@ def groom(rng):
     return model, x.astype(np.float32)
 
 
-def launch_targets(x, win, variant, exact=True, iterations=1, rotations=None):
+def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1, rotations=None, refine=True):
+    """One shape_match_step over positions x (after shape_match_rotations unless refine=False):
+    (moved positions, rotations)."""
     if rotations is None:
         rotations = wp.zeros(win.count, dtype=wp.quat)
     xs = wp.array(x, dtype=wp.vec3)
-    wp.launch(kernels.shape_match_rotations, win.count,
-              [xs, win.first, win.size, win.rest, int(exact), iterations, rotations])
-    targets = wp.zeros(win.count * win.size, dtype=wp.vec3)
-    wp.launch(kernels.shape_match_targets, win.count,
-              [xs, win.first, win.size, win.rest, win.offsets, rotations, variant, targets])
-    return targets, rotations
+    if refine:
+        wp.launch(kernels.shape_match_rotations, win.count,
+                  [xs, win.first, win.size, win.rest, int(exact), iterations, rotations])
+    out = wp.zeros_like(xs)
+    wp.launch(kernels.shape_match_step, model.num_particles,
+              [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations, variant,
+               stiffness, out])
+    return out.numpy(), rotations
 
 
 @pytest.mark.parametrize("variant,size", [(0, 3), (1, 3), (1, 4), (1, 6), (0, 4)])
-def test_targets_match_float64_reference(variant, size):
+def test_pass_matches_float64_reference(variant, size):
     rng = np.random.default_rng(3)
     model, x = groom(rng)
     win = model.shape_windows(size)
-    targets, _ = launch_targets(x, win, variant)
     ref = reference_targets(x, win.first_np, size, win.rest_np, win.offsets_np, variant)
-    got = targets.numpy()
     scale = np.abs(ref).max()
-    np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-5 * scale)
-
-    moved = wp.array(x, dtype=wp.vec3)
-    wp.launch(kernels.shape_match_apply, model.num_particles,
-              [moved, model.inv_mass, model.particle_strand, win.at, size, targets, 0.4])
+    moved, _ = launch_pass(x, model, win, variant, stiffness=0.4)
     ref_moved = reference_apply(x, model.inv_mass_np, win.first_np, size, ref, 0.4)
-    np.testing.assert_allclose(moved.numpy(), ref_moved, rtol=1e-5, atol=1e-5 * scale)
+    np.testing.assert_allclose(moved, ref_moved, rtol=1e-5, atol=1e-5 * scale)
+    assert np.abs(moved - x).max() > 1e-4  # the pass did move the perturbed strands
 
 
-def test_full_variant_targets_are_a_rigid_motion_of_the_rest_window():
-    # a rigidly rotated and shifted rest strand is already at its goal: targets equal positions
+def test_full_variant_goals_are_a_rigid_motion_of_the_rest_window():
+    # a rigidly rotated and shifted rest strand is already at its goal: a full-strength pass keeps it
     rng = np.random.default_rng(5)
     model, _ = groom(rng)
     angle = 0.7
     R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
     x = (model.rest_positions_np @ R.T + [0.05, 0.1, -0.2]).astype(np.float32)
     win = model.shape_windows(4)
-    targets, _ = launch_targets(x, win, 1)
-    expected = x[(win.first_np[:, None] + np.arange(4)).reshape(-1)]
-    np.testing.assert_allclose(targets.numpy(), expected, atol=2e-6)
+    moved, _ = launch_pass(x, model, win, 1, stiffness=1.0)
+    np.testing.assert_allclose(moved, x, atol=2e-6)
 
 
 def test_warm_started_rotations_track_the_exact_solution():
@@ -101,20 +100,18 @@ def test_warm_started_rotations_track_the_exact_solution():
     rng = np.random.default_rng(8)
     model, x0 = groom(rng)
     win = model.shape_windows(6)
-    _, rotations = launch_targets(x0, win, 1, exact=True)
+    _, rotations = launch_pass(x0, model, win, 1, exact=True)
     # the next substep: every particle moved a little (a hair substep moves ~1 mm)
     x1 = (x0 + rng.normal(0.0, 0.001, x0.shape)).astype(np.float32)
-    ref = reference_targets(x1, win.first_np, 6, win.rest_np, win.offsets_np, 1)
+    ref = reference_apply(x1, model.inv_mass_np, win.first_np, 6,
+                          reference_targets(x1, win.first_np, 6, win.rest_np, win.offsets_np, 1), 1.0)
     scale = np.abs(ref).max()
-    stale = wp.array(rotations.numpy(), dtype=wp.quat)
-    xs = wp.array(x1, dtype=wp.vec3)
-    targets = wp.zeros(win.count * 6, dtype=wp.vec3)
-    wp.launch(kernels.shape_match_targets, win.count, [xs, win.first, 6, win.rest, win.offsets, stale, 1, targets])
-    errors = [np.abs(targets.numpy() - ref).max()]  # last step's rotations, not refined
+    stale, _ = launch_pass(x1, model, win, 1, rotations=wp.array(rotations.numpy(), dtype=wp.quat), refine=False)
+    errors = [np.abs(stale - ref).max()]  # last step's rotations, not refined
     for iterations in (1, 2, 4):
         warm = wp.array(rotations.numpy(), dtype=wp.quat)
-        targets, _ = launch_targets(x1, win, 1, exact=False, iterations=iterations, rotations=warm)
-        errors.append(np.abs(targets.numpy() - ref).max())
+        moved, _ = launch_pass(x1, model, win, 1, exact=False, iterations=iterations, rotations=warm)
+        errors.append(np.abs(moved - ref).max())
     # Newton steps near the warm start converge quadratically: two reach float32 round-off
     assert errors[1] < 0.1 * errors[0] and errors[2] < 1e-6 and errors[3] < 1e-6, errors
-    np.testing.assert_allclose(targets.numpy(), ref, rtol=1e-5, atol=1e-5 * scale)
+    np.testing.assert_allclose(moved, ref, rtol=1e-5, atol=1e-5 * scale)

@@ -1,22 +1,35 @@
 """Hair strand kernels: particle polylines flattened with offsets, one launch for every strand.
 
-Step order (composed by sim.hair_solver.HairSolver):
-  integrate_particles -> evaluate_bindings (skinning.py) -> hold_root_shape
-  -> [shape_match_rotations (full variant) -> shape_match_targets -> shape_match_apply] x passes
-  -> follow_the_leader (length + collision) -> update_velocities
+Step order (composed by sim.hair_solver.HairSolver), four to six launches per substep:
+  predict_positions (integration, pinned roots on the skin, root hold)
+  -> [follow_guides]
+  -> [shape_match_rotations (full variant) -> shape_match_step] x passes
+  -> follow_the_leader (length, collision and the velocity update)
+Each launch reads and writes every particle once: work that used to round-trip through a buffer
+(window goals, root positions, FTL corrections) is recomputed or carried in registers instead,
+because on a GPU the bytes moved, not the arithmetic, set the cost.
 """
 
 import warp as wp
 
 from .collision import collide_point
-from .skinning import face_frame
+from .skinning import face_frame, face_point
 
 SHAPE_SIMPLIFIED = wp.constant(0)
 SHAPE_FULL = wp.constant(1)
 
 
+@wp.func
+def bound_position(mesh_points: wp.array(dtype=wp.vec3), mesh_indices: wp.array(dtype=wp.int32),
+                   bind_triangle: wp.array(dtype=wp.int32), bind_barycentric: wp.array(dtype=wp.vec3),
+                   bind_local: wp.array(dtype=wp.vec3), b: int):
+    """Where binding b puts its particle on the posed mesh (as skinning.evaluate_bindings)."""
+    f = bind_triangle[b]
+    return face_point(mesh_points, mesh_indices, f, bind_barycentric[b]) + face_frame(mesh_points, mesh_indices, f) * bind_local[b]
+
+
 @wp.kernel
-def integrate_particles(
+def predict_positions(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
@@ -30,64 +43,66 @@ def integrate_particles(
     clock: wp.array(dtype=float),
     time_offset: float,
     dt: float,
+    bound: int,
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    particle_binding: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+    particle_strand: wp.array(dtype=wp.int32),
+    root_binding: wp.array(dtype=wp.int32),
+    root_local: wp.array(dtype=wp.vec3),
+    hold: wp.array(dtype=float),
+    hold_stiffness: float,
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """Symplectic Euler prediction. air_drag [1/s] pulls velocity toward the local wind; damping [1/s].
-    The gusts' time is clock[0] + time_offset: the clock lives on the device so a captured frame
-    replays at any time."""
-    i = wp.tid()
-    if inv_mass[i] == 0.0:
-        x_out[i] = x[i]
-        v_out[i] = v[i]
-        return
-    p = x[i]
-    air = wind
-    if turbulence > 0.0:
-        # gusts: smooth noise in space and time scaled by the mean wind speed
-        q = p * turbulence_scale
-        time = (clock[0] + time_offset) * turbulence_rate
-        speed = wp.length(wind)
-        state = wp.rand_init(7)
-        gust = wp.vec3(
-            wp.noise(state, wp.vec4(q[0], q[1], q[2], time)),
-            wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], time)),
-            wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], time)),
-        )
-        air = wind + gust * (turbulence * speed)
-    vel = v[i] + dt * (gravity + air_drag * (air - v[i]))
-    vel = vel * wp.max(0.0, 1.0 - damping * dt)
-    x_out[i] = p + dt * vel
-    v_out[i] = vel
+    """Symplectic Euler prediction of free particles; air_drag [1/s] pulls velocity toward the local
+    wind, damping [1/s] decays it. The gusts' time is clock[0] + time_offset (the clock lives on the
+    device, so a captured frame replays at any time).
 
-
-@wp.kernel
-def hold_root_shape(
-    x: wp.array(dtype=wp.vec3),
-    particle_strand: wp.array(dtype=wp.int32),
-    strand_start: wp.array(dtype=wp.int32),
-    root_binding: wp.array(dtype=wp.int32),
-    bind_triangle: wp.array(dtype=wp.int32),
-    mesh_points: wp.array(dtype=wp.vec3),
-    mesh_indices: wp.array(dtype=wp.int32),
-    root_local: wp.array(dtype=wp.vec3),
-    hold: wp.array(dtype=float),
-    stiffness: float,
-):
-    """Pull particles toward their groomed positions carried by the root triangle's frame.
-
-    The global shape constraint of TressFX (Han & Harada): `hold` fades from 1 at the root to 0 a
-    few centimetres out, so the groom's lift and parting survive gravity while the lengths swing.
-    Roots must already be placed for this substep (evaluate_bindings).
+    With bound != 0 the collider is posed for the end of the step: particles with a binding
+    (particle_binding >= 0, the pinned roots) are placed on the skin, and every particle is pulled
+    toward its groomed position carried by its root triangle's frame by hold * hold_stiffness: the
+    global shape constraint of TressFX (Han & Harada), fading from the root to zero a few
+    centimetres out, so the groom's lift and parting survive gravity while the lengths swing.
     """
     i = wp.tid()
-    w = hold[i] * stiffness
-    if w <= 0.0:
-        return
-    s = particle_strand[i]
-    frame = face_frame(mesh_points, mesh_indices, bind_triangle[root_binding[s]])
-    target = x[strand_start[s]] + frame * root_local[i]
-    x[i] = x[i] + w * (target - x[i])
+    p = x[i]
+    vel = v[i]
+    if inv_mass[i] == 0.0:
+        if bound != 0:
+            b = particle_binding[i]
+            if b >= 0:
+                p = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, b)
+    else:
+        air = wind
+        if turbulence > 0.0:
+            # gusts: smooth noise in space and time scaled by the mean wind speed
+            q = p * turbulence_scale
+            time = (clock[0] + time_offset) * turbulence_rate
+            speed = wp.length(wind)
+            state = wp.rand_init(7)
+            gust = wp.vec3(
+                wp.noise(state, wp.vec4(q[0], q[1], q[2], time)),
+                wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], time)),
+                wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], time)),
+            )
+            air = wind + gust * (turbulence * speed)
+        vel = vel + dt * (gravity + air_drag * (air - vel))
+        vel = vel * wp.max(0.0, 1.0 - damping * dt)
+        p = p + dt * vel
+    if bound != 0:
+        w = hold[i] * hold_stiffness
+        if w > 0.0:
+            s = particle_strand[i]
+            rb = root_binding[s]
+            root = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
+            target = root + face_frame(mesh_points, mesh_indices, bind_triangle[rb]) * root_local[i]
+            p = p + w * (target - p)
+    x_out[i] = p
+    v_out[i] = vel
 
 
 @wp.func
@@ -186,63 +201,54 @@ def shape_match_rotations(
         rotations[w] = refine_rotation(rotations[w], A, iterations)
 
 
-@wp.kernel
-def shape_match_targets(
-    x: wp.array(dtype=wp.vec3),
-    window_first: wp.array(dtype=wp.int32),
-    window_size: int,
-    window_rest: wp.array(dtype=wp.vec3),
-    window_offsets: wp.array(dtype=float),
-    rotations: wp.array(dtype=wp.quat),
-    variant: int,
-    targets: wp.array(dtype=wp.vec3),
-):
-    """Goal positions for the window_size consecutive particles of each window.
+@wp.func
+def window_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, rest: wp.array(dtype=wp.vec3),
+                offsets: wp.array(dtype=float), rotations: wp.array(dtype=wp.quat), variant: int, w: int):
+    """Goal of slot k of window w (its particles first .. first + size - 1).
 
     simplified (Hayashimoto et al. §3.6, window of 3): g_k = c + d_k u along the current first-to-last
-    direction u, with d_k the rest offsets along the rest first-to-last direction. No rotation, so
+    direction u, with d_k the rest offset along the rest first-to-last direction. No rotation, so
     curls straighten.
-    full (Mueller et al. 2005): g_k = c + R r_k with r_k the rest offsets from the rest centroid and R
+    full (Mueller et al. 2005): g_k = c + R r_k with r_k the rest offset from the rest centroid and R
     the window's optimal rotation (shape_match_rotations). A window of 3 holds bend angles only;
     wider windows also hold torsion, so helices keep their shape.
     """
-    w = wp.tid()
-    first = window_first[w]
-    base = w * window_size
-    centroid = window_centroid(x, first, window_size)
+    centroid = window_centroid(x, first, size)
     if variant == SHAPE_SIMPLIFIED:
-        e = x[first + window_size - 1] - x[first]
+        e = x[first + size - 1] - x[first]
         length = wp.length(e)
         if length < 1.0e-12:
-            for k in range(window_size):
-                targets[base + k] = x[first + k]
-            return
-        u = e / length
-        for k in range(window_size):
-            targets[base + k] = centroid + window_offsets[base + k] * u
-    else:
-        R = wp.quat_to_matrix(rotations[w])
-        for k in range(window_size):
-            targets[base + k] = centroid + R * window_rest[base + k]
+            return x[first + k]
+        return centroid + offsets[w * size + k] * (e / length)
+    return centroid + wp.quat_to_matrix(rotations[w]) * rest[w * size + k]
 
 
 @wp.kernel
-def shape_match_apply(
+def shape_match_step(
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     particle_strand: wp.array(dtype=wp.int32),
     window_at: wp.array(dtype=wp.int32),
     window_size: int,
-    targets: wp.array(dtype=wp.vec3),
+    window_rest: wp.array(dtype=wp.vec3),
+    window_offsets: wp.array(dtype=float),
+    rotations: wp.array(dtype=wp.quat),
+    variant: int,
     stiffness: float,
+    x_out: wp.array(dtype=wp.vec3),
 ):
-    """Move each free particle toward the average goal of the windows that contain it.
+    """One shape-matching pass: each free particle moves toward the average goal of the windows
+    that contain it (Jacobi: every goal is computed from x, results go to x_out).
 
     window_at[j] is the window starting at particle j (-1 if none); windows never cross strands,
-    so a window starting at i - k inside this strand holds particle i at slot k.
+    so a window starting at i - k inside this strand holds particle i at slot k. Each particle
+    computes the goals of its windows itself instead of reading them from a buffer of goals: the
+    neighbours' positions it reads are in cache, a goal buffer would be a round trip to memory.
     """
     i = wp.tid()
+    p = x[i]
     if inv_mass[i] == 0.0:
+        x_out[i] = p
         return
     strand = particle_strand[i]
     goal = wp.vec3(0.0)
@@ -253,15 +259,18 @@ def shape_match_apply(
             if particle_strand[j] == strand:
                 w = window_at[j]
                 if w >= 0:
-                    goal += targets[w * window_size + k]
+                    goal += window_goal(x, j, window_size, k, window_rest, window_offsets, rotations, variant, w)
                     count += 1.0
     if count > 0.0:
-        x[i] = x[i] + stiffness * (goal / count - x[i])
+        p = p + stiffness * (goal / count - p)
+    x_out[i] = p
 
 
 @wp.kernel
 def follow_the_leader(
     x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
     strand_start: wp.array(dtype=wp.int32),
     rest_length: wp.array(dtype=float),
     pinned_per_strand: int,
@@ -273,21 +282,25 @@ def follow_the_leader(
     is_leaf: wp.array(dtype=wp.int32),
     margin: float,
     search: float,
-    correction: wp.array(dtype=wp.vec3),
+    ftl_damping: float,
+    dt: float,
+    v: wp.array(dtype=wp.vec3),
 ):
-    """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, one thread per strand.
+    """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, one thread per strand,
+    then the velocities.
 
     Each particle is put at its rest distance from its parent; a contact push-out is resolved inline
     and the particle is then put back on the sphere of rest radius, so every segment leaves with its
-    exact rest length. The corrections feed the dynamic-FTL velocity term.
+    exact rest length. Velocities are v = (x - x_prev) / dt minus ftl_damping * d_(i+1) / dt for free
+    particles, d_(i+1) the child's correction (dynamic FTL); the correction is carried to the next
+    particle in a register rather than stored.
     """
     s = wp.tid()
     start = strand_start[s]
     end = strand_start[s + 1]
     for i in range(start, end):
-        if i - start < pinned_per_strand:
-            correction[i] = wp.vec3(0.0)
-        else:
+        correction = wp.vec3(0.0)
+        if i - start >= pinned_per_strand:
             parent = x[i - 1]
             predicted = x[i]
             length = rest_length[i]
@@ -311,28 +324,16 @@ def follow_the_leader(
                     dist = wp.length(d)
                     if dist > 1.0e-12:
                         p = parent + d * (length / dist)
-            correction[i] = p - predicted
+            correction = p - predicted
             x[i] = p
-
-
-@wp.kernel
-def update_velocities(
-    x: wp.array(dtype=wp.vec3),
-    x_prev: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    particle_strand: wp.array(dtype=wp.int32),
-    strand_start: wp.array(dtype=wp.int32),
-    correction: wp.array(dtype=wp.vec3),
-    ftl_damping: float,
-    dt: float,
-    v: wp.array(dtype=wp.vec3),
-):
-    """v = (x - x_prev)/dt, minus s * d_{i+1}/dt for free particles (dynamic FTL, Mueller et al. 2012)."""
-    i = wp.tid()
-    vel = (x[i] - x_prev[i]) / dt
-    if inv_mass[i] > 0.0 and i + 1 < strand_start[particle_strand[i] + 1]:
-        vel = vel - (ftl_damping / dt) * correction[i + 1]
-    v[i] = vel
+        if i > start:
+            j = i - 1
+            vel = (x[j] - x_prev[j]) / dt
+            if inv_mass[j] > 0.0:
+                vel = vel - (ftl_damping / dt) * correction
+            v[j] = vel
+    last = end - 1
+    v[last] = (x[last] - x_prev[last]) / dt
 
 
 @wp.kernel
