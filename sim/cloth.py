@@ -192,6 +192,9 @@ class ClothModel:
         wp.launch(skinning.compute_bindings, len(self.pinned_np),
                   [pts, idx, self.bind_triangle, self.bind_barycentric, pinned_x, self.bind_local], device=d)
         self.bind_particle = self.pinned
+        binding = np.full(self.num_particles, -1, np.int32)
+        binding[self.pinned_np] = np.arange(len(self.pinned_np), dtype=np.int32)
+        self.particle_binding = wp.array(binding, dtype=wp.int32, device=d)  # binding index or -1
         return self
 
 
@@ -206,7 +209,6 @@ class ClothSolver:
         z = lambda: wp.zeros(n, dtype=wp.vec3, device=d)  # noqa: E731
         self.x_stage, self.v_stage, self.x_scratch, self.v_scratch = z(), z(), z(), z()
         self.acc_x, self.acc_v = z(), z()
-        self.pin_target = z()
         self.fallbacks = wp.zeros(1, dtype=wp.int32, device=d)
         self.step_count = wp.zeros(1, dtype=wp.int32, device=d)  # on the device: captured frames advance it
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=d)
@@ -215,18 +217,14 @@ class ClothSolver:
     def step(self, state_in, state_out, body, dt):
         """One step of dt. `body` (a Collider or None) must be posed for the end of the step."""
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
-        wp.launch(kernels.count_step, 1, [self.step_count], device=dev)
-        if body is not None and p.follow:
-            wp.launch(kernels.apply_follow, n,
-                      [state_in.x, m.inv_mass, body.points, body.indices, state_in.follow_face,
-                       state_in.follow_barycentric, state_in.follow_local, p.follow_full_within,
-                       p.follow_none_beyond], device=dev)
-        if body is not None and m.bind_particle is not None:
-            wp.launch(skinning.evaluate_bindings, len(m.pinned_np),
-                      [body.points, body.indices, m.bind_particle, m.bind_triangle, m.bind_barycentric,
-                       m.bind_local, self.pin_target], device=dev)
-            wp.launch(kernels.prescribe_pinned, len(m.pinned_np), [state_in.x, self.pin_target, m.pinned, dt,
-                                                                   state_in.v], device=dev)
+        pins = body is not None and m.bind_particle is not None
+        wp.launch(kernels.begin_step, n,
+                  [state_in.x, state_in.v, m.inv_mass, body.points if body else None, body.indices if body else None,
+                   int(body is not None and p.follow), state_in.follow_face, state_in.follow_barycentric,
+                   state_in.follow_local, p.follow_full_within, p.follow_none_beyond, int(pins),
+                   m.particle_binding if pins else None, m.bind_triangle if pins else None,
+                   m.bind_barycentric if pins else None, m.bind_local if pins else None, dt, self.step_count],
+                  device=dev)
         # RK4 on y = (x, v): stages at 0, dt/2, dt/2, dt, each a full force evaluation; stage states
         # ping-pong between two buffer pairs because neighbours read a stage while it is replaced
         x0, v0 = state_in.x, state_in.v
@@ -243,25 +241,22 @@ class ClothSolver:
         wp.launch(kernels.rk4_finish, n, [x0, v0, self.acc_x, self.acc_v, dt, state_out.x, state_out.v], device=dev)
         if body is not None:
             adj = body.adjacency()
-            wp.copy(state_out.nearest, state_in.nearest)
-            self._collide(state_in, state_out, body, adj, dt)
+            limit = p.strain_limit > 0.0
+            # the follow record is taken by the last collision pass, on the final positions
+            self._collide(state_in, state_out, body, adj, dt, record=p.follow and not limit)
         if p.strain_limit > 0.0:
             self._limit_strain(state_out, dt)
-            if body is not None:
-                self._collide(state_out, state_out, body, adj, dt)  # contact has the last word
-        if body is not None:
-            if p.follow:
-                wp.launch(kernels.record_follow, n,
-                          [state_out.x, body.points, body.indices, adj.vf_start, adj.vf_face, state_out.nearest,
-                           state_out.follow_face, state_out.follow_barycentric, state_out.follow_local], device=dev)
+            if body is not None:  # contact has the last word
+                self._collide(state_out, state_out, body, adj, dt, record=p.follow)
 
-    def _collide(self, state_prev, state, body, adj, dt):
+    def _collide(self, state_prev, state, body, adj, dt, record):
         m, p = self.model, self.params
         wp.launch(kernels.body_collide, m.num_particles,
                   [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
                    adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, p.walk_steps,
                    p.teleport, p.walk_trust_distance, max(1, p.walk_refresh), self.step_count, p.collision_margin,
-                   p.friction, dt, state.nearest, state.contact, self.fallbacks], device=m.device)
+                   p.friction, dt, state_prev.nearest, int(record), state.nearest, state.contact, self.fallbacks,
+                   state.follow_face, state.follow_barycentric, state.follow_local], device=m.device)
 
     def _limit_strain(self, state, dt):
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles

@@ -146,16 +146,26 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     state = model.state()
     adj = body.adjacency()
     wp.launch(kernels.nearest_vertex_brute_force, 50, [state.x, body.points, state.nearest])
-    wp.launch(kernels.record_follow, 50, [state.x, body.points, body.indices, adj.vf_start, adj.vf_face, state.nearest,
-                                          state.follow_face, state.follow_barycentric, state.follow_local])
+    # a collision pass with no margin (nothing is inside the ball) records the follow coordinates
+    steps, fallbacks = wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.int32)
+    before = state.x.numpy()
+    wp.launch(kernels.body_collide, 50,
+              [state.x, state.x, state.v, model.inv_mass, body.points, body.prev_points, body.indices, adj.vv_start,
+               adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, 16, 1.0, 1.0, 1, steps, 0.0, 0.0,
+               1e-3, state.nearest, 1, state.nearest, state.contact, fallbacks, state.follow_face,
+               state.follow_barycentric, state.follow_local])
+    np.testing.assert_array_equal(state.x.numpy(), before)
+    assert np.all(state.follow_face.numpy() >= 0)
     angle = 0.8
     R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = R, [0.3, -0.1, 0.2]
     body.set_poses(M[None, None])
     body.apply_pose(0)
-    wp.launch(kernels.apply_follow, 50, [state.x, model.inv_mass, body.points, body.indices, state.follow_face,
-                                         state.follow_barycentric, state.follow_local, 0.02, 0.08])
+    wp.launch(kernels.begin_step, 50, [state.x, state.v, model.inv_mass, body.points, body.indices, 1, state.follow_face,
+                                       state.follow_barycentric, state.follow_local, 0.02, 0.08, 0, None, None, None,
+                                       None, 1e-3, steps])
+    assert steps.numpy()[0] == 1
     np.testing.assert_allclose(state.x.numpy(), pts @ R.T + M[:3, 3], atol=1e-5)
 
 

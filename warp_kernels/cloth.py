@@ -7,7 +7,7 @@ force pass writes each particle once with no atomics and gives the same result o
 
 import warp as wp
 
-from .skinning import face_frame, face_point
+from .skinning import bound_position, face_frame, face_point
 
 
 @wp.func
@@ -140,20 +140,6 @@ def rk4_finish(
 
 
 @wp.kernel
-def prescribe_pinned(
-    x: wp.array(dtype=wp.vec3),
-    target: wp.array(dtype=wp.vec3),
-    pinned: wp.array(dtype=wp.int32),
-    dt: float,
-    v: wp.array(dtype=wp.vec3),
-):
-    """Pinned particles move in a straight line to their bound position at the step's end."""
-    b = wp.tid()
-    p = pinned[b]
-    v[p] = (target[p] - x[p]) / dt
-
-
-@wp.kernel
 def limit_strain(
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
@@ -262,10 +248,40 @@ def walk_to_nearest_vertex(p: wp.vec3, start: int, points: wp.array(dtype=wp.vec
     return -1 - v
 
 
-@wp.kernel
-def count_step(step_count: wp.array(dtype=wp.int32)):
-    """The solver's step counter lives on the device, so a captured frame advances it on replay."""
-    step_count[0] = step_count[0] + 1
+@wp.func
+def follow_record(
+    xp: wp.vec3,
+    vtx: int,
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    vf_start: wp.array(dtype=wp.int32),
+    vf_face: wp.array(dtype=wp.int32),
+    p: int,
+    face: wp.array(dtype=wp.int32),
+    barycentric: wp.array(dtype=wp.vec3),
+    local: wp.array(dtype=wp.vec3),
+):
+    """Oshita & Makinouchi §3.4, at the end of a step: particle p's coordinates relative to the body
+    face nearest to it among those around its nearest vertex vtx (closest point's barycentric weights
+    plus the offset in the face frame)."""
+    face[p] = -1
+    if vtx < 0:
+        return
+    best_d = float(1.0e30)
+    best_f = int(-1)
+    best_w = wp.vec3(0.0)
+    for k in range(vf_start[vtx], vf_start[vtx + 1]):
+        f = vf_face[k]
+        w = closest_on_triangle(xp, points[indices[3 * f + 0]], points[indices[3 * f + 1]], points[indices[3 * f + 2]])
+        d = wp.length_sq(xp - face_point(points, indices, f, w))
+        if d < best_d:
+            best_d = d
+            best_f = f
+            best_w = w
+    if best_f >= 0:
+        face[p] = best_f
+        barycentric[p] = best_w
+        local[p] = wp.transpose(face_frame(points, indices, best_f)) * (xp - face_point(points, indices, best_f, best_w))
 
 
 @wp.kernel
@@ -291,9 +307,14 @@ def body_collide(
     margin: float,
     friction: float,
     dt: float,
+    nearest_in: wp.array(dtype=wp.int32),
+    record: int,
     nearest: wp.array(dtype=wp.int32),
     contact: wp.array(dtype=wp.int32),
     fallbacks: wp.array(dtype=wp.int32),
+    follow_face: wp.array(dtype=wp.int32),
+    follow_barycentric: wp.array(dtype=wp.vec3),
+    follow_local: wp.array(dtype=wp.vec3),
 ):
     """Vertex-only body collision of Oshita & Makinouchi §3.3.
 
@@ -305,13 +326,20 @@ def body_collide(
     BVH closest-point query decides and restarts the cache. Particles farther than `trust_distance`
     cannot collide, but their walk can stall between limbs; they are re-seeded from the BVH every
     `refresh` steps, staggered by index, so the cost is spread out.
+
+    The nearest-vertex cache is read from nearest_in and written to nearest (they may be the same
+    array). With record != 0 the particle's final position is also recorded against its nearest
+    body face for following the body in the next step (follow_record).
     """
     p = wp.tid()
     contact[p] = 0
     if inv_mass[p] == 0.0:
+        nearest[p] = nearest_in[p]
+        if record != 0:
+            follow_face[p] = -1
         return
     xp = x[p]
-    vtx = nearest[p]
+    vtx = nearest_in[p]
     trusted = vtx >= 0
     search = float(1.0e6)  # BVH query radius when the walk is not trusted
     if trusted:
@@ -383,6 +411,8 @@ def body_collide(
             rel = tangent
         v[p] = vb + rel
         contact[p] = 1
+    if record != 0:
+        follow_record(x[p], vtx, points, indices, vf_start, vf_face, p, follow_face, follow_barycentric, follow_local)
 
 
 @wp.kernel
@@ -401,57 +431,50 @@ def nearest_vertex_brute_force(x: wp.array(dtype=wp.vec3), points: wp.array(dtyp
 
 
 @wp.kernel
-def record_follow(
+def begin_step(
     x: wp.array(dtype=wp.vec3),
-    points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    vf_start: wp.array(dtype=wp.int32),
-    vf_face: wp.array(dtype=wp.int32),
-    nearest: wp.array(dtype=wp.int32),
-    face: wp.array(dtype=wp.int32),
-    barycentric: wp.array(dtype=wp.vec3),
-    local: wp.array(dtype=wp.vec3),
-):
-    """Oshita & Makinouchi §3.4, at the end of a step: each particle's coordinates relative to its
-    nearest body face (closest point's barycentric weights plus the offset in the face frame)."""
-    p = wp.tid()
-    vtx = nearest[p]
-    face[p] = -1
-    if vtx < 0:
-        return
-    xp = x[p]
-    best_d = float(1.0e30)
-    for k in range(vf_start[vtx], vf_start[vtx + 1]):
-        f = vf_face[k]
-        w = closest_on_triangle(xp, points[indices[3 * f + 0]], points[indices[3 * f + 1]], points[indices[3 * f + 2]])
-        d = wp.length_sq(xp - face_point(points, indices, f, w))
-        if d < best_d:
-            best_d = d
-            face[p] = f
-            barycentric[p] = w
-    f = face[p]
-    if f >= 0:
-        local[p] = wp.transpose(face_frame(points, indices, f)) * (xp - face_point(points, indices, f, barycentric[p]))
-
-
-@wp.kernel
-def apply_follow(
-    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
+    follow: int,
     face: wp.array(dtype=wp.int32),
     barycentric: wp.array(dtype=wp.vec3),
     local: wp.array(dtype=wp.vec3),
     full_within: float,
     none_beyond: float,
+    pins: int,
+    particle_binding: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+    dt: float,
+    step_count: wp.array(dtype=wp.int32),
 ):
-    """Oshita & Makinouchi §3.4, before a step: restore the recorded face-relative coordinates under the
-    body's new pose. Particles farther than full_within from the body follow less, none beyond
-    none_beyond, so a skirt's hem is not dragged rigidly with a leg."""
+    """Everything before the integration, in one pass over the particles (the body is posed for the
+    end of the step):
+
+    - following (Oshita & Makinouchi §3.4, follow != 0): free particles take their recorded
+      face-relative coordinates under the body's new pose; particles farther than full_within from
+      the body follow less, none beyond none_beyond, so a skirt's hem is not dragged rigidly with a leg;
+    - with pins != 0, pinned particles with a binding (particle_binding >= 0) get the velocity that carries them in a
+      straight line to their bound position at the step's end;
+    - the step counter (on the device, so captured frames advance it) goes up by one.
+    """
     p = wp.tid()
+    if p == 0:
+        step_count[0] = step_count[0] + 1
+    if inv_mass[p] == 0.0:
+        if pins != 0:
+            b = particle_binding[p]
+            if b >= 0:
+                target = bound_position(points, indices, bind_triangle, bind_barycentric, bind_local, b)
+                v[p] = (target - x[p]) / dt
+        return
+    if follow == 0:
+        return
     f = face[p]
-    if f < 0 or inv_mass[p] == 0.0:
+    if f < 0:
         return
     offset = local[p]
     dist = wp.length(offset)

@@ -51,6 +51,16 @@ def skin_points(
     points[i] = out
 
 
+@wp.func
+def bound_position(mesh_points: wp.array(dtype=wp.vec3), mesh_indices: wp.array(dtype=wp.int32),
+                   bind_triangle: wp.array(dtype=wp.int32), bind_barycentric: wp.array(dtype=wp.vec3),
+                   bind_local: wp.array(dtype=wp.vec3), b: int):
+    """Where binding b puts its point on the posed mesh: the barycentric point plus the offset in the
+    triangle frame."""
+    f = bind_triangle[b]
+    return face_point(mesh_points, mesh_indices, f, bind_barycentric[b]) + face_frame(mesh_points, mesh_indices, f) * bind_local[b]
+
+
 @wp.kernel
 def evaluate_bindings(
     mesh_points: wp.array(dtype=wp.vec3),
@@ -63,9 +73,7 @@ def evaluate_bindings(
 ):
     """Place each bound particle at its barycentric point plus its offset in the triangle frame."""
     b = wp.tid()
-    f = bind_triangle[b]
-    frame = face_frame(mesh_points, mesh_indices, f)
-    positions[bind_particle[b]] = face_point(mesh_points, mesh_indices, f, bind_barycentric[b]) + frame * bind_local[b]
+    positions[bind_particle[b]] = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, b)
 
 
 @wp.kernel

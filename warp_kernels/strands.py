@@ -13,19 +13,10 @@ because on a GPU the bytes moved, not the arithmetic, set the cost.
 import warp as wp
 
 from .collision import collide_point
-from .skinning import face_frame, face_point
+from .skinning import bound_position, face_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
 SHAPE_FULL = wp.constant(1)
-
-
-@wp.func
-def bound_position(mesh_points: wp.array(dtype=wp.vec3), mesh_indices: wp.array(dtype=wp.int32),
-                   bind_triangle: wp.array(dtype=wp.int32), bind_barycentric: wp.array(dtype=wp.vec3),
-                   bind_local: wp.array(dtype=wp.vec3), b: int):
-    """Where binding b puts its particle on the posed mesh (as skinning.evaluate_bindings)."""
-    f = bind_triangle[b]
-    return face_point(mesh_points, mesh_indices, f, bind_barycentric[b]) + face_frame(mesh_points, mesh_indices, f) * bind_local[b]
 
 
 @wp.kernel
