@@ -81,6 +81,7 @@ class HairSolver:
         self.windows = model.shape_windows(params.window_size)
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
+        self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
@@ -129,11 +130,11 @@ class HairSolver:
             if variant == SHAPE_MATCHING["full"]:
                 wp.launch(strands.shape_match_rotations, win.count,
                           [src, win.first, win.size, win.rest, int(self._rotations_exact),
-                           p.rotation_iterations, self.rotations], device=dev)
+                           p.rotation_iterations, self.rotations, self.centroids], device=dev)
                 self._rotations_exact = False
             wp.launch(strands.shape_match_step, m.num_particles,
                       [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets, self.rotations,
-                       variant, p.shape_stiffness, dst], device=dev)
+                       self.centroids, variant, p.shape_stiffness, dst], device=dev)
             src, dst = dst, src
         mode = COLLISION[p.collision] if collider is not None else 0
         wp.launch(strands.follow_the_leader, m.num_strands,

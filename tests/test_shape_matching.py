@@ -60,13 +60,17 @@ def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1,
     if rotations is None:
         rotations = wp.zeros(win.count, dtype=wp.quat)
     xs = wp.array(x, dtype=wp.vec3)
+    centroids = wp.zeros(win.count, dtype=wp.vec3)
+    refined = wp.zeros(win.count, dtype=wp.quat)
+    wp.copy(refined, rotations)
+    wp.launch(kernels.shape_match_rotations, win.count,
+              [xs, win.first, win.size, win.rest, int(exact), iterations, refined, centroids])
     if refine:
-        wp.launch(kernels.shape_match_rotations, win.count,
-                  [xs, win.first, win.size, win.rest, int(exact), iterations, rotations])
+        rotations = refined
     out = wp.zeros_like(xs)
     wp.launch(kernels.shape_match_step, model.num_particles,
-              [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations, variant,
-               stiffness, out])
+              [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations,
+               centroids, variant, stiffness, out])
     return out.numpy(), rotations
 
 

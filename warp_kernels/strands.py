@@ -172,8 +172,10 @@ def shape_match_rotations(
     exact: int,
     iterations: int,
     rotations: wp.array(dtype=wp.quat),
+    centroids: wp.array(dtype=wp.vec3),
 ):
-    """Per-window optimal rotation of the rest offsets onto the current window (full variant).
+    """Per-window optimal rotation of the rest offsets onto the current window (full variant), and
+    the window's centroid, which shape_match_step reads instead of summing the window again.
 
     exact = 1 solves it outright (float64 SVD); otherwise `iterations` refinement steps continue
     from the rotation stored last time.
@@ -182,6 +184,7 @@ def shape_match_rotations(
     first = window_first[w]
     base = w * window_size
     centroid = window_centroid(x, first, window_size)
+    centroids[w] = centroid
     A = wp.mat33(0.0)
     for k in range(window_size):
         A += wp.outer(x[first + k] - centroid, window_rest[base + k])
@@ -194,24 +197,24 @@ def shape_match_rotations(
 
 @wp.func
 def window_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, rest: wp.array(dtype=wp.vec3),
-                offsets: wp.array(dtype=float), rotations: wp.array(dtype=wp.quat), variant: int, w: int):
+                offsets: wp.array(dtype=float), rotations: wp.array(dtype=wp.quat),
+                centroids: wp.array(dtype=wp.vec3), variant: int, w: int):
     """Goal of slot k of window w (its particles first .. first + size - 1).
 
     simplified (Hayashimoto et al. §3.6, window of 3): g_k = c + d_k u along the current first-to-last
     direction u, with d_k the rest offset along the rest first-to-last direction. No rotation, so
     curls straighten.
     full (Mueller et al. 2005): g_k = c + R r_k with r_k the rest offset from the rest centroid and R
-    the window's optimal rotation (shape_match_rotations). A window of 3 holds bend angles only;
-    wider windows also hold torsion, so helices keep their shape.
+    the window's optimal rotation and c its centroid, both from shape_match_rotations. A window of 3
+    holds bend angles only; wider windows also hold torsion, so helices keep their shape.
     """
-    centroid = window_centroid(x, first, size)
     if variant == SHAPE_SIMPLIFIED:
         e = x[first + size - 1] - x[first]
         length = wp.length(e)
         if length < 1.0e-12:
             return x[first + k]
-        return centroid + offsets[w * size + k] * (e / length)
-    return centroid + wp.quat_to_matrix(rotations[w]) * rest[w * size + k]
+        return window_centroid(x, first, size) + offsets[w * size + k] * (e / length)
+    return centroids[w] + wp.quat_rotate(rotations[w], rest[w * size + k])
 
 
 @wp.kernel
@@ -224,6 +227,7 @@ def shape_match_step(
     window_rest: wp.array(dtype=wp.vec3),
     window_offsets: wp.array(dtype=float),
     rotations: wp.array(dtype=wp.quat),
+    centroids: wp.array(dtype=wp.vec3),
     variant: int,
     stiffness: float,
     x_out: wp.array(dtype=wp.vec3),
@@ -250,7 +254,7 @@ def shape_match_step(
             if particle_strand[j] == strand:
                 w = window_at[j]
                 if w >= 0:
-                    goal += window_goal(x, j, window_size, k, window_rest, window_offsets, rotations, variant, w)
+                    goal += window_goal(x, j, window_size, k, window_rest, window_offsets, rotations, centroids, variant, w)
                     count += 1.0
     if count > 0.0:
         p = p + stiffness * (goal / count - p)
