@@ -34,8 +34,7 @@ CASES = {
     "full+mesh": {},
     "simplified+mesh": {"shape_matching": "simplified"},
     "simplified+spheres": {"shape_matching": "simplified", "collision": "sphere_tree"},
-    "simplified, 1 pass, spheres": {"shape_matching": "simplified", "collision": "sphere_tree",
-                                    "shape_iterations": 1},
+    "simplified1+spheres": {"shape_matching": "simplified", "collision": "sphere_tree", "shape_iterations": 1},
 }
 
 
