@@ -50,6 +50,7 @@ class Collider:
         self.sphere_radii = arr(self.tree.radii, float)
         self.sphere_skip = arr(self.tree.skip, wp.int32)
         self.sphere_is_leaf = arr(self.tree.is_leaf, wp.int32)
+        self.sphere_parent = arr(_parents(self.tree.skip), wp.int32)
         self.sphere_skin_indices = arr(skin_indices[nearest], wp.vec4i)
         self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
         self.bone_matrices = None
@@ -95,8 +96,10 @@ class Collider:
         wp.launch(skinning.skin_points, len(self.sphere_centers),
                   [self.sphere_rest_centers, self.sphere_skin_indices, self.sphere_skin_weights,
                    self.bone_matrices, offset, self.sphere_centers], device=self.device)
+        wp.launch(collision.clear_inner_radii, len(self.sphere_centers), [self.sphere_radii, self.sphere_is_leaf],
+                  device=self.device)
         wp.launch(collision.refit_sphere_tree, len(self.sphere_centers),
-                  [self.sphere_centers, self.sphere_radii, self.sphere_skip, self.sphere_is_leaf],
+                  [self.sphere_centers, self.sphere_radii, self.sphere_parent, self.sphere_is_leaf],
                   device=self.device)
 
     def adjacency(self):
@@ -149,6 +152,20 @@ class Collider:
 
     def posed_points(self):
         return self.points.numpy()
+
+
+def _parents(skip):
+    """Parent of every node of a depth-first tree with skip pointers (node i's subtree is i + 1 ..
+    skip[i] - 1); -1 for the root."""
+    parent = np.full(len(skip), -1, np.int32)
+    stack = []
+    for i in range(len(skip)):
+        while stack and skip[stack[-1]] <= i:
+            stack.pop()
+        if stack:
+            parent[i] = stack[-1]
+        stack.append(i)
+    return parent
 
 
 class _Adjacency:

@@ -7,7 +7,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import warp as wp
 
-from warp_kernels import strands
+from warp_kernels import collision, strands
 
 from .errors import SimulationError
 
@@ -83,6 +83,8 @@ class HairSolver:
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
+        self.clearance = wp.zeros(model.num_particles, dtype=float, device=device)
+        self.clearance_pass = None  # parallel clearance before the length pass: None = on CUDA devices
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=device)
@@ -137,12 +139,21 @@ class HairSolver:
                        self.centroids, variant, p.shape_stiffness, dst], device=dev)
             src, dst = dst, src
         mode = COLLISION[p.collision] if collider is not None else 0
+        # on a GPU the per-strand loop is latency-bound: a parallel pass first finds which particles
+        # can touch at all (on one CPU thread the extra pass costs more than it saves)
+        auto = wp.get_device(dev).is_cuda if self.clearance_pass is None else self.clearance_pass
+        use_clearance = mode != 0 and auto
+        if use_clearance:
+            wp.launch(collision.points_clearance, m.num_particles,
+                      [state_out.x, mode, c.mesh.id, c.sphere_centers, c.sphere_radii, c.sphere_skip, c.sphere_is_leaf,
+                       p.collision_margin, p.collision_search, self.clearance], device=dev)
         wp.launch(strands.follow_the_leader, m.num_strands,
                   [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
                    c.mesh.id if c else wp.uint64(0),
                    c.sphere_centers if c else None, c.sphere_radii if c else None,
                    c.sphere_skip if c else None, c.sphere_is_leaf if c else None,
-                   p.collision_margin, p.collision_search, p.ftl_damping, dt, state_out.v], device=dev)
+                   p.collision_margin, p.collision_search, int(use_clearance), self.clearance, p.ftl_damping, dt,
+                   state_out.v], device=dev)
 
     def reset(self):
         """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut).

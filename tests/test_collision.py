@@ -87,3 +87,67 @@ def test_groomed_rest_shape_clears_the_head(head, head_collider):
             assert np.all(np.abs(natural / 0.25 - 1.0) < params.length_jitter + 0.02)
         else:
             assert np.median(natural) > 0.25  # waves and curls add length to the centre line
+
+
+def test_refitted_sphere_tree_bounds_each_subtree_exactly(head):
+    from sim.collider import Collider
+
+    c = Collider("head", head.vertices, head.faces, head.skin_indices, head.skin_weights, head.num_bones, "cpu")
+    c.set_poses(HeadAnimation().bone_matrices([0.4]))  # turned and nodded: centres move, radii must follow
+    c.apply_pose(0)
+    centers, radii, t = c.sphere_centers.numpy(), c.sphere_radii.numpy(), c.tree
+    assert not np.allclose(centers, t.centers)
+    for i in np.flatnonzero(t.is_leaf == 0):
+        sub = np.arange(i + 1, t.skip[i])
+        leaves = sub[t.is_leaf[sub] == 1]
+        expected = np.max(np.linalg.norm(centers[leaves] - centers[i], axis=1) + radii[leaves])
+        assert abs(radii[i] - expected) < 1e-6
+
+
+@pytest.mark.parametrize("mode", ["sphere_tree", "mesh"])
+def test_clearance_bounds_the_distance_and_skipping_queries_changes_nothing(head, head_collider, mode):
+    import warp as wp
+
+    from warp_kernels import collision
+
+    c = head_collider
+    rng = np.random.default_rng(4)
+    surface, _ = trimesh.sample.sample_surface(trimesh.Trimesh(head.vertices, head.faces, process=False), 400, seed=3)
+    points = (surface + rng.normal(0.0, 0.01, surface.shape)).astype(np.float32)
+    out = wp.zeros(len(points), dtype=float)
+    search, margin = 0.02, 0.0015
+    code = {"sphere_tree": collision.COLLIDE_SPHERE_TREE, "mesh": collision.COLLIDE_MESH}[mode]
+    wp.launch(collision.points_clearance, len(points),
+              [wp.array(points, dtype=wp.vec3), int(code), c.mesh.id, c.sphere_centers, c.sphere_radii, c.sphere_skip,
+               c.sphere_is_leaf, margin, search, out])
+    got = out.numpy()
+    if mode == "mesh":
+        # the signed distance where the surface is within 2 search; beyond, search + margin, so a
+        # point is skipped only when it moved less than search (the push's query cannot reach)
+        truth = c.signed_distance(points)
+        near = np.abs(truth) < 2 * search - 1e-4
+        assert near.mean() > 0.9 and np.any(truth < -search)  # deep inside points are part of the test
+        np.testing.assert_allclose(got[near], truth[near], atol=2e-5)
+        np.testing.assert_allclose(got[np.abs(truth) > 2 * search + 1e-4], search + margin)
+    else:
+        centers, radii = c.sphere_centers.numpy(), c.sphere_radii.numpy()
+        leaf = c.tree.is_leaf == 1
+        truth = np.min(np.linalg.norm(points[:, None] - centers[leaf][None], axis=2) - radii[leaf][None], axis=1)
+        np.testing.assert_allclose(got, np.minimum(truth, search), atol=2e-5)
+
+    # the solver with and without the clearance pass: identical strands
+    roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, 60, seed=2)
+    pts, counts, widths = grow_hairstyle(HairstyleParams(style="wavy", vertices=12, length=0.2), roots, normals,
+                                         c.push_out)
+    model = StrandBuilder().add_strands(pts, counts, widths).finalize("cpu").bind_to_mesh(c.posed_points(), head.faces)
+    results = []
+    for use in (True, False):
+        solver = HairSolver(model, HairParams(collision=mode))
+        solver.clearance_pass = use
+        s0, s1 = model.state(), model.state()
+        for _ in range(60):
+            solver.step(s0, s1, c, 1.0 / 240.0)
+            s0, s1 = s1, s0
+        results.append(s0.x.numpy())
+    np.testing.assert_array_equal(results[0], results[1])
+    assert np.abs(results[0] - pts).max() > 0.01  # the hair fell

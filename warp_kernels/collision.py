@@ -112,6 +112,70 @@ def collide_point(
     return p
 
 
+@wp.func
+def clearance(
+    p: wp.vec3,
+    mode: int,
+    mesh: wp.uint64,
+    centers: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    skip: wp.array(dtype=wp.int32),
+    is_leaf: wp.array(dtype=wp.int32),
+    margin: float,
+    search: float,
+):
+    """How far p may move before collide_point (same margin and search) could push it: a point
+    displaced by less than clearance - margin is left where it is.
+
+    Sphere tree: the distance to the nearest leaf sphere, capped at `search`. Mesh: the signed
+    distance (negative inside) when the surface is within 2 search; otherwise search + margin, since
+    collide_point's query (radius search) cannot reach the surface from a point that moved less
+    than search.
+    """
+    if mode == COLLIDE_SPHERE_TREE:
+        # branch and bound: a node's sphere bounds its leaves' spheres, so a node no nearer than the
+        # best leaf so far cannot hold a nearer one
+        best = search
+        n = centers.shape[0]
+        i = int(0)
+        while i < n:
+            d = wp.length(p - centers[i]) - radii[i]
+            if d < best:
+                if is_leaf[i] != 0:
+                    best = d
+                    i = skip[i]
+                else:
+                    i = i + 1
+            else:
+                i = skip[i]
+        return best
+    if mode == COLLIDE_MESH:
+        q = wp.mesh_query_point_sign_normal(mesh, p, 2.0 * search)
+        if q.result:
+            return q.sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+        return search + margin
+    return 1.0e30
+
+
+@wp.kernel
+def points_clearance(
+    points: wp.array(dtype=wp.vec3),
+    mode: int,
+    mesh: wp.uint64,
+    centers: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    skip: wp.array(dtype=wp.int32),
+    is_leaf: wp.array(dtype=wp.int32),
+    margin: float,
+    search: float,
+    out: wp.array(dtype=float),
+):
+    """clearance() of every point, in parallel (the strand solver's serial length pass then queries
+    only the particles that may touch)."""
+    i = wp.tid()
+    out[i] = clearance(points[i], mode, mesh, centers, radii, skip, is_leaf, margin, search)
+
+
 @wp.kernel
 def push_points_out(
     points: wp.array(dtype=wp.vec3),
@@ -182,22 +246,30 @@ def mesh_closest_face(
 
 
 @wp.kernel
+def clear_inner_radii(radii: wp.array(dtype=float), is_leaf: wp.array(dtype=wp.int32)):
+    """First half of refit_sphere_tree: inner nodes start from radius 0."""
+    i = wp.tid()
+    if is_leaf[i] == 0:
+        radii[i] = 0.0
+
+
+@wp.kernel
 def refit_sphere_tree(
     centers: wp.array(dtype=wp.vec3),
     radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
+    parent: wp.array(dtype=wp.int32),
     is_leaf: wp.array(dtype=wp.int32),
 ):
-    """After the node centres are skinned, grow each inner node to bound the leaves of its subtree.
-
-    Depth-first order puts node i's subtree at i + 1 .. skip[i] - 1, so no recursion is needed.
-    """
-    i = wp.tid()
-    if is_leaf[i] != 0:
+    """After the node centres are skinned (and clear_inner_radii), grow each inner node to bound the
+    leaves of its subtree: every leaf raises each ancestor's radius to reach past it. One thread per
+    leaf and a walk up the tree, rather than one thread per node scanning its subtree, whose root
+    thread alone would read the whole tree."""
+    j = wp.tid()
+    if is_leaf[j] == 0:
         return
-    c = centers[i]
-    r = float(0.0)
-    for j in range(i + 1, skip[i]):
-        if is_leaf[j] != 0:
-            r = wp.max(r, wp.length(centers[j] - c) + radii[j])
-    radii[i] = r
+    c = centers[j]
+    r = radii[j]
+    a = parent[j]
+    while a >= 0:
+        wp.atomic_max(radii, a, wp.length(c - centers[a]) + r)
+        a = parent[a]
