@@ -44,7 +44,7 @@ def test_graph_frames_equal_eager_frames(make):
             out["detail"] = scene.cloth_detail.positions.numpy()
         results.append((out, scene.graphs.replays))
     (graph, replays), (eager, none) = results
-    assert replays >= 4 and none == 0
+    assert replays >= 3 and none == 0  # odd substeps: two graphs alternate, each eager once then captured
     moved = 0.0
     for key in eager:
         np.testing.assert_allclose(graph[key], eager[key], atol=1e-6, err_msg=key)
