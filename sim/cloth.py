@@ -218,6 +218,10 @@ class ClothSolver:
         self.x_stage, self.v_stage, self.x_scratch, self.v_scratch = z(), z(), z(), z()
         self.acc_x, self.acc_v = z(), z()
         self.fallbacks = wp.zeros(1, dtype=wp.int32, device=d)
+        # far particles re-seed their nearest vertex from the BVH only within this radius: beyond it
+        # they neither collide nor follow the body
+        p = self.params
+        self.reseed_radius = max(2.0 * p.walk_trust_distance, p.follow_none_beyond if p.follow else 0.0) + p.collision_margin
         self.step_count = wp.zeros(1, dtype=wp.int32, device=d)  # on the device: captured frames advance it
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=d)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
@@ -262,7 +266,8 @@ class ClothSolver:
         wp.launch(kernels.body_collide, m.num_particles,
                   [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
                    adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, p.walk_steps,
-                   p.teleport, p.walk_trust_distance, max(1, p.walk_refresh), self.step_count, p.collision_margin,
+                   p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), self.step_count,
+                   p.collision_margin,
                    p.friction, dt, state_prev.nearest, int(record), state.nearest, state.contact, self.fallbacks,
                    state.follow_face, state.follow_barycentric, state.follow_local], device=m.device)
 

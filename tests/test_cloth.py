@@ -151,7 +151,7 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     before = state.x.numpy()
     wp.launch(kernels.body_collide, 50,
               [state.x, state.x, state.v, model.inv_mass, body.points, body.prev_points, body.indices, adj.vv_start,
-               adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, 16, 1.0, 1.0, 1, steps, 0.0, 0.0,
+               adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, 16, 1.0, 1.0, 1.0, 1, steps, 0.0, 0.0,
                1e-3, state.nearest, 1, state.nearest, state.contact, fallbacks, state.follow_face,
                state.follow_barycentric, state.follow_local])
     np.testing.assert_array_equal(state.x.numpy(), before)

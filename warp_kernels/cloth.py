@@ -302,6 +302,7 @@ def body_collide(
     max_steps: int,
     teleport: float,
     trust_distance: float,
+    reseed_radius: float,
     refresh: int,
     step_count: wp.array(dtype=wp.int32),
     margin: float,
@@ -355,8 +356,10 @@ def body_collide(
             far = reach > trust_distance
             if (concave[vtx] != 0 and not far) or (far and (step_count[0] + p) % refresh == 0):
                 trusted = False
-                # the closest surface point is no farther than the vertex the walk reached
-                search = reach + margin
+                # the closest surface point is no farther than the vertex the walk reached; a far
+                # particle needs the right vertex only where it can touch or follow the body, so its
+                # query looks no farther than reseed_radius (a BVH query's cost grows with its radius)
+                search = wp.min(reach + margin, reseed_radius)
     n = wp.vec3(float(0.0), float(0.0), float(0.0))
     depth = float(0.0)  # how far to move along n to reach margin outside the surface
     hit = bool(False)
