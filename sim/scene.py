@@ -537,9 +537,12 @@ class Scene:
         walk, truth = st.nearest.numpy(), brute.numpy()
         free = cm.inv_mass_np > 0
         pts = self.collider.points.numpy()
-        # ties (two vertices at the same distance) count as agreement
-        same = (walk == truth) | np.isclose(np.linalg.norm(x - pts[np.maximum(walk, 0)], axis=1),
-                                            np.linalg.norm(x - pts[truth], axis=1), rtol=1e-6, atol=1e-9)
+        # ties (two vertices at the same distance) count as agreement; particles beyond the solver's
+        # re-seed radius neither touch nor follow the body, so their cache is not kept exact
+        near = np.linalg.norm(x - pts[truth], axis=1)
+        free &= near <= self.cloth_solver.reseed_radius
+        same = (walk == truth) | np.isclose(np.linalg.norm(x - pts[np.maximum(walk, 0)], axis=1), near, rtol=1e-6,
+                                            atol=1e-9)
         return {"cloth_stretch_p99": float(np.percentile(strain, 99)),
                 "cloth_stretch_max": float(strain.max()),
                 "cloth_inside_2mm": float(np.mean(sdf < -0.002)),
