@@ -7,6 +7,10 @@ force pass writes each particle once with no atomics and gives the same result o
 
 import warp as wp
 
+# no gradients are taken through these kernels: skipping the backward passes halves compile time;
+# the lean launch path (no grid-stride loop) lowers per-thread overhead
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+
 from .skinning import bound_position, face_frame, face_point
 
 

@@ -12,6 +12,10 @@ because on a GPU the bytes moved, not the arithmetic, set the cost.
 
 import warp as wp
 
+# no gradients are taken through these kernels: skipping the backward passes halves compile time;
+# the lean launch path (no grid-stride loop) lowers per-thread overhead
+wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+
 from .collision import collide_point
 from .skinning import bound_position, face_frame
 
