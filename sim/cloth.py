@@ -148,6 +148,14 @@ class ClothModel:
         self.drag = arr(np.full(len(x), p.air_drag / p.density, np.float32), float)
         self.adj_start = arr(adj_start.astype(np.int32), wp.int32)
         self.adj_spring = arr(springs[order].astype(np.int32), wp.int32)
+        # per adjacency slot: the other particle and the spring's constants, read sequentially by RK4
+        slot_spring = springs[order]
+        slot_end = np.concatenate([pairs[:, 1], pairs[:, 0]])[order]
+        self.adj_other = arr(slot_end.astype(np.int32), wp.int32)
+        self.adj_rest = arr(self.spring_rest_np[slot_spring].astype(np.float32), float)
+        self.adj_k_stretch = arr(k_stretch[slot_spring].astype(np.float32), float)
+        self.adj_k_compress = arr(k_compress[slot_spring].astype(np.float32), float)
+        self.adj_damping = arr(np.full(len(slot_spring), p.spring_damping, np.float32), float)
         self.spring_i = arr(pairs[:, 0].astype(np.int32), wp.int32)
         self.spring_j = arr(pairs[:, 1].astype(np.int32), wp.int32)
         self.spring_rest = arr(self.spring_rest_np.astype(np.float32), float)
@@ -245,8 +253,8 @@ class ClothSolver:
         for k, (weight, h_next) in enumerate(((1.0, 0.5 * dt), (2.0, 0.5 * dt), (2.0, dt), (1.0, 0.0))):
             xn, vn = buffers[k % 2]
             wp.launch(kernels.rk4_stage, n,
-                      [x0, v0, xs, vs, m.inv_mass, m.drag, m.adj_start, m.adj_spring, m.spring_i, m.spring_j,
-                       m.spring_rest, m.spring_k_stretch, m.spring_k_compress, m.spring_damping,
+                      [x0, v0, xs, vs, m.inv_mass, m.drag, m.adj_start, m.adj_other, m.adj_rest, m.adj_k_stretch,
+                       m.adj_k_compress, m.adj_damping,
                        wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, weight, h_next, self.acc_x, self.acc_v,
                        xn, vn], device=dev)
             xs, vs = xn, vn

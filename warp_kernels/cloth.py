@@ -39,31 +39,31 @@ def particle_acceleration(
     inv_mass: wp.array(dtype=float),
     drag: wp.array(dtype=float),
     adj_start: wp.array(dtype=wp.int32),
-    adj_spring: wp.array(dtype=wp.int32),
-    spring_i: wp.array(dtype=wp.int32),
-    spring_j: wp.array(dtype=wp.int32),
-    spring_rest: wp.array(dtype=float),
-    spring_k_stretch: wp.array(dtype=float),
-    spring_k_compress: wp.array(dtype=float),
-    spring_damping: wp.array(dtype=float),
+    adj_other: wp.array(dtype=wp.int32),
+    adj_rest: wp.array(dtype=float),
+    adj_k_stretch: wp.array(dtype=float),
+    adj_k_compress: wp.array(dtype=float),
+    adj_damping: wp.array(dtype=float),
     gravity: wp.vec3,
     wind: wp.vec3,
     damping: float,
 ):
     """a = F/m: springs, gravity, linear air drag toward the wind (drag = c/m [1/s]), damping [1/s].
-    Pinned particles (inv_mass 0) get no acceleration: their velocity is prescribed."""
+    Pinned particles (inv_mass 0) get no acceleration: their velocity is prescribed.
+
+    The springs are read per adjacency slot (adj_start[p] .. adj_start[p + 1]): the other particle
+    and the spring's constants stored contiguously for each particle, so a particle's springs are one
+    sequential read instead of a gather through spring indices."""
     w = inv_mass[p]
     if w == 0.0:
         return wp.vec3(0.0)
+    xp = x[p]
+    vp = v[p]
     f = wp.vec3(0.0)
     for k in range(adj_start[p], adj_start[p + 1]):
-        s = adj_spring[k]
-        q = spring_j[s]
-        if q == p:
-            q = spring_i[s]
-        f += spring_force(x[p], x[q], v[p], v[q], spring_rest[s], spring_k_stretch[s], spring_k_compress[s],
-                          spring_damping[s])
-    return f * w + gravity + drag[p] * (wind - v[p]) - damping * v[p]
+        q = adj_other[k]
+        f += spring_force(xp, x[q], vp, v[q], adj_rest[k], adj_k_stretch[k], adj_k_compress[k], adj_damping[k])
+    return f * w + gravity + drag[p] * (wind - vp) - damping * vp
 
 
 @wp.kernel
@@ -95,13 +95,11 @@ def rk4_stage(
     inv_mass: wp.array(dtype=float),
     drag: wp.array(dtype=float),
     adj_start: wp.array(dtype=wp.int32),
-    adj_spring: wp.array(dtype=wp.int32),
-    spring_i: wp.array(dtype=wp.int32),
-    spring_j: wp.array(dtype=wp.int32),
-    spring_rest: wp.array(dtype=float),
-    spring_k_stretch: wp.array(dtype=float),
-    spring_k_compress: wp.array(dtype=float),
-    spring_damping: wp.array(dtype=float),
+    adj_other: wp.array(dtype=wp.int32),
+    adj_rest: wp.array(dtype=float),
+    adj_k_stretch: wp.array(dtype=float),
+    adj_k_compress: wp.array(dtype=float),
+    adj_damping: wp.array(dtype=float),
     gravity: wp.vec3,
     wind: wp.vec3,
     damping: float,
@@ -117,8 +115,8 @@ def rk4_stage(
     Force evaluation and stage update are fused so the stage state is read once; x_next/v_next must
     not alias xs/vs (neighbours are still reading them)."""
     p = wp.tid()
-    kv = particle_acceleration(p, xs, vs, inv_mass, drag, adj_start, adj_spring, spring_i, spring_j, spring_rest,
-                               spring_k_stretch, spring_k_compress, spring_damping, gravity, wind, damping)
+    kv = particle_acceleration(p, xs, vs, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch, adj_k_compress,
+                               adj_damping, gravity, wind, damping)
     kx = vs[p]
     x_next[p] = x0[p] + h_next * kx
     v_next[p] = v0[p] + h_next * kv
