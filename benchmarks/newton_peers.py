@@ -251,6 +251,19 @@ def _add_static_mesh(builder, mesh):
 # --- Shared runner --------------------------------------------------------------------------------
 
 
+def _finalize(builder, collider, device):
+    """The model with the static collider mesh (if any), our contact constants and no
+    particle-particle contact."""
+    if collider is not None:
+        _add_static_mesh(builder, collider)
+    model = builder.finalize(device=device)
+    model.soft_contact_ke = CONTACT_KE
+    model.soft_contact_kd = CONTACT_KD
+    model.soft_contact_mu = CONTACT_MU
+    _disable_particle_particle_contact(model)
+    return model
+
+
 class _NewtonRunner:
     """Owns model, two states, control, optional collision pipeline, solver and the CUDA graph."""
 
@@ -406,14 +419,7 @@ class NewtonCloth(_NewtonRunner):
             graph = wp.array(np.stack([gi, gj], axis=1).astype(np.int32), dtype=int, device="cpu")
             builder.set_coloring(newton.utils.color_graph(len(vertices), graph))
 
-        if body is not None:
-            _add_static_mesh(builder, body)
-
-        model = builder.finalize(device=device)
-        model.soft_contact_ke = CONTACT_KE
-        model.soft_contact_kd = CONTACT_KD
-        model.soft_contact_mu = CONTACT_MU
-        _disable_particle_particle_contact(model)
+        model = _finalize(builder, body, device)
 
         if solver == "vbd":
             sim = newton.solvers.SolverVBD(model, iterations=int(iterations), particle_enable_self_contact=False)
@@ -506,14 +512,7 @@ class NewtonChains(_NewtonRunner):
             ke = _xpbd_spring_ke(inv_mass, first, first + offset, sim_dt, ratio)
             _add_springs_bulk(builder, points, first, first + offset, ke, CHAIN_GAMMA * ke * sim_dt)
 
-        if head is not None:
-            _add_static_mesh(builder, head)
-
-        model = builder.finalize(device=device)
-        model.soft_contact_ke = CONTACT_KE
-        model.soft_contact_kd = CONTACT_KD
-        model.soft_contact_mu = CONTACT_MU
-        _disable_particle_particle_contact(model)
+        model = _finalize(builder, head, device)
 
         sim = newton.solvers.SolverXPBD(model, iterations=int(iterations))
         self._setup(model, sim, frame_dt=frame_dt, substeps=substeps, has_collider=head is not None)
