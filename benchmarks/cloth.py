@@ -31,8 +31,8 @@ import trimesh
 import warp as wp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from common import (commit, copy_bandwidth, counting_launch_bytes, device_name, fmt, kernel_profile, table,
-                    time_frames)  # noqa: E402
+from common import (CLOTH_DETAIL_HEADER, CLOTH_RACE_HEADER, commit, copy_bandwidth,
+                    counting_launch_bytes, device_name, fmt, kernel_profile, table, time_frames)  # noqa: E402
 
 from sim.cloth import STRETCH, ClothModel, ClothParams, ClothSolver  # noqa: E402
 from sim.collider import Collider  # noqa: E402
@@ -140,8 +140,8 @@ def run_newton(model, body, solver, frames):
 
 
 def race(devices, grids, frames, peers, ceilings):
-    header = ["case", "particles", "device", "engine", "substeps x iterations", "ms/frame", "particle-steps/s",
-              "GB/s", "max edge stretch", "penetration mm", "speed-up vs ours"]
+    header = CLOTH_RACE_HEADER
+    print(table(header, []), flush=True)  # the streamed rows below stay readable if the run is cut short
     rows, newton_1m = [], {}
     for device in devices:
         cases = [("dress (paper)", lambda: dress_case(device))]
@@ -181,8 +181,8 @@ def detail_scene(device, particles):
 
 
 def detail(devices, sizes, frames, newton_1m, ceilings):
-    header = ["garment", "coarse particles", "detail vertices", "device", "substeps/frame", "ms/frame",
-              "of which detail ms", "GB/s", "frames/s", "Newton VBD 1M particles ms/frame (table 1)", "speed-up"]
+    header = CLOTH_DETAIL_HEADER
+    print(table(header, []), flush=True)
     rows = []
     for device in devices:
         for particles in sizes:

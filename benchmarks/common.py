@@ -16,6 +16,16 @@ import numpy as np
 import warp as wp
 
 
+# the tables benchmarks/hair.py and benchmarks/cloth.py print (benchmarks/plot.py reads them back)
+HAIR_HEADER = ["case", "strands", "vertices", "device", "ms/frame", "vertex-updates/s", "MB/frame", "GB/s",
+               "max stretch", "Newton chains ms/frame", "Newton max stretch", "speed-up"]
+CLOTH_RACE_HEADER = ["case", "particles", "device", "engine", "substeps x iterations", "ms/frame", "particle-steps/s",
+                     "GB/s", "max edge stretch", "penetration mm", "speed-up vs ours"]
+CLOTH_DETAIL_HEADER = ["garment", "coarse particles", "detail vertices", "device", "substeps/frame", "ms/frame",
+                       "of which detail ms", "GB/s", "frames/s", "Newton VBD 1M particles ms/frame (table 1)",
+                       "speed-up"]
+
+
 def commit():
     out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     return out.stdout.strip() or "unknown"

@@ -22,8 +22,8 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from common import (commit, copy_bandwidth, counting_launch_bytes, device_name, fmt, kernel_profile, table,
-                    time_frames)  # noqa: E402
+from common import (HAIR_HEADER, commit, copy_bandwidth, counting_launch_bytes, device_name, fmt,
+                    kernel_profile, table, time_frames)  # noqa: E402
 
 from sim.hair_solver import HairParams, HairSolver  # noqa: E402
 from sim.scene import Scene, hair_demo_scene, quiet_warp  # noqa: E402
@@ -100,8 +100,8 @@ def main():
     devices = args.device or (["cpu"] + (["cuda"] if wp.is_cuda_available() else []))
     print(f"# hair benchmark, commit {commit()}, {VERTICES} vertices/strand, {args.substeps} substeps per 1/24 s "
           f"frame, peer: {'Newton ' + newton_peers.version() if peer_ok else 'none'}")
-    header = ["case", "strands", "vertices", "device", "ms/frame", "vertex-updates/s", "MB/frame", "GB/s",
-              "max stretch", "Newton chains ms/frame", "Newton max stretch", "speed-up"]
+    header = HAIR_HEADER
+    print(table(header, []), flush=True)  # the streamed rows below stay readable if the run is cut short
     rows = []
     for device in devices:
         ceiling = copy_bandwidth(device, 1024 if wp.get_device(device).is_cuda else 128)
