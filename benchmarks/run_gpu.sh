@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU benchmark and check session, one part per call (each must end inside 10 minutes):
-#   bash benchmarks/run_gpu.sh tests    # CUDA-only checks (tests/test_gpu.py)
+#   bash benchmarks/run_gpu.sh tests    # graph checks on cuda and cpu (tests/test_graphs.py)
 #   bash benchmarks/run_gpu.sh hair     # benchmarks/hair.py on cuda with Newton chains
 #   bash benchmarks/run_gpu.sh cloth    # benchmarks/cloth.py on cuda with Newton VBD and XPBD
 # Logs go to $OUT (or ./out/gpu); warp-lang, newton, usd-core and trimesh must be importable.
@@ -10,7 +10,7 @@ export PYTHONPATH=.${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,clocks.max.sm --format=csv,noheader | tee -a "$out/device.txt"
 for part in "$@"; do
   case $part in
-    tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_gpu.py 2>&1 | tee "$out/tests.log" ;;
+    tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py 2>&1 | tee "$out/tests.log" ;;
     hair) timeout ${HAIR_TIMEOUT:-540} python3 benchmarks/hair.py --device cuda ${HAIR_ARGS:-} 2>&1 | tee "$out/hair.log" ;;
     cloth) timeout ${CLOTH_TIMEOUT:-540} python3 benchmarks/cloth.py --device cuda ${CLOTH_ARGS:-} 2>&1 | tee "$out/cloth.log" ;;
     *) echo "unknown part $part"; exit 2 ;;

@@ -11,6 +11,7 @@ from scipy.spatial import cKDTree
 
 from warp_kernels import collision, skinning
 
+from .graphs import refit_mesh
 from .sphere_tree import build_sphere_tree, empty_sphere_tree, signed_distance
 
 
@@ -86,13 +87,13 @@ class Collider:
         if self._pose_points is not None:
             n = len(self.rest_points_np)
             wp.copy(self.points, self._pose_points, 0, k * n, n)
-            self.mesh.refit()
+            refit_mesh(self.mesh)
             return  # the sphere tree follows skinned poses only
         offset = k * self.num_bones
         wp.launch(skinning.skin_points, len(self.points),
                   [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
                    self.points], device=self.device)
-        self.mesh.refit()
+        refit_mesh(self.mesh)
         wp.launch(skinning.skin_points, len(self.sphere_centers),
                   [self.sphere_rest_centers, self.sphere_skin_indices, self.sphere_skin_weights,
                    self.bone_matrices, offset, self.sphere_centers], device=self.device)

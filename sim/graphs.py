@@ -1,4 +1,4 @@
-"""Keeping the GPU busy: whole frames as CUDA graphs, and results read back without waiting.
+"""Whole frames as graphs, and results read back without waiting.
 
 A frame's launches are captured once and replayed every frame after (FrameGraphs); results are
 copied into pinned host memory behind the frame's work (AsyncReadback).
@@ -9,28 +9,95 @@ later frame. Python code that ping-pongs state buffers rebinds its references wh
 captured; those references are part of the key, and a replay restores what the capture left, so
 an odd number of swaps per frame simply alternates between two graphs.
 
-On the CPU (and with graphs disabled) `run` calls the frame's function directly, so both paths
-share one definition of the frame.
+On a CUDA device a frame is one CUDA graph. On the CPU Warp records a frame's operations and
+replays them in a loop in C++, without Python's cost per launch; a mesh refit is the one operation
+it does not record there, so a CPU frame is split into recorded pieces with the refits between
+them (refit_mesh). With graphs disabled `run` calls the frame's function directly, so every path
+shares one definition of the frame.
 """
 
 import warnings
 
 import warp as wp
 
+_cpu_frame = None  # the CPU frame being captured, which refit_mesh splits
+
+
+def refit_mesh(mesh):
+    """mesh.refit(), in order also inside a frame being captured on the CPU: Warp does not record a
+    mesh refit there, so the capture is split around it and the refit runs between the pieces."""
+    if _cpu_frame is not None and _cpu_frame.device == mesh.device:
+        _cpu_frame.split(mesh.refit)
+    else:
+        mesh.refit()
+
+
+class _CudaFrame:
+    def __init__(self, device):
+        self.device, self.graph = device, None
+
+    def capture(self, frame):
+        with wp.ScopedCapture(device=self.device) as capture:
+            frame()
+        self.graph = capture.graph
+
+    def launch(self):
+        wp.capture_launch(self.graph)
+
+
+class _CpuFrame:
+    """A frame recorded on the CPU: recorded pieces, and host steps (mesh refits) between them."""
+
+    def __init__(self, device):
+        self.device, self.steps = device, []
+
+    def capture(self, frame):
+        global _cpu_frame
+        wp.capture_begin(device=self.device)
+        _cpu_frame = self
+        try:
+            frame()
+        except Exception:
+            wp.capture_end(device=self.device)
+            raise
+        finally:
+            _cpu_frame = None
+        self.steps.append(wp.capture_end(device=self.device))
+
+    def split(self, host_step):
+        self.steps.append(wp.capture_end(device=self.device))
+        self.steps.append(host_step)
+        wp.capture_begin(device=self.device, force_module_load=False)
+
+    def launch(self):
+        kept = []
+        for step in self.steps:
+            if callable(step):
+                step()
+                kept.append(step)
+                continue
+            try:
+                wp.capture_launch(step)
+                kept.append(step)
+            except RuntimeError as error:  # a piece with nothing recorded (two refits in a row)
+                if "no operations recorded" not in str(error):
+                    raise
+        self.steps = kept
+
 
 class FrameGraphs:
     """Per-key captured frames on one device.
 
-    run(key, frame, refs) executes `frame()` (a function that only launches work and rebinds buffer
-    references). The first time a key is seen the frame runs eagerly (modules load, caches are
-    built); the second time it is captured and launched; later it is replayed. refs = (get, set)
-    reads and restores the Python-side references `frame` rebinds, so a replay leaves them as a
-    real run would.
+    run(key, frame, refs) executes `frame()` (a function that only launches work, refits meshes with
+    refit_mesh and rebinds buffer references). The first time a key is seen the frame runs eagerly
+    (modules load, caches are built); the second time it is captured and launched; later it is
+    replayed. refs = (get, set) reads and restores the Python-side references `frame` rebinds, so a
+    replay leaves them as a real run would.
     """
 
     def __init__(self, device, enabled=True):
         self.device = wp.get_device(device)
-        self.enabled = bool(enabled) and self.device.is_cuda
+        self.enabled = bool(enabled)
         self._graphs = {}
         self._seen = set()
         self.replays = 0  # frames launched from a graph (reported by benchmarks and tests)
@@ -43,7 +110,7 @@ class FrameGraphs:
         entry = self._graphs.get(key)
         if entry is not None:
             graph, after = entry
-            wp.capture_launch(graph)
+            graph.launch()
             put(after)
             self.replays += 1
             return
@@ -52,18 +119,17 @@ class FrameGraphs:
             frame()
             return
         before = get()
+        graph = _CudaFrame(self.device) if self.device.is_cuda else _CpuFrame(self.device)
         try:
-            with wp.ScopedCapture(device=self.device) as capture:
-                frame()
-        except Exception as error:  # a launch that cannot be captured: keep running, uncaptured
+            graph.capture(frame)
+        except Exception as error:  # an operation that cannot be captured: keep running, uncaptured
             put(before)
             self.enabled = False
-            warnings.warn(f"CUDA graph capture failed, stepping without graphs: {error}", RuntimeWarning,
-                          stacklevel=2)
+            warnings.warn(f"graph capture failed, stepping without graphs: {error}", RuntimeWarning, stacklevel=2)
             frame()
             return
-        self._graphs[key] = (capture.graph, get())
-        wp.capture_launch(capture.graph)
+        self._graphs[key] = (graph, get())
+        graph.launch()  # a capture only records: this runs the frame
         self.replays += 1
 
     def clear(self):

@@ -40,7 +40,7 @@ class TimingConfig:
     preroll: float = 1.0  # s simulated before the first frame so the hair has settled
     device: str = "cpu"  # "cpu" or "cuda" (or "cuda:N")
     stats: bool = True  # measure stretch, root drift and penetration every frame
-    cuda_graphs: bool = True  # on CUDA devices, capture each solver's frame once and replay it
+    graphs: bool = True  # capture each solver's frame once (a CUDA graph, or a recorded CPU graph) and replay it
 
     def __post_init__(self):
         if self.fps <= 0.0:
@@ -302,7 +302,7 @@ class Scene:
             raise InputError(config.source, "scene.device", f"device '{device}' is not available") from None
         self.device = device
         self.time = 0.0
-        self.graphs = FrameGraphs(device, config.timing.cuda_graphs)
+        self.graphs = FrameGraphs(device, config.timing.graphs)
         leaves = config.head.sphere_leaves if config.hair.enabled and config.solver.collision == "sphere_tree" else 0
         if config.body.enabled:
             self.head, self._motion = _load_body(config)
