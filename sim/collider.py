@@ -52,6 +52,11 @@ class Collider:
         self.sphere_skip = arr(self.tree.skip, wp.int32)
         self.sphere_is_leaf = arr(self.tree.is_leaf, wp.int32)
         self.sphere_parent = arr(_parents(self.tree.skip), wp.int32)
+        # what the collision kernels take: the mesh and the sphere tree (arrays refitted in place)
+        self.shape = collision.ColliderShape()
+        self.shape.mesh = self.mesh.id
+        self.shape.centers, self.shape.radii = self.sphere_centers, self.sphere_radii
+        self.shape.skip, self.shape.is_leaf = self.sphere_skip, self.sphere_is_leaf
         self.sphere_skin_indices = arr(skin_indices[nearest], wp.vec4i)
         self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
         self.bone_matrices = None
@@ -121,8 +126,7 @@ class Collider:
         """
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
         wp.launch(collision.push_points_out, len(pts),
-                  [pts, int(mode), self.mesh.id, self.sphere_centers, self.sphere_radii,
-                   self.sphere_skip, self.sphere_is_leaf, float(margin), float(search)], device=self.device)
+                  [pts, int(mode), self.shape, float(margin), float(search)], device=self.device)
         return pts.numpy()
 
     def signed_distance(self, points, max_dist=1.0e6):
@@ -147,7 +151,7 @@ class Collider:
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
         depth = wp.zeros(len(pts), dtype=float, device=self.device)
         wp.launch(collision.sphere_tree_penetration, len(pts),
-                  [pts, self.sphere_centers, self.sphere_radii, self.sphere_skip, self.sphere_is_leaf, depth],
+                  [pts, self.shape, depth],
                   device=self.device)
         return depth.numpy()
 

@@ -85,6 +85,7 @@ class HairSolver:
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
         self.clearance = wp.zeros(model.num_particles, dtype=float, device=device)
+        self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.clearance_pass = None  # parallel clearance before the length pass: None = automatic
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
@@ -149,15 +150,12 @@ class HairSolver:
         use_clearance = mode != 0 and auto
         if use_clearance:
             wp.launch(collision.points_clearance, m.num_particles,
-                      [state_out.x, mode, c.mesh.id, c.sphere_centers, c.sphere_radii, c.sphere_skip, c.sphere_is_leaf,
-                       p.collision_margin, p.collision_search, self.clearance], device=dev)
+                      [state_out.x, mode, c.shape, p.collision_margin, p.collision_search, self.clearance],
+                      device=dev)
         wp.launch(strands.follow_the_leader, m.num_strands,
                   [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
-                   c.mesh.id if c else wp.uint64(0),
-                   c.sphere_centers if c else None, c.sphere_radii if c else None,
-                   c.sphere_skip if c else None, c.sphere_is_leaf if c else None,
-                   p.collision_margin, p.collision_search, int(use_clearance), self.clearance, p.ftl_damping, dt,
-                   state_out.v], device=dev)
+                   c.shape if c else self._no_shape, p.collision_margin, p.collision_search, int(use_clearance),
+                   self.clearance, p.ftl_damping, dt, state_out.v], device=dev)
 
     def reset(self):
         """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut).

@@ -118,8 +118,7 @@ def test_clearance_bounds_the_distance_and_skipping_queries_changes_nothing(head
     search, margin = 0.02, 0.0015
     code = {"sphere_tree": collision.COLLIDE_SPHERE_TREE, "mesh": collision.COLLIDE_MESH}[mode]
     wp.launch(collision.points_clearance, len(points),
-              [wp.array(points, dtype=wp.vec3), int(code), c.mesh.id, c.sphere_centers, c.sphere_radii, c.sphere_skip,
-               c.sphere_is_leaf, margin, search, out])
+              [wp.array(points, dtype=wp.vec3), int(code), c.shape, margin, search, out])
     got = out.numpy()
     if mode == "mesh":
         # the signed distance where the surface is within 2 search; beyond, search + margin, so a

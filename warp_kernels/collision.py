@@ -19,16 +19,22 @@ COLLIDE_SPHERE_TREE = wp.constant(1)
 COLLIDE_MESH = wp.constant(2)
 
 
+@wp.struct
+class ColliderShape:
+    """A collider as the kernels see it: its triangle mesh (a wp.Mesh id, BVH refitted to the pose)
+    and its sphere tree (centres, radii, skip indices, leaf flags). sim.Collider.shape holds one."""
+
+    mesh: wp.uint64
+    centers: wp.array(dtype=wp.vec3)
+    radii: wp.array(dtype=float)
+    skip: wp.array(dtype=wp.int32)
+    is_leaf: wp.array(dtype=wp.int32)
+
+
 @wp.func
-def sphere_tree_push_out(
-    p: wp.vec3,
-    centers: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
-    is_leaf: wp.array(dtype=wp.int32),
-    margin: float,
-):
+def sphere_tree_push_out(p: wp.vec3, shape: ColliderShape, margin: float):
     """Move p out of every leaf sphere (inflated by margin) it lies in."""
+    centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
     n = centers.shape[0]
     i = int(0)
     while i < n:
@@ -50,14 +56,9 @@ def sphere_tree_push_out(
 
 
 @wp.func
-def sphere_tree_depth(
-    p: wp.vec3,
-    centers: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
-    is_leaf: wp.array(dtype=wp.int32),
-):
+def sphere_tree_depth(p: wp.vec3, shape: ColliderShape):
     """Deepest penetration of p into any leaf sphere (0 when outside all)."""
+    centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
     n = centers.shape[0]
     i = int(0)
     depth = float(0.0)
@@ -95,39 +96,19 @@ def mesh_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
 
 
 @wp.func
-def collide_point(
-    p: wp.vec3,
-    mode: int,
-    mesh: wp.uint64,
-    centers: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
-    is_leaf: wp.array(dtype=wp.int32),
-    margin: float,
-    search: float,
-):
+def collide_point(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, search: float):
     """Resolve one point against the collider; `search` [m] bounds the mesh query (cost and depth)."""
     if mode == COLLIDE_SPHERE_TREE:
         # two sweeps: a push out of one leaf can land inside a neighbour visited earlier
-        p = sphere_tree_push_out(p, centers, radii, skip, is_leaf, margin)
-        p = sphere_tree_push_out(p, centers, radii, skip, is_leaf, margin)
+        p = sphere_tree_push_out(p, shape, margin)
+        p = sphere_tree_push_out(p, shape, margin)
     elif mode == COLLIDE_MESH:
-        p = mesh_push_out(p, mesh, margin, search)
+        p = mesh_push_out(p, shape.mesh, margin, search)
     return p
 
 
 @wp.func
-def clearance(
-    p: wp.vec3,
-    mode: int,
-    mesh: wp.uint64,
-    centers: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
-    is_leaf: wp.array(dtype=wp.int32),
-    margin: float,
-    search: float,
-):
+def clearance(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, search: float):
     """How far p may move before collide_point (same margin and search) could push it: a point
     displaced by less than clearance - margin is left where it is.
 
@@ -140,6 +121,7 @@ def clearance(
         # branch and bound: a node's sphere bounds its leaves' spheres, so a node no nearer than the
         # best leaf so far cannot hold a nearer one
         best = search
+        centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
         n = centers.shape[0]
         i = int(0)
         while i < n:
@@ -154,9 +136,9 @@ def clearance(
                 i = skip[i]
         return best
     if mode == COLLIDE_MESH:
-        q = wp.mesh_query_point_sign_normal(mesh, p, 2.0 * search)
+        q = wp.mesh_query_point_sign_normal(shape.mesh, p, 2.0 * search)
         if q.result:
-            return q.sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+            return q.sign * wp.length(p - wp.mesh_eval_position(shape.mesh, q.face, q.u, q.v))
         return search + margin
     return 1.0e30
 
@@ -165,11 +147,7 @@ def clearance(
 def points_clearance(
     points: wp.array(dtype=wp.vec3),
     mode: int,
-    mesh: wp.uint64,
-    centers: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
-    is_leaf: wp.array(dtype=wp.int32),
+    shape: ColliderShape,
     margin: float,
     search: float,
     out: wp.array(dtype=float),
@@ -177,23 +155,19 @@ def points_clearance(
     """clearance() of every point, in parallel (the strand solver's serial length pass then queries
     only the particles that may touch)."""
     i = wp.tid()
-    out[i] = clearance(points[i], mode, mesh, centers, radii, skip, is_leaf, margin, search)
+    out[i] = clearance(points[i], mode, shape, margin, search)
 
 
 @wp.kernel
 def push_points_out(
     points: wp.array(dtype=wp.vec3),
     mode: int,
-    mesh: wp.uint64,
-    centers: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
-    is_leaf: wp.array(dtype=wp.int32),
+    shape: ColliderShape,
     margin: float,
     search: float,
 ):
     i = wp.tid()
-    points[i] = collide_point(points[i], mode, mesh, centers, radii, skip, is_leaf, margin, search)
+    points[i] = collide_point(points[i], mode, shape, margin, search)
 
 
 @wp.kernel
@@ -218,16 +192,9 @@ def mesh_signed_distance(
 
 
 @wp.kernel
-def sphere_tree_penetration(
-    points: wp.array(dtype=wp.vec3),
-    centers: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
-    is_leaf: wp.array(dtype=wp.int32),
-    depth: wp.array(dtype=float),
-):
+def sphere_tree_penetration(points: wp.array(dtype=wp.vec3), shape: ColliderShape, depth: wp.array(dtype=float)):
     i = wp.tid()
-    depth[i] = sphere_tree_depth(points[i], centers, radii, skip, is_leaf)
+    depth[i] = sphere_tree_depth(points[i], shape)
 
 
 @wp.kernel

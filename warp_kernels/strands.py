@@ -16,7 +16,7 @@ import warp as wp
 # the lean launch path (no grid-stride loop) lowers per-thread overhead
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
-from .collision import collide_point
+from .collision import ColliderShape, collide_point
 from .skinning import bound_position, face_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
@@ -274,11 +274,7 @@ def follow_the_leader(
     rest_length: wp.array(dtype=float),
     pinned_per_strand: int,
     collide_mode: int,
-    mesh: wp.uint64,
-    centers: wp.array(dtype=wp.vec3),
-    radii: wp.array(dtype=float),
-    skip: wp.array(dtype=wp.int32),
-    is_leaf: wp.array(dtype=wp.int32),
+    shape: ColliderShape,
     margin: float,
     search: float,
     use_clearance: int,
@@ -323,7 +319,7 @@ def follow_the_leader(
                 # putting the particle back at rest length can re-enter the collider near a crease
                 # (between two spheres, in a concave corner); a second round settles it
                 for _round in range(2):
-                    pushed = collide_point(p, collide_mode, mesh, centers, radii, skip, is_leaf, margin, search)
+                    pushed = collide_point(p, collide_mode, shape, margin, search)
                     if pushed == p:
                         break
                     p = pushed
