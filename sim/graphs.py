@@ -151,20 +151,24 @@ class AsyncReadback:
         self.device = wp.get_device(device)
         self.slots = slots
         self._buffers = [{} for _ in range(slots)]
+        self._events = [None] * slots
         self._next = 0
 
     def begin(self, arrays):
         if not self.device.is_cuda:
             ready = {name: a.numpy().copy() for name, a in arrays.items()}
             return lambda: ready
-        buffers = self._buffers[self._next]
+        slot = self._next
+        buffers = self._buffers[slot]
         self._next = (self._next + 1) % self.slots
         for name, a in arrays.items():
             host = buffers.get(name)
             if host is None or host.shape != a.shape or host.dtype != a.dtype:
                 host = buffers[name] = wp.empty(a.shape, dtype=a.dtype, device="cpu", pinned=True)
             wp.copy(host, a)
-        event = wp.Event(self.device)
+        event = self._events[slot]
+        if event is None:
+            event = self._events[slot] = wp.Event(self.device)
         wp.record_event(event)
 
         def wait():
