@@ -42,11 +42,12 @@ class CacheWriter:
     """Streams frames into a USD cache. Use as a context manager; on error nothing is left behind.
 
     path: .usdc (default binary), .usd or .usda. Frames are time codes; fps sets both
-    timeCodesPerSecond and framesPerSecond.
+    timeCodesPerSecond and framesPerSecond. over: a scene's USD file that this cache is a layer over
+    (sublayered, relative to the cache's folder): prims then go where the scene has them (add_over).
     """
 
     def __init__(self, path, fps, start_frame, end_frame, settings=None, up_axis="Y",
-                 meters_per_unit=1.0, flush_every=8, engine_version=None):
+                 meters_per_unit=1.0, flush_every=8, engine_version=None, over=None):
         self.path = check_cache_path(path)
         self._ascii = self.path.lower().endswith(".usda")
         folder = os.path.dirname(os.path.abspath(self.path))
@@ -68,8 +69,14 @@ class CacheWriter:
         stage.SetFramesPerSecond(float(fps))
         stage.SetStartTimeCode(float(start_frame))
         stage.SetEndTimeCode(float(end_frame))
-        world = UsdGeom.Xform.Define(stage, ROOT)
-        stage.SetDefaultPrim(world.GetPrim())
+        if over is None:
+            stage.SetDefaultPrim(UsdGeom.Xform.Define(stage, ROOT).GetPrim())
+        else:
+            scene = os.path.relpath(os.path.abspath(over), folder)
+            stage.GetRootLayer().subLayerPaths.append(scene)
+            default = Sdf.Layer.FindOrOpen(os.path.abspath(over)).defaultPrim
+            if default:
+                stage.GetRootLayer().defaultPrim = default
         data = {"cfx:engine": "warp-cfx", "cfx:complete": False}
         if engine_version:
             data["cfx:engineVersion"] = str(engine_version)
@@ -85,12 +92,34 @@ class CacheWriter:
         self._prims[name] = dict(prim=prim, kind=kind, **info)
         return prim
 
+    def add_over(self, name, role, path, animated=True):
+        """A prim of the scene this cache is a layer over, at its own path: frames then carry its
+        points (in its local space) and extent; its topology and everything else stay the scene's."""
+        prim = self.stage.GetPrimAtPath(path)
+        if not prim.IsValid() or not prim.IsA(UsdGeom.PointBased):
+            raise ValueError(f"{path}: no points-based prim in the scene this cache is over")
+        self.stage.OverridePrim(path)
+        geom = UsdGeom.BasisCurves(prim) if prim.IsA(UsdGeom.BasisCurves) else UsdGeom.Mesh(prim)
+        widths = None
+        if prim.IsA(UsdGeom.BasisCurves):
+            count = len(geom.GetPointsAttr().Get(Usd.TimeCode.EarliestTime()) or [])
+            values = np.asarray(geom.GetWidthsAttr().Get(Usd.TimeCode.EarliestTime()) or [], np.float32)
+            widths = Vt.FloatArray.FromNumpy(values if len(values) == count else np.full(count, values[0] if len(
+                values) else 1e-4, np.float32))
+        kind = "curves" if widths is not None else "mesh"
+        tag = prim.GetAttribute("cfx:role")
+        if tag and tag.HasAuthoredValue() and str(tag.Get()) == role:  # tagged in the scene already
+            self._prims[name] = dict(prim=geom, kind=kind, widths=widths, animated=animated)
+            return geom
+        return self._tag(geom, name, role, kind, widths=widths, animated=animated)
+
     def add_mesh(self, name, role, points, faces, color=None, animated=True, face_counts=None, face_indices=None,
-                 normals=False, uvs=None):
+                 normals=False, uvs=None, path=None):
         """A mesh from faces (F, k) or a list of index lists, or from USD-style face_counts and
         face_indices (mixed quads and triangles). normals=True: per-vertex normals come with each frame.
-        uvs: (V, 2) static per-vertex texture coordinates, written as the `st` primvar."""
-        mesh = UsdGeom.Mesh.Define(self.stage, f"{ROOT}/{name}")
+        uvs: (V, 2) static per-vertex texture coordinates, written as the `st` primvar.
+        path: where the prim goes (default /World/name)."""
+        mesh = UsdGeom.Mesh.Define(self.stage, path or f"{ROOT}/{name}")
         if face_counts is not None:
             counts, indices = np.asarray(face_counts), np.asarray(face_indices)
         elif isinstance(faces, np.ndarray) and faces.ndim == 2:
@@ -302,7 +331,11 @@ class CachePrim:
 
 
 class CacheReader:
-    """Reads a cache written by CacheWriter (or any stage with cfx:role prims) back into arrays."""
+    """Reads a cache written by CacheWriter (or any stage with cfx:role prims) back into arrays.
+
+    Positions come out in the engine's frame: world space, metres, Y up. For our own caches that is
+    what is stored; a cache layered over a DCC's scene stores local points in the scene's units and
+    axes, and the reader applies the prim's transform and the stage's upAxis and metersPerUnit."""
 
     def __init__(self, path):
         self.path = os.fspath(path)
@@ -318,6 +351,10 @@ class CacheReader:
         self.up_axis = str(UsdGeom.GetStageUpAxis(s))
         self.meters_per_unit = UsdGeom.GetStageMetersPerUnit(s)
         self.metadata = dict(s.GetRootLayer().customLayerData)
+        from sim.embed import HostFrame
+
+        self._frame = HostFrame(self.up_axis, self.meters_per_unit)
+        self._engine_frame = self.up_axis.upper() == "Y" and self.meters_per_unit == 1.0
         self.prims = {}
         for prim in s.Traverse():
             role_attr = prim.GetAttribute("cfx:role")
@@ -371,8 +408,18 @@ class CacheReader:
         return None if value is None else np.array(value, dtype=np.float32)
 
     def points(self, name, frame):
-        attr = UsdGeom.PointBased(self.stage.GetPrimAtPath(self.prims[name].path)).GetPointsAttr()
-        return np.array(attr.Get(Usd.TimeCode(float(frame))), dtype=np.float32)
+        """Positions (P, 3) float32 of prim `name` at `frame`: world space, metres, Y up."""
+        prim = self.stage.GetPrimAtPath(self.prims[name].path)
+        t = Usd.TimeCode(float(frame))
+        points = np.array(UsdGeom.PointBased(prim).GetPointsAttr().Get(t), dtype=np.float32)
+        m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(t), np.float64)
+        identity = np.array_equal(m, np.eye(4))
+        if identity and self._engine_frame:
+            return points
+        world = points.astype(np.float64)
+        if not identity:
+            world = world @ m[:3, :3] + m[3, :3]  # USD matrices act on row vectors
+        return self._frame.to_engine(world).astype(np.float32)
 
     def read_points(self, name):
         """All frames of one prim: (frames, points, 3) float32."""

@@ -71,9 +71,16 @@ def _report(result):
 def cmd_run(args, config=None):
     import sim
 
+    stage = None
     if config is None:
-        config = sim.load_scene(args.scene, _overrides(args))
-    result = sim.run_scene(config, args.output, progress=not args.quiet)
+        from io_usd.scene_input import is_usd_scene, read_usd_scene
+
+        if is_usd_scene(args.scene):  # a DCC's stage with cfx:role prims; the cache is a layer over it
+            stage = read_usd_scene(args.scene, _overrides(args))
+            config = stage.config
+        else:
+            config = sim.load_scene(args.scene, _overrides(args))
+    result = sim.run_scene(config, args.output, progress=not args.quiet, stage=stage)
     _report(result)
     if args.preview:
         _preview(result.path, args.preview, frames=None, quiet=args.quiet)
@@ -181,7 +188,7 @@ def build_parser():
         p.add_argument("--preview", help="also render this preview (.png/.mp4/.gif)")
         p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
-    p = sub.add_parser("run", help="run a TOML scene to a USD cache")
+    p = sub.add_parser("run", help="run a TOML scene, or a USD stage with cfx:role prims, to a USD cache")
     p.add_argument("scene")
     p.add_argument("-o", "--output", required=True, help="cache path (.usdc, .usd or .usda)")
     sim_options(p)

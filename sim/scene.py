@@ -119,16 +119,21 @@ class SceneConfig:
     cloth_detail: DetailParams = field(default_factory=DetailParams)
     face: FaceConfig = field(default_factory=FaceConfig)
     capture: CaptureConfig = field(default_factory=CaptureConfig)  # cfx capture synth only
+    given_geometry: bool = False  # the geometry comes as SceneAssets: head, body and garment tables do not apply
 
     def settings(self):
         """Everything that determines the result, for the cache's customLayerData."""
         out = {"scene": self.source, "timing": asdict(self.timing)}
-        out["body" if self.body.enabled else "head"] = asdict(self.body if self.body.enabled else self.head)
+        if not self.given_geometry:
+            out["body" if self.body.enabled else "head"] = asdict(self.body if self.body.enabled else self.head)
         if self.hair.enabled:
-            out.update(hair=asdict(self.hair), solver=asdict(self.solver))
+            out.update(solver=asdict(self.solver))
+            if not self.given_geometry:
+                out.update(hair=asdict(self.hair))
         if self.cloth.enabled:
-            out.update(cloth=asdict(self.cloth), cloth_solver=asdict(self.cloth_solver),
-                       cloth_detail=asdict(self.cloth_detail))
+            out.update(cloth_solver=asdict(self.cloth_solver), cloth_detail=asdict(self.cloth_detail))
+            if not self.given_geometry:
+                out.update(cloth=asdict(self.cloth))
         if self.face.enabled:
             face = asdict(self.face)
             face["expressions"] = [{"frame": k.frame, "emotion": k.emotion, "weight": k.weight,
@@ -170,7 +175,8 @@ def hair_demo_scene(overrides=None):
     return _build_config("<demo>", {}, overrides)
 
 
-def _build_config(source, data, overrides):
+def _build_config(source, data, overrides, check_files=True):
+    """check_files=False: the geometry comes as SceneAssets, so the tables name no files to check."""
     overrides = overrides or {}
     data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
     cloth_table = dict(data.get("cloth", {}))
@@ -196,7 +202,9 @@ def _build_config(source, data, overrides):
                                        overrides.get("cloth.detail"))
     if expressions:
         parts["face"] = replace(parts["face"], expressions=expressions)
-    config = SceneConfig(source=source, **parts)
+    config = SceneConfig(source=source, given_geometry=not check_files, **parts)
+    if not check_files:
+        return config
     base = os.path.dirname(os.path.abspath(source)) if source != "<demo>" else os.getcwd()
     files = [("head", k, getattr(config.head, k)) for k in ("mesh", "scalp_faces", "roots")]
     files += [("body", k, getattr(config.body, k)) for k in ("mesh", "points")]
@@ -287,12 +295,26 @@ def _load_roots(config):
     return roots
 
 
+@dataclass
+class SceneAssets:
+    """Geometry handed to a Scene instead of read from the files its config names: the tagged prims
+    of a USD stage (io_usd.scene_input) or a host application's arrays (sim.embed). Metres, Y up."""
+
+    collider_name: str
+    collider_faces: np.ndarray  # (F, 3) triangles
+    motion: "PointCacheMotion"  # the collider's vertex positions per frame (frame 0 is the rest pose)
+    hair: tuple = None  # (points (P, 3), vertices per strand (S,), widths (P,) or None); roots first
+    garment: object = None  # a sim.garment.GarmentMesh
+
+
 class Scene:
     """An assembled scene: a collider (head bust or body) and its motion, optional hair, optional
-    cloth. Build with Scene(config), then advance(); the states are scene.state (hair) and scene.cloth_state."""
+    cloth. Build with Scene(config), then advance(); the states are scene.state (hair) and scene.cloth_state.
+    assets: geometry given directly (SceneAssets) instead of through the config's files."""
 
-    def __init__(self, config):
+    def __init__(self, config, assets=None):
         self.config = config
+        self.assets = assets
         device = config.timing.device
         if device.startswith("cuda") and not wp.is_cuda_available():
             raise InputError(config.source, "scene.device", f"device '{device}' is not available (no CUDA driver)")
@@ -304,7 +326,10 @@ class Scene:
         self.time = 0.0
         self.graphs = FrameGraphs(device, config.timing.graphs)
         leaves = config.head.sphere_leaves if config.hair.enabled and config.solver.collision == "sphere_tree" else 0
-        if config.body.enabled:
+        if assets is not None:
+            self.head = mesh_head(assets.collider_name, assets.motion.frames[0], assets.collider_faces)
+            self._motion, self.collider_name = assets.motion, assets.collider_name
+        elif config.body.enabled:
             self.head, self._motion = _load_body(config)
             self.collider_name = "body"
         else:
@@ -315,6 +340,9 @@ class Scene:
                                          nod_degrees=h.nod_degrees if nods else 0.0, nod_period=h.nod_period,
                                          pivot=self.head.pivot)
             self.collider_name = "head"
+        if isinstance(self._motion, PointCacheMotion) and leaves:
+            raise InputError(config.source, "solver.collision", "the sphere tree follows skinned colliders only; "
+                             "a collider animated by points needs collision = \"mesh\"")
         self.collider = Collider(self.collider_name, self.head.vertices, self.head.faces, self.head.skin_indices,
                                  self.head.skin_weights, self.head.num_bones, device, leaves)
         self._pose(np.array([0.0]))
@@ -337,7 +365,7 @@ class Scene:
                     raise InputError(config.source, "hair.guides", str(err)) from None
         self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = None
         if config.cloth.enabled:
-            garment = _load_garment(config, self.head)
+            garment = assets.garment if assets is not None else _load_garment(config, self.head)
             try:
                 self.cloth_model = ClothModel.from_garment(garment, config.cloth_solver, device)
             except ValueError as err:
@@ -404,6 +432,13 @@ class Scene:
     def _groom(self):
         cfg, head = self.config, self.head
         rest_points = self.collider.posed_points()
+        if self.assets is not None:
+            points, counts, widths = self.assets.hair
+            try:
+                model = StrandBuilder().add_strands(points, counts, widths).finalize(self.device, pinned_per_strand=2)
+            except ValueError as err:
+                raise InputError(cfg.source, "hair", str(err)) from None
+            return model.bind_to_mesh(rest_points, head.faces)
         if cfg.head.roots:
             roots, normals = self._project_roots(_load_roots(cfg))
         else:
@@ -550,18 +585,23 @@ class Scene:
 
 
 class PointCacheMotion:
-    """A body animated by per-frame vertex positions, linearly interpolated between frames."""
+    """A collider animated by per-frame vertex positions, linearly interpolated between frames.
+    Frames can be appended as a host application delivers them (sim.embed)."""
 
     def __init__(self, frames, fps):
-        self.frames = np.asarray(frames, np.float64)
+        self.frames = [np.asarray(f, np.float64) for f in frames]
         self.fps = float(fps)
 
+    def append(self, points):
+        self.frames.append(np.asarray(points, np.float64))
+
     def points(self, times):
-        f = np.clip(np.asarray(times) * self.fps, 0.0, len(self.frames) - 1)
-        i = np.minimum(np.floor(f).astype(int), len(self.frames) - 2) if len(self.frames) > 1 else np.zeros(len(f), int)
-        w = (f - i)[:, None, None] if len(self.frames) > 1 else np.zeros((len(f), 1, 1))
-        j = np.minimum(i + 1, len(self.frames) - 1)
-        return (1.0 - w) * self.frames[i] + w * self.frames[j]
+        n = len(self.frames)
+        f = np.clip(np.asarray(times) * self.fps, 0.0, n - 1)
+        i = np.minimum(np.floor(f).astype(int), n - 2) if n > 1 else np.zeros(len(f), int)
+        w = f - i if n > 1 else np.zeros(len(f))
+        j = np.minimum(i + 1, n - 1)
+        return np.stack([(1.0 - w[k]) * self.frames[i[k]] + w[k] * self.frames[j[k]] for k in range(len(f))])
 
 
 def _load_body(config):
@@ -660,9 +700,11 @@ class RunResult:
     face_vertices: int = 0
 
 
-def run_scene(config, out_path, progress=True, on_frame=None):
+def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     """Simulate `config` and stream it to a USD cache at out_path. Returns a RunResult.
 
+    stage: an io_usd.scene_input.UsdScene (config is then stage.config): its geometry is simulated
+    and the cache is written as a layer over that stage.
     The cache is written under a temporary name and moved onto out_path only when every frame is
     done; an error (bad input, NaN) leaves out_path untouched.
     """
@@ -671,7 +713,7 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     check_cache_path(out_path)  # before minutes of simulation, not after
     started = time.perf_counter()
     quiet_warp()
-    scene = Scene(config)
+    scene = Scene(config, stage.assets if stage is not None else None)
     t = config.timing
     if t.preroll > 0.0:
         scene.advance(t.preroll, animate=False)
@@ -680,24 +722,20 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     larger_is_worse = ("max_stretch", "root_distance_max", "inside_1mm", "cloth_stretch_p99", "cloth_stretch_max",
                        "cloth_inside_2mm", "detail_inside_2mm", "detail_queries")
     bar = _progress(t.frames, progress)
-    with CacheWriter(out_path, t.fps, t.start_frame, end_frame, settings=config.settings(),
-                     engine_version=__version__) as writer:
-        name = scene.collider_name
-        writer.add_mesh(name, "collider", scene.head.vertices, scene.head.faces, color=SKIN_COLOR)
-        if scene.model is not None:
-            writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=HAIR_COLOR)
-        if scene.cloth_model is not None:
-            cm = scene.cloth_model
-            writer.add_mesh("cloth", "cloth", cm.rest_positions_np, None, color=CLOTH_COLOR,
-                            face_counts=cm.face_counts_np, face_indices=cm.face_indices_np)
-        if scene.cloth_detail is not None:
-            writer.add_mesh("cloth_detail", "cloth_detail", None, scene.cloth_detail.triangles_np, color=CLOTH_COLOR,
-                            normals=True)
-        if scene.face_rig is not None:
-            rig = scene.face_rig
-            writer.add_mesh("face", "face", None, rig.mesh.faces, color=rig.mesh.colors)
-            writer.add_blend_shape_rig("face_rig", rig.mesh.vertices, rig.mesh.faces, rig.shape_names, rig.offsets,
-                                       color=rig.mesh.colors)
+    if stage is not None:
+        opened = stage.cache_writer(out_path, settings=config.settings(), engine_version=__version__)
+    else:
+        opened = CacheWriter(out_path, t.fps, t.start_frame, end_frame, settings=config.settings(),
+                             engine_version=__version__)
+    hair_prim, cloth_prim = "/World/hair", "/World/cloth"
+    if stage is not None:
+        hair_prim = ", ".join(p.path for p in stage.hair)
+        cloth_prim = stage.cloth.path if stage.cloth is not None else cloth_prim
+    with opened as writer:
+        if stage is None:
+            _add_prims(writer, scene)
+        elif scene.cloth_detail is not None:
+            stage.add_detail(writer, scene.cloth_detail.triangles_np)
         # one frame behind: frame i's results are copied back behind its work while the host writes
         # frame i - 1, so USD output overlaps the next frame's simulation on a GPU
         readback, pending = AsyncReadback(scene.device), None
@@ -705,12 +743,16 @@ def run_scene(config, out_path, progress=True, on_frame=None):
         def write(frame, wait, weights):
             data = wait()
             if scene.model is not None:
-                scene.solver.report_unhealthy(data["hair_bad"], data["hair_first"], frame, "/World/hair")
+                scene.solver.report_unhealthy(data["hair_bad"], data["hair_first"], frame, hair_prim)
             if scene.cloth_model is not None:
-                scene.cloth_solver.report_unhealthy(data["cloth_bad"], data["cloth_first"], frame, "/World/cloth")
+                scene.cloth_solver.report_unhealthy(data["cloth_bad"], data["cloth_first"], frame, cloth_prim)
             samples = {name: data[name] for name in (scene.collider_name, "hair", "cloth", "cloth_detail")
                        if name in data}
             normals = {"cloth_detail": data["cloth_detail_normals"]} if "cloth_detail_normals" in data else {}
+            if stage is not None:  # the layer over a DCC's scene: its prims, in their local spaces
+                stage.write_frame(writer, frame, samples, normals)
+                bar.update(1)
+                return
             if weights is not None:
                 _check_finite(data["face"], frame, "/World/face")
                 transform = scene.face_rig.head_transform_from(data["face_rest"])
@@ -758,6 +800,25 @@ def run_scene(config, out_path, progress=True, on_frame=None):
     face = scene.face_rig.mesh.num_vertices if scene.face_rig is not None else 0
     return RunResult(os.fspath(out_path), t.frames, strands, particles, time.perf_counter() - started, worst, cloth,
                      config.cloth_solver.substeps > 0, face)
+
+
+def _add_prims(writer, scene):
+    """Our own cache layout: one prim per object under /World."""
+    writer.add_mesh(scene.collider_name, "collider", scene.head.vertices, scene.head.faces, color=SKIN_COLOR)
+    if scene.model is not None:
+        writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=HAIR_COLOR)
+    if scene.cloth_model is not None:
+        cm = scene.cloth_model
+        writer.add_mesh("cloth", "cloth", cm.rest_positions_np, None, color=CLOTH_COLOR,
+                        face_counts=cm.face_counts_np, face_indices=cm.face_indices_np)
+    if scene.cloth_detail is not None:
+        writer.add_mesh("cloth_detail", "cloth_detail", None, scene.cloth_detail.triangles_np, color=CLOTH_COLOR,
+                        normals=True)
+    if scene.face_rig is not None:
+        rig = scene.face_rig
+        writer.add_mesh("face", "face", None, rig.mesh.faces, color=rig.mesh.colors)
+        writer.add_blend_shape_rig("face_rig", rig.mesh.vertices, rig.mesh.faces, rig.shape_names, rig.offsets,
+                                   color=rig.mesh.colors)
 
 
 def _check_finite(points, frame, prim):

@@ -1,0 +1,324 @@
+"""A USD stage as the scene: prims tagged with `cfx:role`, as a DCC exports them, run by `cfx run`.
+
+Input. Every prim whose `cfx:role` is "collider", "hair" or "cloth" takes part; the tag may sit on
+the geometry itself or on the Xform above it (Blender writes an object's custom properties on its
+Xform, the geometry is its child), and `userProperties:cfx:role` counts too. Colliders are Meshes
+(several are merged into one collider); hair is BasisCurves (control points are the strand
+vertices, the first one the root); cloth is one Mesh of triangles and quads whose pinned vertices
+are a per-vertex `primvars:cfx_pinned` (> 0.5) or an int[] `cfx:pinned`. Settings are attributes
+named `cfx:<table>:<key>` on a tagged prim: `solver` (hair solver on a hair prim, cloth solver on a
+cloth prim), `detail` (cloth), `scene` (any: preroll, device, stats, graphs). Time comes from the
+stage: timeCodesPerSecond, startTimeCode..endTimeCode, one cache frame per time code; positions are
+taken in world space at each frame (transforms, deformation, upAxis and metersPerUnit applied).
+
+Output. The cache is a layer over the input: `over`s at the input's prim paths carrying
+time-sampled points (and extent) in each prim's own local space and units, plus the engine's
+metadata; it sublayers the input, so it opens alone as the animated scene and can also be stacked
+over the input in a shot. A detail surface, when asked for, is a new Mesh beside the garment.
+"""
+
+import os
+from dataclasses import dataclass, field
+
+import numpy as np
+from pxr import Usd, UsdGeom
+
+from sim.embed import HostFrame, scene_config
+from sim.errors import InputError
+
+ROLES = ("collider", "hair", "cloth")
+SETTING_TABLES = {"hair": ("solver", "scene"), "cloth": ("solver", "detail", "scene"), "collider": ("scene",)}
+USD_EXTENSIONS = (".usd", ".usda", ".usdc")
+
+
+def is_usd_scene(path):
+    return os.path.splitext(str(path))[1].lower() in USD_EXTENSIONS
+
+
+@dataclass
+class TaggedPrim:
+    role: str
+    geometry: Usd.Prim  # the Mesh or BasisCurves
+    tagged: list  # the prims that carry the tag and settings (the geometry and/or its Xform)
+
+    @property
+    def path(self):
+        return str(self.geometry.GetPath())
+
+
+@dataclass
+class UsdScene:
+    """What read_usd_scene found: the config and assets a Scene runs, and where results go back."""
+
+    path: str
+    config: object  # SceneConfig
+    assets: object  # SceneAssets
+    frame_space: HostFrame
+    start_frame: int
+    colliders: list  # TaggedPrim
+    hair: list = field(default_factory=list)  # TaggedPrim, strands concatenated in this order
+    cloth: TaggedPrim = None
+    stage: Usd.Stage = None
+
+    def cache_writer(self, out_path, settings=None, engine_version=None):
+        from .cache import CacheWriter
+
+        if os.path.abspath(out_path) == os.path.abspath(self.path):
+            raise InputError(out_path, None, "the cache would overwrite the scene it sublayers; choose another output")
+        t = self.config.timing
+        writer = CacheWriter(out_path, t.fps, t.start_frame, t.start_frame + t.frames - 1, settings=settings,
+                             up_axis=self.frame_space.up_axis, meters_per_unit=self.frame_space.meters_per_unit,
+                             engine_version=engine_version, over=self.path)
+        for prim in self.colliders:
+            writer.add_over(prim.path, "collider", prim.path, animated=False)
+        for prim in self.hair:
+            writer.add_over(prim.path, "hair", prim.path)
+        if self.cloth is not None:
+            writer.add_over(self.cloth.path, "cloth", self.cloth.path)
+        return writer
+
+    def add_detail(self, writer, triangles):
+        """The detail surface as a new Mesh beside the garment, in the garment's local space."""
+        path = f"{self.cloth.path}_detail"
+        writer.add_mesh(path, "cloth_detail", None, triangles, normals=True, path=path)
+        return path
+
+    def write_frame(self, writer, frame, samples, normals=None):
+        """samples: {"hair", "cloth", "cloth_detail": engine positions}; written in local space."""
+        t = Usd.TimeCode(float(frame))
+        out, offset = {}, 0
+        if "hair" in samples:
+            for prim in self.hair:
+                count = _point_count(prim.geometry)
+                out[prim.path] = self._local(prim.geometry, samples["hair"][offset:offset + count], t)
+                offset += count
+        if "cloth" in samples:
+            out[self.cloth.path] = self._local(self.cloth.geometry, samples["cloth"], t)
+        local_normals = {}
+        if "cloth_detail" in samples:
+            path = f"{self.cloth.path}_detail"
+            out[path] = self._local(self.cloth.geometry, samples["cloth_detail"], t)
+            if normals and "cloth_detail" in normals:
+                rotation = self._world_rotation(self.cloth.geometry, t)
+                n = np.asarray(normals["cloth_detail"], np.float64) @ self.frame_space.rotation @ np.linalg.inv(rotation)
+                local_normals[path] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+        writer.write_frame(frame, out, local_normals)
+
+    def _world_rotation(self, prim, time):
+        return np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), np.float64)[:3, :3]
+
+    def _local(self, prim, engine_points, time):
+        world = np.asarray(engine_points, np.float64) @ self.frame_space.rotation / self.frame_space.meters_per_unit
+        m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), np.float64)
+        if np.array_equal(m, np.eye(4)):
+            return world
+        return (world - m[3, :3]) @ np.linalg.inv(m[:3, :3])  # USD matrices act on row vectors
+
+
+def read_usd_scene(path, overrides=None):
+    """Read a tagged USD stage into a UsdScene; bad input raises InputError naming the prim and key."""
+    from sim.scene import PointCacheMotion, SceneAssets
+
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise InputError(path, None, "no such file")
+    try:
+        stage = Usd.Stage.Open(path)
+    except Exception as err:  # pxr raises Tf.ErrorException for unreadable layers
+        raise InputError(path, None, f"cannot open as USD: {str(err).splitlines()[0]}") from None
+    if stage is None:
+        raise InputError(path, None, "cannot open as USD")
+    frame_space = HostFrame(str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage))
+    tagged = _tagged_prims(path, stage)
+    colliders = [p for p in tagged if p.role == "collider"]
+    hair = [p for p in tagged if p.role == "hair"]
+    cloth = [p for p in tagged if p.role == "cloth"]
+    if not colliders:
+        raise InputError(path, "cfx:role", "no prim is tagged \"collider\" (hair and cloth need something to move with)")
+    if not hair and not cloth:
+        raise InputError(path, "cfx:role", "no prim is tagged \"hair\" or \"cloth\": nothing to simulate")
+    if len(cloth) > 1:
+        raise InputError(path, cloth[1].path, "one cloth prim per stage (merge the garments into one mesh)")
+
+    start = int(round(stage.GetStartTimeCode())) if stage.HasAuthoredTimeCodeRange() else 1
+    end = int(round(stage.GetEndTimeCode())) if stage.HasAuthoredTimeCodeRange() else start
+    frames = max(end - start + 1, 1)
+    tables, origins = _settings(path, tagged, frame_space)
+    scene_table = tables.setdefault("scene", {})
+    scene_table.setdefault("start_frame", start)
+    scene_table.setdefault("frames", frames)
+    if overrides and overrides.get("scene"):
+        scene_table.update(overrides["scene"])
+    try:
+        config = scene_config(path, tables, stage.GetTimeCodesPerSecond(), "cpu", bool(hair), bool(cloth), frame_space)
+    except InputError as err:
+        raise InputError(path, origins.get(err.key, err.key), err.reason) from None
+
+    first = Usd.TimeCode(float(start))
+    collider_frames, faces, offset = [], [], 0
+    times = [Usd.TimeCode(float(start + k)) for k in range(config.timing.frames)]
+    for prim in colliders:
+        mesh = UsdGeom.Mesh(prim.geometry)
+        tri = _triangles(path, prim, mesh, first)
+        faces.append(tri + offset)
+        collider_frames.append([_world_points(path, prim, frame_space, t) for t in times])
+        offset += len(collider_frames[-1][0])
+    motion = PointCacheMotion([np.concatenate([c[k] for c in collider_frames]) for k in range(len(times))],
+                              config.timing.fps)
+    strands = None
+    if hair:
+        points = [_world_points(path, p, frame_space, first) for p in hair]
+        counts = [np.asarray(UsdGeom.BasisCurves(p.geometry).GetCurveVertexCountsAttr().Get(first), np.int64)
+                  for p in hair]
+        for prim, c, pts in zip(hair, counts, points):
+            if c.sum() != len(pts):
+                raise InputError(path, f"{prim.path}.curveVertexCounts", f"sum to {c.sum()}, the curves have {len(pts)} points")
+        widths = [_widths(p.geometry, len(pts), first) for p, pts in zip(hair, points)]
+        widths = None if any(w is None for w in widths) else np.concatenate(widths) * frame_space.meters_per_unit
+        strands = (np.concatenate(points), np.concatenate(counts), widths)
+    garment = _garment(path, cloth[0], frame_space, first) if cloth else None
+    assets = SceneAssets("collider", np.concatenate(faces), motion, strands, garment)
+    return UsdScene(path, config, assets, frame_space, start, colliders, hair, cloth[0] if cloth else None, stage)
+
+
+# -- tags and settings ------------------------------------------------------------------------------
+def _role(prim):
+    for name in ("cfx:role", "userProperties:cfx:role"):
+        attr = prim.GetAttribute(name)
+        if attr and attr.HasAuthoredValue():
+            return str(attr.Get(Usd.TimeCode.EarliestTime())), name
+    return None, None
+
+
+def _tagged_prims(path, stage):
+    found = {}
+    for prim in stage.Traverse():
+        role, attr = _role(prim)
+        if role is None:
+            continue
+        if role not in ROLES:
+            raise InputError(path, f"{prim.GetPath()}.{attr}", f"unknown role {role!r} (expected {', '.join(ROLES)})")
+        kind = UsdGeom.BasisCurves if role == "hair" else UsdGeom.Mesh
+        if prim.IsA(kind):
+            geometry = prim
+        else:
+            children = [c for c in prim.GetChildren() if c.IsA(kind)]
+            if len(children) != 1:
+                what = "BasisCurves" if role == "hair" else "Mesh"
+                reason = (f"is tagged {role!r} but is not a {what} and has {len(children)} {what} children "
+                          f"(expected the geometry itself or one child)")
+                raise InputError(path, str(prim.GetPath()), reason)
+            geometry = children[0]
+        key = str(geometry.GetPath())
+        if key in found:
+            if found[key].role != role:
+                raise InputError(path, key, f"tagged both {found[key].role!r} and {role!r}")
+            found[key].tagged.append(prim)
+        else:
+            found[key] = TaggedPrim(role, geometry, [prim])
+    return list(found.values())
+
+
+def _settings(path, tagged, frame_space):
+    """{table: {key: value}} from `cfx:<table>:<key>` attributes, and where each came from."""
+    tables, origins = {}, {}
+    for prim in tagged:
+        for holder in prim.tagged:
+            for attr in holder.GetAttributes():
+                name = attr.GetName()
+                bare = name[len("userProperties:"):] if name.startswith("userProperties:") else name
+                if not bare.startswith("cfx:") or bare in ("cfx:role", "cfx:pinned") or not attr.HasAuthoredValue():
+                    continue
+                parts = bare.split(":")
+                where = f"{holder.GetPath()}.{name}"
+                if len(parts) != 3 or parts[1] not in SETTING_TABLES[prim.role]:
+                    raise InputError(path, where, f"expected cfx:<table>:<key> with a table of "
+                                                  f"{', '.join(SETTING_TABLES[prim.role])} on a {prim.role} prim")
+                table = parts[1]
+                section = {("solver", "cloth"): ("cloth", "solver"), ("detail", "cloth"): ("cloth", "detail")}.get(
+                    (table, prim.role), (table,))
+                value = _python_value(attr.Get(Usd.TimeCode.EarliestTime()))
+                target = tables
+                for level in section:
+                    target = target.setdefault(level, {})
+                key = parts[2]
+                if key in target and target[key] != value:
+                    raise InputError(path, where, f"conflicts with {origins['.'.join(section) + '.' + key]}")
+                target[key] = value
+                origins[".".join(section) + "." + key] = where
+    return tables, origins
+
+
+def _python_value(value):
+    if isinstance(value, (bool, int, float, str)):
+        return value
+    if hasattr(value, "__len__") and not isinstance(value, str):
+        return [_python_value(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return str(value)
+
+
+# -- geometry ---------------------------------------------------------------------------------------
+def _point_count(prim):
+    points = UsdGeom.PointBased(prim).GetPointsAttr().Get(Usd.TimeCode.EarliestTime())
+    return 0 if points is None else len(points)
+
+
+def _world_points(path, prim, frame_space, time):
+    points = UsdGeom.PointBased(prim.geometry).GetPointsAttr().Get(time)
+    if points is None or len(points) == 0:
+        raise InputError(path, f"{prim.path}.points", "not authored")
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if not np.all(np.isfinite(p)):
+        raise InputError(path, f"{prim.path}.points", f"non-finite positions at time {time.GetValue():g}")
+    m = np.asarray(UsdGeom.Xformable(prim.geometry).ComputeLocalToWorldTransform(time), np.float64)
+    if not np.array_equal(m, np.eye(4)):
+        p = p @ m[:3, :3] + m[3, :3]
+    return frame_space.to_engine(p)
+
+
+def _triangles(path, prim, mesh, time):
+    from .cache import fan_triangles
+
+    counts, indices = mesh.GetFaceVertexCountsAttr().Get(time), mesh.GetFaceVertexIndicesAttr().Get(time)
+    if counts is None or indices is None or len(counts) == 0:
+        raise InputError(path, prim.path, "faceVertexCounts or faceVertexIndices not authored")
+    counts, indices = np.asarray(counts, np.int64), np.asarray(indices, np.int64)
+    if counts.sum() != len(indices) or counts.min() < 3:
+        raise InputError(path, f"{prim.path}.faceVertexCounts", "does not match faceVertexIndices")
+    return fan_triangles(counts, indices)
+
+
+def _widths(prim, count, time):
+    widths = UsdGeom.BasisCurves(prim).GetWidthsAttr().Get(time)
+    if widths is None or len(widths) == 0:
+        return None
+    widths = np.asarray(widths, np.float64)
+    return widths if len(widths) == count else np.full(count, widths[0])
+
+
+def _garment(path, prim, frame_space, time):
+    from sim.garment import checked_garment
+
+    mesh = UsdGeom.Mesh(prim.geometry)
+    counts, indices = mesh.GetFaceVertexCountsAttr().Get(time), mesh.GetFaceVertexIndicesAttr().Get(time)
+    if counts is None or indices is None:
+        raise InputError(path, prim.path, "faceVertexCounts or faceVertexIndices not authored")
+    points = _world_points(path, prim, frame_space, time)
+    return checked_garment(path, prim.path, prim.geometry.GetName(), points, np.asarray(counts), np.asarray(indices),
+                           _pinned(path, prim, len(points), time))
+
+
+def _pinned(path, prim, count, time):
+    primvar = UsdGeom.PrimvarsAPI(prim.geometry).GetPrimvar("cfx_pinned")
+    if primvar and primvar.HasAuthoredValue():
+        values = np.asarray(primvar.ComputeFlattened(time), np.float64).reshape(-1)
+        if len(values) != count:
+            raise InputError(path, f"{prim.path}.primvars:cfx_pinned", f"has {len(values)} values for {count} points")
+        return np.flatnonzero(values > 0.5)
+    for holder in prim.tagged + [prim.geometry]:
+        attr = holder.GetAttribute("cfx:pinned")
+        if attr and attr.HasAuthoredValue():
+            return np.asarray(attr.Get(time), np.int64).reshape(-1)
+    return None
