@@ -3,7 +3,18 @@ nearest-vertex body collision with its local walk, and following the body's moti
 
 Springs are gathered per particle through a CSR adjacency (particle -> incident springs), so the
 force pass writes each particle once with no atomics and gives the same result on CPU and CUDA.
+
+Step order (composed by sim.cloth.ClothSolver), the body posed for the end of the step:
+
+    begin_step (following the body, pinned particles' velocities, step counter)
+    -> rk4_stage x 4 -> rk4_finish
+    -> body_collide
+    -> [limit_strain x passes -> velocity_from_correction -> body_collide] (with strain limiting)
 """
+
+# float(0.0), int(0) and bool(False) declare variables that a kernel reassigns (Warp treats a
+# bare literal as a constant); the nested ifs are kept as the kernels were written and verified
+# ruff: noqa: UP018, RUF046, SIM102
 
 import warp as wp
 
@@ -17,9 +28,24 @@ from .skinning import bound_position, face_frame, face_point
 @wp.func
 def spring_force(xi: wp.vec3, xj: wp.vec3, vi: wp.vec3, vj: wp.vec3, rest: float, k_stretch: float,
                  k_compress: float, damping: float):
-    """Force on i from the spring (i, j): bi-phase Hooke (eq. 1 of Oshita & Makinouchi, with the
-    unit direction) plus a dashpot along the spring. Stiff when stretched, soft when compressed, so
-    the coarse cloth barely stretches but may shorten where wrinkles are added later."""
+    """Force on particle i from the spring (i, j): bi-phase Hooke plus a dashpot along the spring.
+
+    Eq. 1 of Oshita & Makinouchi with the unit direction. The spring is stiff when stretched and soft
+    when compressed, so the coarse cloth barely stretches but may shorten where wrinkles are added
+    later. The force on j is the negative.
+
+    Inputs:
+      xi (vec3, m): position of particle i
+      xj (vec3, m): position of particle j
+      vi (vec3, m/s): velocity of particle i
+      vj (vec3, m/s): velocity of particle j
+      rest (float, m): rest length of the spring
+      k_stretch (float, N/m): stiffness while longer than rest
+      k_compress (float, N/m): stiffness while shorter than rest
+      damping (float, N s/m): dashpot coefficient along the spring; 0 gives the purely elastic force
+    Returns:
+      vec3 (N): force on i; zero when the particles coincide, since the spring then has no direction
+    """
     d = xi - xj
     length = wp.length(d)
     if length < 1.0e-12:
@@ -48,12 +74,31 @@ def particle_acceleration(
     wind: wp.vec3,
     damping: float,
 ):
-    """a = F/m: springs, gravity, linear air drag toward the wind (drag = c/m [1/s]), damping [1/s].
-    Pinned particles (inv_mass 0) get no acceleration: their velocity is prescribed.
+    """Acceleration a = F/m of one particle: springs, gravity, linear air drag toward the wind, damping.
 
-    The springs are read per adjacency slot (adj_start[p] .. adj_start[p + 1]): the other particle
-    and the spring's constants stored contiguously for each particle, so a particle's springs are one
-    sequential read instead of a gather through spring indices."""
+    The springs are read per adjacency slot (adj_start[p] .. adj_start[p + 1] - 1), each slot holding
+    the other particle and the spring's constants, so a particle's springs are one sequential read
+    instead of a gather through spring indices. Pinned particles (inv_mass 0) get no acceleration:
+    their velocity is prescribed.
+
+    Inputs:
+      p (int, index): the particle
+      x (vec3, per particle, m): positions
+      v (vec3, per particle, m/s): velocities
+      inv_mass (float, per particle, 1/kg): inverse masses; 0 pins the particle
+      drag (float, per particle, 1/s): air drag coefficient over mass (c/m)
+      adj_start (int32, num_particles + 1): CSR offsets of each particle's adjacency slots
+      adj_other (int32, 2 per spring, one slot per end): the other particle of the slot's spring
+      adj_rest (float, 2 per spring, m): rest length of the slot's spring
+      adj_k_stretch (float, 2 per spring, N/m): stiffness when stretched
+      adj_k_compress (float, 2 per spring, N/m): stiffness when compressed
+      adj_damping (float, 2 per spring, N s/m): dashpot coefficient
+      gravity (vec3, m/s^2): acceleration of gravity, e.g. (0, -9.81, 0)
+      wind (vec3, m/s): air velocity that the drag pulls toward
+      damping (float, 1/s): global velocity damping
+    Returns:
+      vec3 (m/s^2): acceleration of particle p; zero for pinned particles
+    """
     w = inv_mass[p]
     if w == 0.0:
         return wp.vec3(0.0)
@@ -78,7 +123,24 @@ def spring_forces(
     spring_damping: wp.array(dtype=float),
     force: wp.array(dtype=wp.vec3),
 ):
-    """Per-spring force on its first particle (the second gets the negative); for tools and tests."""
+    """Force of every spring on its first particle (the second gets the negative), for tools and tests.
+
+    The solver gathers forces per particle instead (rk4_stage); this kernel exposes the same force
+    law one spring at a time so a host can inspect or verify it.
+
+    Launch: one thread per spring (dim = num_springs).
+    Inputs:
+      x (vec3, per particle, m): positions
+      v (vec3, per particle, m/s): velocities
+      spring_i (int32, per spring): first particle of each spring
+      spring_j (int32, per spring): second particle of each spring
+      spring_rest (float, per spring, m): rest lengths
+      spring_k_stretch (float, per spring, N/m): stiffness when stretched
+      spring_k_compress (float, per spring, N/m): stiffness when compressed
+      spring_damping (float, per spring, N s/m): dashpot coefficients
+    Outputs:
+      force (vec3, per spring, N): force on particle spring_i[s]
+    """
     s = wp.tid()
     i = spring_i[s]
     j = spring_j[s]
@@ -110,10 +172,41 @@ def rk4_stage(
     x_next: wp.array(dtype=wp.vec3),
     v_next: wp.array(dtype=wp.vec3),
 ):
-    """One RK4 stage on y = (x, v), f(y) = (v, a(x, v)): evaluate k = f(stage state), add it to the
-    accumulators with its weight (1, 2, 2, 1) and write the next stage's state y0 + h_next * k.
-    Force evaluation and stage update are fused so the stage state is read once; x_next/v_next must
-    not alias xs/vs (neighbours are still reading them)."""
+    """One stage of explicit RK4 on y = (x, v) with f(y) = (v, a(x, v)).
+
+    Evaluates the slope k = f(stage state), adds it to the accumulators with the stage's weight and
+    writes the next stage's state y0 + h_next * k. Force evaluation and stage update are fused so the
+    stage state is read once. Launch it four times per step with (weight, h_next) = (1, dt/2),
+    (2, dt/2), (2, dt), (1, 0), ping-ponging the stage buffers, then rk4_finish.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x0 (vec3, per particle, m): positions at the start of the step
+      v0 (vec3, per particle, m/s): velocities at the start of the step
+      xs (vec3, per particle, m): positions of this stage (x0 for the first)
+      vs (vec3, per particle, m/s): velocities of this stage (v0 for the first)
+      inv_mass (float, per particle, 1/kg): inverse masses; 0 pins the particle
+      drag (float, per particle, 1/s): air drag coefficient over mass (c/m)
+      adj_start (int32, num_particles + 1): CSR offsets of each particle's adjacency slots
+      adj_other (int32, 2 per spring, one slot per end): the other particle of the slot's spring
+      adj_rest (float, 2 per spring, m): rest length of the slot's spring
+      adj_k_stretch (float, 2 per spring, N/m): stiffness when stretched
+      adj_k_compress (float, 2 per spring, N/m): stiffness when compressed
+      adj_damping (float, 2 per spring, N s/m): dashpot coefficient
+      gravity (vec3, m/s^2): acceleration of gravity, e.g. (0, -9.81, 0)
+      wind (vec3, m/s): air velocity that the drag pulls toward
+      damping (float, 1/s): global velocity damping
+      weight (float): RK4 weight of this stage's slope: 1, 2, 2, 1
+      h_next (float, s): time from the step's start to the next stage: dt/2, dt/2, dt, then 0
+    In/out:
+      acc_x (vec3, per particle, m/s): weighted sum of the stages' velocities; zero before the first stage
+      acc_v (vec3, per particle, m/s^2): weighted sum of the stages' accelerations; zero before the first
+          stage
+    Outputs:
+      x_next (vec3, per particle, m): positions of the next stage; must not alias xs, which neighbours
+          are still reading
+      v_next (vec3, per particle, m/s): velocities of the next stage; must not alias vs
+    """
     p = wp.tid()
     kv = particle_acceleration(p, xs, vs, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch, adj_k_compress,
                                adj_damping, gravity, wind, damping)
@@ -134,6 +227,22 @@ def rk4_finish(
     x1: wp.array(dtype=wp.vec3),
     v1: wp.array(dtype=wp.vec3),
 ):
+    """Close an RK4 step: y1 = y0 + dt/6 * (k1 + 2 k2 + 2 k3 + k4), then clear the accumulators.
+
+    Clearing them here saves a separate zeroing launch before the next step's first stage.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x0 (vec3, per particle, m): positions at the start of the step
+      v0 (vec3, per particle, m/s): velocities at the start of the step
+      dt (float, s): step length
+    In/out:
+      acc_x (vec3, per particle, m/s): weighted velocity sum of the four stages; zero on return
+      acc_v (vec3, per particle, m/s^2): weighted acceleration sum of the four stages; zero on return
+    Outputs:
+      x1 (vec3, per particle, m): positions at the end of the step
+      v1 (vec3, per particle, m/s): velocities at the end of the step
+    """
     p = wp.tid()
     x1[p] = x0[p] + (dt / 6.0) * acc_x[p]
     v1[p] = v0[p] + (dt / 6.0) * acc_v[p]
@@ -154,8 +263,27 @@ def limit_strain(
     max_stretch: float,
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """One Jacobi pass of strain limiting: each over-stretched edge is shortened to (1 + max_stretch)
-    of its rest length, the correction split by inverse mass and averaged over a particle's edges."""
+    """One Jacobi pass of strain limiting: over-stretched edges are shortened to (1 + max_stretch) rest.
+
+    Explicit springs soft enough to be stable let the cloth sag; this caps the stretch of the limited
+    springs directly. Each correction is split by inverse mass and a particle's corrections from its
+    edges are averaged, so the pass is order-independent. Run a few passes (ping-pong x and x_out),
+    then velocity_from_correction.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x (vec3, per particle, m): positions before this pass
+      inv_mass (float, per particle, 1/kg): inverse masses; pinned particles (0) do not move
+      adj_start (int32, num_particles + 1): CSR offsets of each particle's incident springs
+      adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
+      spring_i (int32, per spring): first particle of each spring
+      spring_j (int32, per spring): second particle of each spring
+      spring_rest (float, per spring, m): rest lengths
+      spring_limited (int32, per spring): 1 where the spring is limited (the stretch springs), else 0
+      max_stretch (float, fraction of rest length): allowed stretch, e.g. 0.03 for 3%
+    Outputs:
+      x_out (vec3, per particle, m): corrected positions; must not alias x
+    """
     p = wp.tid()
     w = inv_mass[p]
     if w == 0.0:
@@ -186,14 +314,35 @@ def limit_strain(
 @wp.kernel
 def velocity_from_correction(x_before: wp.array(dtype=wp.vec3), x_after: wp.array(dtype=wp.vec3), dt: float,
                              v: wp.array(dtype=wp.vec3)):
-    """Positions moved by a projection change the velocity by the same displacement over dt."""
+    """Add the velocity change of a position projection: the displacement over dt.
+
+    Without it the velocities would keep carrying the particles toward the state the projection
+    (strain limiting) just removed.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x_before (vec3, per particle, m): positions before the projection
+      x_after (vec3, per particle, m): positions after the projection
+      dt (float, s): step length
+    In/out:
+      v (vec3, per particle, m/s): velocities, corrected in place
+    """
     p = wp.tid()
     v[p] = v[p] + (x_after[p] - x_before[p]) / dt
 
 
 @wp.func
 def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
-    """Barycentric weights (of a, b, c) of the point of triangle abc closest to p (Ericson, RTCD §5.1.5)."""
+    """Barycentric weights of the point of triangle abc closest to p (Ericson, RTCD §5.1.5).
+
+    Inputs:
+      p (vec3, m): query point
+      a (vec3, m): corner 0
+      b (vec3, m): corner 1
+      c (vec3, m): corner 2
+    Returns:
+      vec3: weights of a, b, c (non-negative, summing to 1)
+    """
     ab = b - a
     ac = c - a
     ap = p - a
@@ -230,8 +379,22 @@ def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
 @wp.func
 def walk_to_nearest_vertex(p: wp.vec3, start: int, points: wp.array(dtype=wp.vec3),
                            vv_start: wp.array(dtype=wp.int32), vv_adj: wp.array(dtype=wp.int32), max_steps: int):
-    """Greedy walk over the vertex adjacency while the distance to p decreases (Oshita & Makinouchi
-    §3.3, after Igarashi et al.). Returns the vertex, or -1 - vertex when max_steps ran out."""
+    """Greedy walk over the body's vertex adjacency while the distance to p decreases.
+
+    Oshita & Makinouchi §3.3, after Igarashi et al.: a particle moves little per step, so starting
+    from last step's nearest vertex finds the new one in a few steps without a spatial search. The
+    walk stops at a local minimum, which is the true nearest vertex only on convex parts.
+
+    Inputs:
+      p (vec3, m): query point
+      start (int, index): body vertex the walk starts from
+      points (vec3, per body vertex, m): posed body vertices
+      vv_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> vertex adjacency
+      vv_adj (int32, per adjacency entry): neighbouring vertices
+      max_steps (int): most steps before giving up
+    Returns:
+      int: the vertex where the walk stopped, or -1 - vertex (negative) when max_steps ran out
+    """
     v = start
     d = wp.length_sq(p - points[v])
     steps = int(0)
@@ -263,9 +426,27 @@ def follow_record(
     barycentric: wp.array(dtype=wp.vec3),
     local: wp.array(dtype=wp.vec3),
 ):
-    """Oshita & Makinouchi §3.4, at the end of a step: particle p's coordinates relative to the body
-    face nearest to it among those around its nearest vertex vtx (closest point's barycentric weights
-    plus the offset in the face frame)."""
+    """Record particle p relative to its nearest body face, for following the body next step.
+
+    Oshita & Makinouchi §3.4: the faces around the nearest vertex are searched for the closest point;
+    its barycentric weights and the offset in that face's frame (skinning.face_frame) let begin_step
+    carry the particle rigidly with the face. Only slot p is written.
+
+    Inputs:
+      xp (vec3, m): the particle's final position
+      vtx (int, index): its nearest body vertex; negative records no face
+      points (vec3, per body vertex, m): posed body vertices
+      indices (int32, 3 per body triangle): body triangles
+      vf_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> face adjacency
+      vf_face (int32, 3 per body triangle): faces incident to each vertex
+      p (int, index): the particle, the slot written in the outputs
+    Outputs:
+      face (int32, per particle): body face recorded, -1 when none
+      barycentric (vec3, per particle): weights of the face's corners at the closest point; written only
+          when a face is found
+      local (vec3, per particle, m): offset of the particle from that point in the face frame; written
+          only when a face is found
+    """
     face[p] = -1
     if vtx < 0:
         return
@@ -319,20 +500,54 @@ def body_collide(
     follow_barycentric: wp.array(dtype=wp.vec3),
     follow_local: wp.array(dtype=wp.vec3),
 ):
-    """Vertex-only body collision of Oshita & Makinouchi §3.3.
+    """Vertex-only body collision of Oshita & Makinouchi §3.3, with friction and the follow record.
 
     Each particle walks from its cached nearest body vertex to a local minimum of distance and is
     inside when it lies behind every face incident to that vertex; it is then put on the surface
     (plus margin) and its velocity relative to the body loses its inward part, with Coulomb friction
-    on the tangential part. Where the walk is not trusted (no cache yet, a jump farther than
-    `teleport` since the last step, a walk that ran out of steps, a concave vertex near the body) a
-    BVH closest-point query decides and restarts the cache. Particles farther than `trust_distance`
-    cannot collide, but their walk can stall between limbs; they are re-seeded from the BVH every
-    `refresh` steps, staggered by index, so the cost is spread out.
+    on the tangential part. Where the walk is not trusted (no cache yet, a jump farther than teleport
+    since the last step, a walk that ran out of steps, a concave vertex near the body) a BVH
+    closest-point query decides and restarts the cache. Particles farther than trust_distance cannot
+    collide, but their walk can stall between limbs; they are re-seeded from the BVH every refresh
+    steps, staggered by index, so the cost is spread out. With record != 0 the final position is also
+    recorded against the nearest body face (follow_record) for begin_step of the next step.
 
-    The nearest-vertex cache is read from nearest_in and written to nearest (they may be the same
-    array). With record != 0 the particle's final position is also recorded against its nearest
-    body face for following the body in the next step (follow_record).
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x_prev (vec3, per particle, m): positions at the start of the step, for the teleport test
+      inv_mass (float, per particle, 1/kg): inverse masses; pinned particles (0) are not collided
+      points (vec3, per body vertex, m): body posed for the end of the step
+      prev_points (vec3, per body vertex, m): body at the start of the step; the surface velocity is
+          (points - prev_points) / dt
+      indices (int32, 3 per body triangle): body triangles, outward winding
+      vv_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> vertex adjacency
+      vv_adj (int32, per adjacency entry): neighbouring vertices
+      vf_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> face adjacency
+      vf_face (int32, 3 per body triangle): faces incident to each vertex
+      concave (int32, per body vertex): 1 where the vertex is concave or a saddle (walk not trusted)
+      mesh (uint64): wp.Mesh id over the same posed points, its BVH refitted to this pose
+      max_steps (int): most steps of the walk before falling back to the BVH
+      teleport (float, m): a particle that moved farther in one step restarts from the BVH
+      trust_distance (float, m): beyond this distance from its vertex a particle is re-seeded
+          periodically
+      reseed_radius (float, m): BVH query radius when re-seeding; farther particles keep their walk
+      refresh (int, steps): re-seed period of far particles; at least 1
+      step_count (int32, 1 element): the step counter of begin_step, which staggers the re-seeding
+      margin (float, m): distance kept outside the body
+      friction (float): Coulomb friction coefficient
+      dt (float, s): step length
+      nearest_in (int32, per particle): cached nearest body vertex from the last step, -1 when unknown
+      record (int, flag): non-zero records the follow data
+    In/out:
+      x (vec3, per particle, m): positions, pushed outside the body
+      v (vec3, per particle, m/s): velocities, made non-penetrating relative to the body
+      fallbacks (int32, 1 element): incremented once per BVH query (zero it to count one launch)
+    Outputs:
+      nearest (int32, per particle): nearest body vertex after this pass; may be nearest_in itself
+      contact (int32, per particle): 1 where the particle was pushed out, else 0
+      follow_face (int32, per particle): body face recorded (-1 none); written only when record != 0
+      follow_barycentric (vec3, per particle): weights of the recorded face's corners; record != 0 only
+      follow_local (vec3, per particle, m): offset in the recorded face's frame; record != 0 only
     """
     p = wp.tid()
     contact[p] = 0
@@ -423,7 +638,15 @@ def body_collide(
 @wp.kernel
 def nearest_vertex_brute_force(x: wp.array(dtype=wp.vec3), points: wp.array(dtype=wp.vec3),
                                nearest: wp.array(dtype=wp.int32)):
-    """Exhaustive nearest body vertex: the truth the walk is measured against."""
+    """Exhaustive nearest body vertex of every particle: the truth the walk is measured against.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x (vec3, per particle, m): positions
+      points (vec3, per body vertex, m): posed body vertices; at least one
+    Outputs:
+      nearest (int32, per particle): index of the nearest body vertex
+    """
     p = wp.tid()
     best = int(0)
     d = wp.length_sq(x[p] - points[0])
@@ -456,15 +679,40 @@ def begin_step(
     dt: float,
     step_count: wp.array(dtype=wp.int32),
 ):
-    """Everything before the integration, in one pass over the particles (the body is posed for the
-    end of the step):
+    """Everything before the integration, in one pass over the particles.
+
+    The body is posed for the end of the step. Three things happen:
 
     - following (Oshita & Makinouchi §3.4, follow != 0): free particles take their recorded
-      face-relative coordinates under the body's new pose; particles farther than full_within from
-      the body follow less, none beyond none_beyond, so a skirt's hem is not dragged rigidly with a leg;
-    - with pins != 0, pinned particles with a binding (particle_binding >= 0) get the velocity that carries them in a
-      straight line to their bound position at the step's end;
-    - the step counter (on the device, so captured frames advance it) goes up by one.
+      face-relative coordinates under the body's new pose; particles farther than full_within from the
+      body follow less, none beyond none_beyond, so a skirt's hem is not dragged rigidly with a leg;
+    - with pins != 0, pinned particles with a binding (particle_binding >= 0) get the velocity that
+      carries them in a straight line to their bound position at the step's end;
+    - the step counter goes up by one; it lives on the device so captured frames advance it.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      inv_mass (float, per particle, 1/kg): inverse masses; 0 marks pinned particles
+      points (vec3, per body vertex, m): body posed for the end of the step; None when follow and pins
+          are both 0
+      indices (int32, 3 per body triangle): body triangles; None when follow and pins are both 0
+      follow (int, flag): non-zero moves free particles with the body
+      face (int32, per particle): body face recorded by body_collide (follow_face), -1 when none
+      barycentric (vec3, per particle): recorded weights of that face's corners (follow_barycentric)
+      local (vec3, per particle, m): recorded offset in that face's frame (follow_local)
+      full_within (float, m): particles this close to the body follow it fully
+      none_beyond (float, m): particles this far away do not follow; at least full_within
+      pins (int, flag): non-zero drives the bound pinned particles
+      particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound;
+          this and the three bind_* arrays may be None when pins is 0
+      bind_triangle (int32, per binding): body triangle of each binding
+      bind_barycentric (vec3, per binding): weights of that triangle's corners
+      bind_local (vec3, per binding, m): offset in that triangle's frame
+      dt (float, s): step length
+    In/out:
+      x (vec3, per particle, m): positions, moved with the body where followed
+      v (vec3, per particle, m/s): velocities; set for the bound pinned particles
+      step_count (int32, 1 element): step counter, incremented by one
     """
     p = wp.tid()
     if p == 0:
@@ -506,8 +754,25 @@ def elastic_forces(
     spring_k_compress: wp.array(dtype=float),
     force: wp.array(dtype=wp.vec3),
 ):
-    """Net spring force on each particle, no damping, gravity or drag: the elastic force the detail
-    surface's wrinkles are driven by (Oshita & Makinouchi §4.3.1)."""
+    """Net elastic spring force on each particle, without damping, gravity or drag.
+
+    This is the elastic force that drives the detail surface's wrinkles (Oshita & Makinouchi
+    §4.3.1), carried to the detail samples by detail.carry_forces.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x (vec3, per particle, m): positions
+      v (vec3, per particle, m/s): velocities; read, but without damping they do not change the force
+      adj_start (int32, num_particles + 1): CSR offsets of each particle's incident springs
+      adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
+      spring_i (int32, per spring): first particle of each spring
+      spring_j (int32, per spring): second particle of each spring
+      spring_rest (float, per spring, m): rest lengths
+      spring_k_stretch (float, per spring, N/m): stiffness when stretched
+      spring_k_compress (float, per spring, N/m): stiffness when compressed
+    Outputs:
+      force (vec3, per particle, N): sum of the spring forces on the particle
+    """
     p = wp.tid()
     f = wp.vec3(0.0)
     for k in range(adj_start[p], adj_start[p + 1]):

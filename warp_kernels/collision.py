@@ -8,6 +8,10 @@ this node's subtree is not entered). Traversal needs no stack: on a hit descend 
 or after a leaf jump to skip[i]. Leaves are spheres inside the body; inner nodes bound their children.
 """
 
+# float(0.0), int(0) and bool(False) declare variables that a kernel reassigns (Warp treats a
+# bare literal as a constant)
+# ruff: noqa: UP018, RUF046
+
 import warp as wp
 
 # no gradients are taken through these kernels: skipping the backward passes halves compile time;
@@ -21,8 +25,19 @@ COLLIDE_MESH = wp.constant(2)
 
 @wp.struct
 class ColliderShape:
-    """A collider as the kernels see it: its triangle mesh (a wp.Mesh id, BVH refitted to the pose)
-    and its sphere tree (centres, radii, skip indices, leaf flags). sim.Collider.shape holds one."""
+    """A collider as the kernels see it: its triangle mesh and its sphere tree.
+
+    One struct instead of six arguments keeps the solver kernels' signatures short and lets a
+    collider switch between mesh and sphere-tree collision without a different launch.
+    sim.Collider.shape holds one; a host fills the fields itself.
+
+    Fields:
+      mesh (uint64): wp.Mesh id of the posed triangle mesh, BVH refitted to the pose
+      centers (vec3, per tree node, m): sphere centres, nodes in depth-first order
+      radii (float, per tree node, m): sphere radii; inner nodes bound their subtree's leaves
+      skip (int32, per tree node): next node to visit when this node's subtree is not entered
+      is_leaf (int32, per tree node): 1 for leaf spheres (inside the body), 0 for bounding nodes
+    """
 
     mesh: wp.uint64
     centers: wp.array(dtype=wp.vec3)
@@ -33,7 +48,18 @@ class ColliderShape:
 
 @wp.func
 def sphere_tree_push_out(p: wp.vec3, shape: ColliderShape, margin: float):
-    """Move p out of every leaf sphere (inflated by margin) it lies in."""
+    """Move p out of every leaf sphere, inflated by margin, that it lies in.
+
+    One depth-first sweep with skip pointers, no stack. A push out of one leaf can land inside a
+    neighbour visited earlier, so collide_point runs it twice.
+
+    Inputs:
+      p (vec3, m): the point
+      shape (ColliderShape): the collider; only its sphere tree is read
+      margin (float, m): distance kept outside the leaf spheres
+    Returns:
+      vec3 (m): the pushed point (p itself when it was outside every leaf)
+    """
     centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
     n = centers.shape[0]
     i = int(0)
@@ -57,7 +83,14 @@ def sphere_tree_push_out(p: wp.vec3, shape: ColliderShape, margin: float):
 
 @wp.func
 def sphere_tree_depth(p: wp.vec3, shape: ColliderShape):
-    """Deepest penetration of p into any leaf sphere (0 when outside all)."""
+    """Deepest penetration of p into any leaf sphere, for tests and diagnostics.
+
+    Inputs:
+      p (vec3, m): the point
+      shape (ColliderShape): the collider; only its sphere tree is read
+    Returns:
+      float (m): largest radius - distance over the leaves containing p; 0 when outside all
+    """
     centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
     n = centers.shape[0]
     i = int(0)
@@ -77,7 +110,20 @@ def sphere_tree_depth(p: wp.vec3, shape: ColliderShape):
 
 @wp.func
 def mesh_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
-    """Project p onto the surface (plus margin along the face normal) when inside or within margin."""
+    """Project p onto the mesh surface plus margin when it is inside or closer than margin.
+
+    Inside points go out along the closest face's normal; outside points move along their own
+    direction from the closest point, which stays continuous around edges and corners where the face
+    normal jumps.
+
+    Inputs:
+      p (vec3, m): the point
+      mesh (uint64): wp.Mesh id of a closed, outward-wound mesh
+      margin (float, m): distance kept outside the surface
+      max_dist (float, m): query radius; a point farther than this from the surface is not seen
+    Returns:
+      vec3 (m): the pushed point (p itself when nothing was in reach)
+    """
     q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
     if q.result:
         cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
@@ -97,7 +143,17 @@ def mesh_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
 
 @wp.func
 def collide_point(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, search: float):
-    """Resolve one point against the collider; `search` [m] bounds the mesh query (cost and depth)."""
+    """Resolve one point against the collider with the chosen representation.
+
+    Inputs:
+      p (vec3, m): the point
+      mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider
+      margin (float, m): distance kept outside the collider
+      search (float, m): mesh query radius; bounds the query's cost and the deepest penetration seen
+    Returns:
+      vec3 (m): the resolved point
+    """
     if mode == COLLIDE_SPHERE_TREE:
         # two sweeps: a push out of one leaf can land inside a neighbour visited earlier
         p = sphere_tree_push_out(p, shape, margin)
@@ -109,13 +165,22 @@ def collide_point(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, se
 
 @wp.func
 def clearance(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, search: float):
-    """How far p may move before collide_point (same margin and search) could push it: a point
-    displaced by less than clearance - margin is left where it is.
+    """How far p may move before collide_point (same margin and search) could push it.
 
-    Sphere tree: the distance to the nearest leaf sphere, capped at `search`. Mesh: the signed
-    distance (negative inside) when the surface is within 2 search; otherwise search + margin, since
-    collide_point's query (radius search) cannot reach the surface from a point that moved less
-    than search.
+    A point displaced by less than clearance - margin is left where it is, which lets the serial
+    length pass of the strands skip most collider queries. Sphere tree: the distance to the nearest
+    leaf sphere, capped at search. Mesh: the signed distance (negative inside) when the surface is
+    within 2 search; otherwise search + margin, since collide_point's query (radius search) cannot
+    reach the surface from a point that moved less than search.
+
+    Inputs:
+      p (vec3, m): the point
+      mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider
+      margin (float, m): the margin collide_point will use
+      search (float, m): the search radius collide_point will use
+    Returns:
+      float (m): the clearance; 1e30 for COLLIDE_NONE
     """
     if mode == COLLIDE_SPHERE_TREE:
         # branch and bound: a node's sphere bounds its leaves' spheres, so a node no nearer than the
@@ -152,8 +217,21 @@ def points_clearance(
     search: float,
     out: wp.array(dtype=float),
 ):
-    """clearance() of every point, in parallel (the strand solver's serial length pass then queries
-    only the particles that may touch)."""
+    """clearance() of every point, in parallel.
+
+    The strand solver's length pass is serial along each strand; computing the clearances first in a
+    wide launch lets that pass query the collider only for the particles that may touch.
+
+    Launch: one thread per point (dim = len(points)).
+    Inputs:
+      points (vec3, per point, m): positions, e.g. the predicted strand particles
+      mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider
+      margin (float, m): the margin the later collision uses
+      search (float, m): the search radius the later collision uses
+    Outputs:
+      out (float, per point, m): clearance of each point
+    """
     i = wp.tid()
     out[i] = clearance(points[i], mode, shape, margin, search)
 
@@ -166,6 +244,17 @@ def push_points_out(
     margin: float,
     search: float,
 ):
+    """collide_point() on every point, in place: a host-side push-out, e.g. while grooming.
+
+    Launch: one thread per point (dim = len(points)).
+    Inputs:
+      mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider
+      margin (float, m): distance kept outside the collider
+      search (float, m): mesh query radius; deeper penetrations are not seen
+    In/out:
+      points (vec3, per point, m): positions, pushed out of the collider
+    """
     i = wp.tid()
     points[i] = collide_point(points[i], mode, shape, margin, search)
 
@@ -178,7 +267,17 @@ def mesh_signed_distance(
     distance: wp.array(dtype=float),
     closest: wp.array(dtype=wp.vec3),
 ):
-    """Signed distance to a closed mesh (negative inside) and the closest point; max_dist where none."""
+    """Signed distance of every point to a closed mesh (negative inside) and its closest surface point.
+
+    Launch: one thread per point (dim = len(points)).
+    Inputs:
+      points (vec3, per point, m): query points
+      mesh (uint64): wp.Mesh id of a closed, outward-wound mesh
+      max_dist (float, m): query radius
+    Outputs:
+      distance (float, per point, m): signed distance; max_dist where no surface is within reach
+      closest (vec3, per point, m): closest surface point; the point itself where none is within reach
+    """
     i = wp.tid()
     p = points[i]
     q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
@@ -193,6 +292,15 @@ def mesh_signed_distance(
 
 @wp.kernel
 def sphere_tree_penetration(points: wp.array(dtype=wp.vec3), shape: ColliderShape, depth: wp.array(dtype=float)):
+    """sphere_tree_depth() of every point: how deep each lies inside the sphere tree's leaves.
+
+    Launch: one thread per point (dim = len(points)).
+    Inputs:
+      points (vec3, per point, m): query points
+      shape (ColliderShape): the collider; only its sphere tree is read
+    Outputs:
+      depth (float, per point, m): deepest penetration, 0 when outside every leaf
+    """
     i = wp.tid()
     depth[i] = sphere_tree_depth(points[i], shape)
 
@@ -205,7 +313,19 @@ def mesh_closest_face(
     face: wp.array(dtype=wp.int32),
     barycentric: wp.array(dtype=wp.vec3),
 ):
-    """Closest triangle and barycentric coordinates (weights of vertices 0, 1, 2); face -1 if none."""
+    """Closest triangle of a mesh and the barycentric weights of the closest point, for bindings.
+
+    The result feeds skinning.compute_bindings: a point bound this way rides the triangle.
+
+    Launch: one thread per point (dim = len(points)).
+    Inputs:
+      points (vec3, per point, m): query points
+      mesh (uint64): wp.Mesh id
+      max_dist (float, m): query radius
+    Outputs:
+      face (int32, per point): closest triangle, -1 when none is within max_dist
+      barycentric (vec3, per point): weights of the triangle's vertices 0, 1, 2; zero when none
+    """
     i = wp.tid()
     q = wp.mesh_query_point_no_sign(mesh, points[i], max_dist)
     if q.result:
@@ -218,7 +338,17 @@ def mesh_closest_face(
 
 @wp.kernel
 def clear_inner_radii(radii: wp.array(dtype=float), is_leaf: wp.array(dtype=wp.int32)):
-    """First half of refit_sphere_tree: inner nodes start from radius 0."""
+    """First half of refit_sphere_tree: inner nodes start from radius 0.
+
+    A separate launch, because refit_sphere_tree grows radii with atomic max from many threads and
+    needs every inner radius reset before any thread starts.
+
+    Launch: one thread per tree node (dim = num_nodes).
+    Inputs:
+      is_leaf (int32, per tree node): 1 for leaves, 0 for inner nodes
+    In/out:
+      radii (float, per tree node, m): inner radii set to 0, leaf radii kept
+    """
     i = wp.tid()
     if is_leaf[i] == 0:
         radii[i] = 0.0
@@ -231,10 +361,20 @@ def refit_sphere_tree(
     parent: wp.array(dtype=wp.int32),
     is_leaf: wp.array(dtype=wp.int32),
 ):
-    """After the node centres are skinned (and clear_inner_radii), grow each inner node to bound the
-    leaves of its subtree: every leaf raises each ancestor's radius to reach past it. One thread per
-    leaf and a walk up the tree, rather than one thread per node scanning its subtree, whose root
-    thread alone would read the whole tree."""
+    """Grow each inner node to bound the leaves of its subtree after the centres were skinned.
+
+    Every leaf raises each ancestor's radius to reach past it (atomic max). One thread per leaf and a
+    walk up the tree, rather than one thread per node scanning its subtree, whose root thread alone
+    would read the whole tree. Run clear_inner_radii first.
+
+    Launch: one thread per tree node (dim = num_nodes); inner nodes' threads return at once.
+    Inputs:
+      centers (vec3, per tree node, m): posed node centres
+      parent (int32, per tree node): parent node, -1 for the root
+      is_leaf (int32, per tree node): 1 for leaves, 0 for inner nodes
+    In/out:
+      radii (float, per tree node, m): leaf radii read; inner radii grown to bound their leaves
+    """
     j = wp.tid()
     if is_leaf[j] == 0:
         return

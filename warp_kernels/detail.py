@@ -8,15 +8,29 @@ coarse_vertex_normals (per coarse vertex), pn_coefficients (per coarse triangle)
 detail vertex).
 
 Coefficient layout, slot 10 f + k of `control` and 6 f + k of `normal_coeffs` for triangle f:
+
     control:       b300 b030 b003 b210 b120 b021 b012 b102 b201 b111
     normal_coeffs: n200 n020 n002 n110 n011 n101
+
 Index i of b_ijk goes with corner 0 (P1, weight w), j with corner 1 (P2, weight u), k with corner 2
 (P3, weight v); a barycentric vec3 (w0, w1, w2) of corners 0, 1, 2 is (w, u, v).
 
 Over the PN surface, the detail surface moves each vertex along its control direction by a height
 dh (Oshita & Makinouchi eqs. 2-3): force-driven wrinkles (§4.3), lifted out of the body with a
 coarse-to-fine test (§4.2), shaded with normals blended by height (§4.4). Those kernels follow below.
+A frame (composed by sim.detail.ClothDetail) runs, after the three PN launches:
+
+    relax_heights
+    -> [wrinkles: cloth.elastic_forces -> carry_forces -> vertical_forces -> edge_length_deficit
+        -> vertex_deficit -> faces_without_compression -> wrinkle_heights -> add_heights
+        -> [smooth_heights] x passes -> constrain_heights]
+    -> [faces_touching_body -> lift_out_of_body per hierarchy level, coarse to fine]
+    -> displace_along_directions -> surface_vertex_normals
 """
+
+# float(0.0), int(0) and bool(False) declare variables that a kernel reassigns (Warp treats a
+# bare literal as a constant); the nested ifs are kept as the kernels were written and verified
+# ruff: noqa: UP018, RUF046, SIM102
 
 import warp as wp
 
@@ -27,7 +41,14 @@ wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 @wp.func
 def normalize_or(v: wp.vec3, fallback: wp.vec3):
-    """v / |v|, or fallback where v is too short to have a direction."""
+    """v / |v|, or fallback where v is too short to have a direction.
+
+    Inputs:
+      v (vec3): vector to normalize
+      fallback (vec3): returned when |v| <= 1e-30
+    Returns:
+      vec3: unit vector (or the fallback as given)
+    """
     length = wp.length(v)
     if length > 1.0e-30:
         return v / length
@@ -36,19 +57,40 @@ def normalize_or(v: wp.vec3, fallback: wp.vec3):
 
 @wp.func
 def pn_edge_point(pi: wp.vec3, pj: wp.vec3, ni: wp.vec3):
-    """Control point b_ij next to corner i on edge ij: the point a third of the way to Pj, projected
-    into the tangent plane of corner i (Vlachos et al. 2001, §3.1: b_ij = (2 Pi + Pj - w_ij Ni) / 3,
-    w_ij = (Pj - Pi) . Ni)."""
+    """Control point b_ij next to corner i on edge ij.
+
+    The point a third of the way to Pj, projected into the tangent plane of corner i (Vlachos et al.
+    2001, §3.1: b_ij = (2 Pi + Pj - w_ij Ni) / 3, w_ij = (Pj - Pi) . Ni), so the patch leaves corner i
+    tangent to its normal.
+
+    Inputs:
+      pi (vec3, m): corner i
+      pj (vec3, m): corner j
+      ni (vec3): unit normal at corner i
+    Returns:
+      vec3 (m): the control point
+    """
     w = wp.dot(pj - pi, ni)
     return (2.0 * pi + pj - w * ni) / 3.0
 
 
 @wp.func
 def pn_edge_normal(pi: wp.vec3, pj: wp.vec3, ni: wp.vec3, nj: wp.vec3):
-    """Mid-edge coefficient of the quadratic normal patch: the average normal reflected in the plane
-    perpendicular to the edge (Vlachos et al. 2001, §3.2: n_ij = normalize(Ni + Nj - v_ij (Pj - Pi)),
-    v_ij = 2 (Pj - Pi) . (Ni + Nj) / |Pj - Pi|^2). A zero-length edge has no plane to reflect in:
-    v_ij = 0 there."""
+    """Mid-edge coefficient of the quadratic normal patch.
+
+    The average normal reflected in the plane perpendicular to the edge (Vlachos et al. 2001, §3.2:
+    n_ij = normalize(Ni + Nj - v_ij (Pj - Pi)), v_ij = 2 (Pj - Pi) . (Ni + Nj) / |Pj - Pi|^2), which
+    lets the normal capture inflections a linear blend would miss. A zero-length edge has no plane to
+    reflect in: v_ij = 0 there.
+
+    Inputs:
+      pi (vec3, m): corner i
+      pj (vec3, m): corner j
+      ni (vec3): unit normal at corner i
+      nj (vec3): unit normal at corner j
+    Returns:
+      vec3: unit normal coefficient
+    """
     d = pj - pi
     dd = wp.dot(d, d)
     v = float(0.0)
@@ -60,8 +102,24 @@ def pn_edge_normal(pi: wp.vec3, pj: wp.vec3, ni: wp.vec3, nj: wp.vec3):
 @wp.func
 def pn_triangle_coefficients(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, n1: wp.vec3, n2: wp.vec3, n3: wp.vec3,
                              f: int, control: wp.array(dtype=wp.vec3), normal_coeffs: wp.array(dtype=wp.vec3)):
-    """The ten cubic control points and six quadratic normal coefficients of one PN triangle, written
-    to slots 10 f.. and 6 f.. (layout in the module docstring)."""
+    """The ten cubic control points and six quadratic normal coefficients of one PN triangle.
+
+    Built from the three corners and their normals only, so neighbouring patches agree along a
+    shared edge whenever the corners share their normals. Written to slots 10 f .. 10 f + 9 and
+    6 f .. 6 f + 5 (layout in the module docstring).
+
+    Inputs:
+      p1 (vec3, m): corner 0
+      p2 (vec3, m): corner 1
+      p3 (vec3, m): corner 2
+      n1 (vec3): unit normal at corner 0
+      n2 (vec3): unit normal at corner 1
+      n3 (vec3): unit normal at corner 2
+      f (int, index): the triangle, which selects the output slots
+    Outputs:
+      control (vec3, 10 per triangle, m): cubic control points b300 .. b111
+      normal_coeffs (vec3, 6 per triangle): quadratic normal coefficients n200 .. n101
+    """
     b210 = pn_edge_point(p1, p2, n1)
     b120 = pn_edge_point(p2, p1, n2)
     b021 = pn_edge_point(p2, p3, n2)
@@ -94,8 +152,17 @@ def pn_triangle_coefficients(p1: wp.vec3, p2: wp.vec3, p3: wp.vec3, n1: wp.vec3,
 
 @wp.func
 def pn_point(control: wp.array(dtype=wp.vec3), f: int, bary: wp.vec3):
-    """Cubic Bezier patch of triangle f at barycentric weights (w, u, v) of corners 0, 1, 2:
-    sum over i+j+k=3 of b_ijk 3!/(i! j! k!) w^i u^j v^k (Vlachos et al. 2001, eq. 1)."""
+    """Position on the cubic Bezier patch of triangle f.
+
+    Sum over i+j+k=3 of b_ijk 3!/(i! j! k!) w^i u^j v^k (Vlachos et al. 2001, eq. 1).
+
+    Inputs:
+      control (vec3, 10 per triangle, m): cubic control points (pn_coefficients)
+      f (int, index): the triangle
+      bary (vec3): weights (w, u, v) of the triangle's corners 0, 1, 2
+    Returns:
+      vec3 (m): the point on the patch
+    """
     w = bary[0]
     u = bary[1]
     v = bary[2]
@@ -109,9 +176,19 @@ def pn_point(control: wp.array(dtype=wp.vec3), f: int, bary: wp.vec3):
 
 @wp.func
 def pn_normal(normal_coeffs: wp.array(dtype=wp.vec3), f: int, bary: wp.vec3):
-    """Unit quadratic normal patch of triangle f at (w, u, v) (Vlachos et al. 2001, eq. 2): sum of
-    n200 w^2 + n020 u^2 + n002 v^2 + n110 w u + n011 u v + n101 w v, normalized. Where it vanishes
-    (corner normals pointing against each other) the interpolated corner normals stand in."""
+    """Unit normal of the quadratic normal patch of triangle f.
+
+    n200 w^2 + n020 u^2 + n002 v^2 + n110 w u + n011 u v + n101 w v, normalized (Vlachos et al. 2001,
+    eq. 2). Where it vanishes (corner normals pointing against each other) the linearly interpolated
+    corner normals stand in, then (0, 1, 0).
+
+    Inputs:
+      normal_coeffs (vec3, 6 per triangle): quadratic normal coefficients (pn_coefficients)
+      f (int, index): the triangle
+      bary (vec3): weights (w, u, v) of the triangle's corners 0, 1, 2
+    Returns:
+      vec3: unit normal
+    """
     w = bary[0]
     u = bary[1]
     v = bary[2]
@@ -132,12 +209,23 @@ def coarse_vertex_normals(
     vf_face: wp.array(dtype=wp.int32),
     normals: wp.array(dtype=wp.vec3),
 ):
-    """Area-weighted vertex normals, gathered over the vertex -> faces CSR (no atomics).
+    """Area-weighted vertex normals of the coarse mesh, gathered over the vertex -> faces CSR.
 
-    The sum of the face cross products (twice the area times the unit normal) is normalized. Where it
-    has no reliable direction, because the incident faces have zero area or cancel (the cloth folded
-    flat onto itself), the vertex keeps its previous normal, so the caller passes last frame's normals
-    in; a previous value that is not a unit vector becomes (0, 1, 0).
+    Gathering instead of scattering needs no atomics and sums in a fixed order, so the result does
+    not depend on thread scheduling. The sum
+    of the face cross products (twice the area times the unit normal) is normalized. Where it has no
+    reliable direction, because the incident faces have zero area or cancel (the cloth folded flat
+    onto itself), the vertex keeps its previous normal, so the caller passes last frame's normals in;
+    a previous value that is not a unit vector becomes (0, 1, 0).
+
+    Launch: one thread per coarse vertex (dim = num_coarse_vertices).
+    Inputs:
+      points (vec3, per coarse vertex, m): coarse positions (the cloth particles)
+      triangles (int32, 3 per coarse triangle): coarse triangles
+      vf_start (int32, num_coarse_vertices + 1): CSR offsets of the vertex -> face adjacency
+      vf_face (int32, 3 per coarse triangle): faces incident to each vertex
+    In/out:
+      normals (vec3, per coarse vertex): last frame's unit normals in, this frame's out
     """
     p = wp.tid()
     s = wp.vec3(0.0)
@@ -163,7 +251,17 @@ def pn_coefficients(
     control: wp.array(dtype=wp.vec3),
     normal_coeffs: wp.array(dtype=wp.vec3),
 ):
-    """PN coefficients of every coarse triangle: control has 10 slots per triangle, normal_coeffs 6."""
+    """PN coefficients of every coarse triangle, the second of the three detail-surface launches.
+
+    Launch: one thread per coarse triangle (dim = num_coarse_triangles).
+    Inputs:
+      points (vec3, per coarse vertex, m): coarse positions
+      normals (vec3, per coarse vertex): unit vertex normals (coarse_vertex_normals)
+      triangles (int32, 3 per coarse triangle): coarse triangles
+    Outputs:
+      control (vec3, 10 per coarse triangle, m): cubic control points
+      normal_coeffs (vec3, 6 per coarse triangle): quadratic normal coefficients
+    """
     f = wp.tid()
     i0 = triangles[3 * f + 0]
     i1 = triangles[3 * f + 1]
@@ -186,6 +284,16 @@ def pn_evaluate(
     A vertex on a coarse edge (or at a coarse corner) is evaluated from one owner face only, so the
     detail mesh, whose faces share such vertices by index, is watertight by construction even where
     the two patches of a seam differ (split normals); the seam then follows the owner face's curve.
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      control (vec3, 10 per coarse triangle, m): cubic control points
+      normal_coeffs (vec3, 6 per coarse triangle): quadratic normal coefficients
+      owner_face (int32, per detail vertex): coarse triangle that evaluates the vertex
+      bary (vec3, per detail vertex): weights of the owner face's corners 0, 1, 2
+    Outputs:
+      positions (vec3, per detail vertex, m): points on the PN surface
+      normals (vec3, per detail vertex): unit PN normals
     """
     i = wp.tid()
     f = owner_face[i]
@@ -211,10 +319,27 @@ def lift_out_of_body(
 ):
     """Oshita & Makinouchi §4.2 for one refinement level: raise heights so detail vertices leave the body.
 
-    A vertex is queried only if its coarse face has a vertex touching the body and (for levels below
-    the top) its parent sample was near the body; `near` marks samples within `band` of the surface
-    so their children are tested next. Each vertex moves along its control direction times `side`
-    (+1 or -1: which way the garment's winding faces away from the body).
+    A vertex is queried only if its coarse face has a vertex touching the body and (after level 0)
+    its parent sample was near the body; near marks samples within band of the surface so
+    their children are tested next. Most vertices are thus never queried. Each vertex moves along
+    its control direction times side. Launch the levels from coarse to fine, each after the last.
+
+    Launch: one thread per detail vertex of this level (dim = len(vertices)).
+    Inputs:
+      base (vec3, per detail vertex, m): PN surface positions
+      direction (vec3, per detail vertex): unit control directions (the PN normals)
+      vertices (int32, per vertex of this level): detail vertices of this level
+      owner_face (int32, per detail vertex): coarse triangle of each detail vertex
+      parent (int32, per detail vertex): nearest sample of a coarser level, -1 on level 0 (corners)
+      face_touching (int32, per coarse triangle): faces_touching_body
+      mesh (uint64): wp.Mesh id of the posed body
+      side (float): +1 or -1, whichever makes side * direction point away from the body
+      margin (float, m): distance kept outside the body
+      band (float, m): distance from the body within which a sample's children are tested
+    In/out:
+      height (float, per detail vertex, m): heights along the control direction, raised where inside
+      near (int32, per detail vertex): written for this level's vertices, read for their parents
+      queries (int32, 1 element): incremented per BVH query (a statistic)
     """
     k = wp.tid()
     i = vertices[k]
@@ -247,14 +372,31 @@ def faces_touching_body(
     contact: wp.array(dtype=wp.int32),
     touching: wp.array(dtype=wp.int32),
 ):
-    """A coarse face is worth testing when any of its particles touched the body in the last step."""
+    """Flag the coarse faces worth testing: any of their particles touched the body in the last step.
+
+    Launch: one thread per coarse triangle (dim = num_coarse_triangles).
+    Inputs:
+      triangles (int32, 3 per coarse triangle): coarse triangles
+      contact (int32, per coarse vertex): body_collide's contact flags of the cloth particles
+    Outputs:
+      touching (int32, per coarse triangle): 1 where a corner touched, else 0
+    """
     f = wp.tid()
     touching[f] = wp.max(wp.max(contact[triangles[3 * f]], contact[triangles[3 * f + 1]]), contact[triangles[3 * f + 2]])
 
 
 @wp.kernel
 def relax_heights(height: wp.array(dtype=float), keep: float):
-    """Heights carry over between frames (eq. 3) but relax, so a lift ends when the contact does."""
+    """Decay the carried heights, so a lift ends when the contact does.
+
+    Heights carry over between frames (eq. 3); carried whole they would keep a lift forever.
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      keep (float, fraction): share of last frame's height kept, in [0, 1]
+    In/out:
+      height (float, per detail vertex, m): heights, scaled and clamped to >= 0
+    """
     i = wp.tid()
     height[i] = wp.max(height[i] * keep, 0.0)
 
@@ -267,7 +409,17 @@ def displace_along_directions(
     height: wp.array(dtype=float),
     positions: wp.array(dtype=wp.vec3),
 ):
-    """Final vertex P_i = P_smoothed,i + dh_i n_i (eq. 2), n_i oriented away from the body by `side`."""
+    """Final detail vertices P_i = P_smoothed,i + dh_i n_i (eq. 2), n_i oriented away from the body.
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      base (vec3, per detail vertex, m): PN surface positions
+      direction (vec3, per detail vertex): unit control directions (the PN normals)
+      side (float): +1 or -1, whichever makes side * direction point away from the body
+      height (float, per detail vertex, m): heights dh
+    Outputs:
+      positions (vec3, per detail vertex, m): displaced positions
+    """
     i = wp.tid()
     positions[i] = base[i] + height[i] * side * direction[i]
 
@@ -283,8 +435,23 @@ def surface_vertex_normals(
     h_normal: float,
     normals: wp.array(dtype=wp.vec3),
 ):
-    """Oshita & Makinouchi §4.4, eqs. 13-14: blend the displaced surface's normal with the PN normal by
-    alpha = min(1, dh / h_normal), so flat regions keep the smooth PN shading and raised ones show it."""
+    """Shading normals of the displaced surface (Oshita & Makinouchi §4.4, eqs. 13-14).
+
+    The displaced surface's own normal is blended with the PN normal by alpha = min(1, dh / h_normal),
+    so flat regions keep the smooth PN shading and raised ones show their folds.
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      positions (vec3, per detail vertex, m): displaced positions
+      triangles (int32, 3 per detail triangle): detail triangles
+      vf_start (int32, num_detail_vertices + 1): CSR offsets of the vertex -> face adjacency
+      vf_face (int32, 3 per detail triangle): detail faces incident to each vertex
+      pn_normals (vec3, per detail vertex): unit PN normals
+      height (float, per detail vertex, m): heights dh
+      h_normal (float, m): height at which the displaced normal fully takes over
+    Outputs:
+      normals (vec3, per detail vertex): unit shading normals
+    """
     i = wp.tid()
     n = wp.vec3(0.0)
     for k in range(vf_start[i], vf_start[i + 1]):
@@ -310,13 +477,31 @@ def surface_vertex_normals(
 
 @wp.func
 def grid_slot(a: int, b: int, n: int):
+    """Slot of grid point (a, b) within one face's block of face_grid (row a, column b).
+
+    Inputs:
+      a (int): weight of corner 1 in grid steps, 0 .. n
+      b (int): weight of corner 2 in grid steps, 0 .. n - a
+      n (int): tessellation level
+    Returns:
+      int: the slot, 0 .. (n + 1)(n + 2) / 2 - 1
+    """
     return a * (n + 1) - (a * (a - 1)) // 2 + b
 
 
 @wp.func
 def transmission(p_prev: wp.vec3, p: wp.vec3, p_next: wp.vec3):
-    """Eq. 4: how much force passes a sample, the cosine of the turn between its two segments (a fold
-    passes little). Clamped so a fold sharper than 90 degrees still passes a trace."""
+    """Eq. 4: how much force passes a sample, the cosine of the turn between its two segments.
+
+    A fold passes little force. Clamped so a fold sharper than 90 degrees still passes a trace.
+
+    Inputs:
+      p_prev (vec3, m): previous sample on the line
+      p (vec3, m): the sample
+      p_next (vec3, m): next sample on the line
+    Returns:
+      float: transmission in [0.01, 1]; 1 where a segment has no length
+    """
     d0 = p - p_prev
     d1 = p_next - p
     l0 = wp.length(d0)
@@ -328,6 +513,20 @@ def transmission(p_prev: wp.vec3, p: wp.vec3, p_next: wp.vec3):
 
 @wp.func
 def line_point(face: int, n: int, a0: int, b0: int, da: int, db: int, k: int, face_grid: wp.array(dtype=wp.int32)):
+    """Detail vertex at step k of the grid line from (a0, b0) in direction (da, db) on a coarse face.
+
+    Inputs:
+      face (int, index): the coarse face
+      n (int): tessellation level
+      a0 (int): start of the line, weight of corner 1 in grid steps
+      b0 (int): start of the line, weight of corner 2 in grid steps
+      da (int): step of a per sample, -1, 0 or 1
+      db (int): step of b per sample, -1, 0 or 1
+      k (int, index): the sample along the line
+      face_grid (int32, (n + 1)(n + 2) / 2 per coarse triangle): detail vertex of each grid point
+    Returns:
+      int: detail vertex index
+    """
     return face_grid[face * ((n + 1) * (n + 2) // 2) + grid_slot(a0 + k * da, b0 + k * db, n)]
 
 
@@ -335,8 +534,27 @@ def line_point(face: int, n: int, a0: int, b0: int, da: int, db: int, k: int, fa
 def carried_force(face: int, n: int, a0: int, b0: int, da: int, db: int, count: int, i: int,
                   face_grid: wp.array(dtype=wp.int32), positions: wp.array(dtype=wp.vec3),
                   f_first: wp.vec3, f_last: wp.vec3):
-    """Eq. 5 along one grid line of `count` samples (0-based i): the ends' forces blended by the share
-    of transmission accumulated up to sample i (half of its own)."""
+    """Eq. 5 along one grid line: the force at sample i, blended between the line's end forces.
+
+    The blend factor is the share of transmission accumulated from sample 0 up to sample i,
+    counting half of sample i's own; a straight line blends linearly.
+
+    Inputs:
+      face (int, index): the coarse face
+      n (int): tessellation level
+      a0 (int): start of the line, weight of corner 1 in grid steps
+      b0 (int): start of the line, weight of corner 2 in grid steps
+      da (int): step of a per sample
+      db (int): step of b per sample
+      count (int): samples on the line
+      i (int, index): the sample, 0-based
+      face_grid (int32, (n + 1)(n + 2) / 2 per coarse triangle): detail vertex of each grid point
+      positions (vec3, per detail vertex, m): detail positions the transmission is measured on
+      f_first (vec3, N): force at sample 0
+      f_last (vec3, N): force at sample count - 1
+    Returns:
+      vec3 (N): force at sample i
+    """
     total = float(0.0)
     upto = float(0.0)
     for k in range(1, count - 1):
@@ -364,9 +582,24 @@ def carry_forces(
     coarse_force: wp.array(dtype=wp.vec3),
     force: wp.array(dtype=wp.vec3),
 ):
-    """Elastic force at every detail sample of one coarse face (eqs. 4-5): corners take their coarse
-    particle's force, edge samples blend the edge's ends, interior samples average the blends along
-    the grid's two line directions between edge samples. Shared samples are written by their owner."""
+    """Elastic force at every detail sample of one coarse face (eqs. 4-5).
+
+    Corners take their coarse particle's force, edge samples blend the edge's ends, interior samples
+    average the blends along the grid's two line directions between edge samples. Shared samples are
+    written by their owner face only, so each is written once.
+
+    Launch: one thread per coarse triangle (dim = num_coarse_triangles).
+    Inputs:
+      face_grid (int32, (n + 1)(n + 2) / 2 per coarse triangle): detail vertex of each grid point
+      owner_face (int32, per detail vertex): coarse triangle that owns each detail vertex
+      n (int): tessellation level
+      positions (vec3, per detail vertex, m): PN surface positions
+      corner_vertex (int32, 3 per coarse triangle): coarse vertex at each corner (the coarse
+          triangles)
+      coarse_force (vec3, per coarse vertex, N): elastic force on each particle (cloth.elastic_forces)
+    Outputs:
+      force (vec3, per detail vertex, N): force carried to each detail sample
+    """
     f = wp.tid()
     slots = (n + 1) * (n + 2) // 2
     f0 = coarse_force[corner_vertex[3 * f]]
@@ -411,8 +644,20 @@ def vertical_forces(
     force: wp.array(dtype=wp.vec3),
     vertical: wp.array(dtype=float),
 ):
-    """Eqs. 6-7: v_i = sum_j (p_i - p_j)/|p_i - p_j| . ef_j. Positive when neighbours push toward i (the
-    sample bulges), negative when they pull away (it flattens)."""
+    """Eqs. 6-7: the out-of-plane push on each sample, v_i = sum_j (p_i - p_j)/|p_i - p_j| . ef_j.
+
+    Positive when neighbours push toward i (the sample bulges), negative when they pull away (it
+    flattens).
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      positions (vec3, per detail vertex, m): PN surface positions
+      nbr_start (int32, num_detail_vertices + 1): CSR offsets of the detail vertex adjacency
+      nbr (int32, per adjacency entry): neighbouring detail vertices
+      force (vec3, per detail vertex, N): carried forces (carry_forces)
+    Outputs:
+      vertical (float, per detail vertex, N): vertical force
+    """
     i = wp.tid()
     total = float(0.0)
     for k in range(nbr_start[i], nbr_start[i + 1]):
@@ -434,8 +679,22 @@ def edge_length_deficit(
     rest_length: wp.array(dtype=float),
     deficit: wp.array(dtype=float),
 ):
-    """Eq. 8, signed so compression is positive: rest length minus the length of the detail polyline
-    along the coarse edge. edge_side: 0 = corner 0 -> 1, 1 = corner 0 -> 2, 2 = corner 1 -> 2 of edge_face."""
+    """Eq. 8 per coarse edge: rest length minus the length of the detail polyline along it.
+
+    Signed so compression is positive: a compressed edge has length to give to wrinkles.
+
+    Launch: one thread per coarse edge (dim = num_coarse_edges).
+    Inputs:
+      face_grid (int32, (n + 1)(n + 2) / 2 per coarse triangle): detail vertex of each grid point
+      edge_face (int32, per coarse edge): a face containing the edge, whose grid line walks it
+      edge_side (int32, per coarse edge): which side of that face: 0 = corner 0 -> 1,
+          1 = corner 0 -> 2, 2 = corner 1 -> 2
+      n (int): tessellation level
+      positions (vec3, per detail vertex, m): PN surface positions
+      rest_length (float, per coarse edge, m): length of the same polyline on the rest shape
+    Outputs:
+      deficit (float, per coarse edge, m): rest minus current length
+    """
     e = wp.tid()
     f = edge_face[e]
     side = edge_side[e]
@@ -463,7 +722,16 @@ def vertex_deficit(
     edge_deficit: wp.array(dtype=float),
     out: wp.array(dtype=float),
 ):
-    """A coarse vertex's required length change: the mean over its edges (§4.3.2)."""
+    """A coarse vertex's required length change: the mean deficit over its edges (§4.3.2).
+
+    Launch: one thread per coarse vertex (dim = num_coarse_vertices).
+    Inputs:
+      ve_start (int32, num_coarse_vertices + 1): CSR offsets of the vertex -> edge adjacency
+      ve_edge (int32, 2 per coarse edge): edges incident to each vertex
+      edge_deficit (float, per coarse edge, m): edge_length_deficit
+    Outputs:
+      out (float, per coarse vertex, m): mean deficit; 0 for a vertex without edges
+    """
     i = wp.tid()
     total = float(0.0)
     count = float(0.0)
@@ -489,11 +757,27 @@ def wrinkle_heights(
 ):
     """Eqs. 9-12: the height change dh_deformation of each sample.
 
-    Required length change: the coarse vertices' deficits interpolated over the face (no transmission).
-    Expected change: each neighbour adds k |v_i - v_j|, positive when the sample pushed harder is
-    already the higher one (the surface spreads), negative otherwise (eq. 10). dh_length = required /
-    expected where length is missing and rising adds it (eq. 11), limited by the force-driven k v_i dt
-    (eq. 12)."""
+    Required length change: the coarse vertices' deficits interpolated over the face (no
+    transmission). Expected change: each neighbour adds k |v_i - v_j|, positive when the sample
+    pushed harder is already the higher one (the surface spreads), negative otherwise (eq. 10).
+    dh_length = required / expected where length is missing and rising adds it (eq. 11), limited by
+    the force-driven k v_i dt (eq. 12). Elsewhere a sample may only sink (eq. 11 read with §4.3.4).
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      owner_face (int32, per detail vertex): coarse triangle of each detail vertex
+      bary (vec3, per detail vertex): weights of the owner face's corners 0, 1, 2
+      corner_vertex (int32, 3 per coarse triangle): coarse vertex at each corner
+      coarse_deficit (float, per coarse vertex, m): vertex_deficit
+      nbr_start (int32, num_detail_vertices + 1): CSR offsets of the detail vertex adjacency
+      nbr (int32, per adjacency entry): neighbouring detail vertices
+      vertical (float, per detail vertex, N): vertical_forces
+      height (float, per detail vertex, m): current heights
+      k_out_plane (float, m/(N s)): how far a sample may move per unit vertical force and time
+      dt (float, s): time since the last update (a frame)
+    Outputs:
+      change (float, per detail vertex, m): height change to add (add_heights)
+    """
     i = wp.tid()
     f = owner_face[i]
     w = bary[i]
@@ -530,9 +814,27 @@ def constrain_heights(
     height_in: wp.array(dtype=float),
     height_out: wp.array(dtype=float),
 ):
-    """§4.3.4: dh >= 0; no sample rises more than max_slope times its distance above a neighbour (the
+    """§4.3.4: keep the heights plausible after the wrinkle update.
+
+    dh >= 0; no sample rises more than max_slope times its distance above a neighbour (the
     neighbour-to-neighbour length limit); no wrinkle inside a face none of whose edges is compressed
-    (the paper's all-stretched faces included) nor on a coarse edge that is not compressed."""
+    (the paper's all-stretched faces included) nor on a coarse edge that is not compressed.
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      positions (vec3, per detail vertex, m): PN surface positions
+      nbr_start (int32, num_detail_vertices + 1): CSR offsets of the detail vertex adjacency
+      nbr (int32, per adjacency entry): neighbouring detail vertices
+      owner_face (int32, per detail vertex): coarse triangle of each detail vertex
+      kind (int32, per detail vertex): 0 coarse vertex, 1 on a coarse edge, 2 face interior
+      coarse_edge (int32, per detail vertex): coarse edge of a kind-1 vertex (any valid index otherwise)
+      edge_deficit (float, per coarse edge, m): edge_length_deficit
+      face_uncompressed (int32, per coarse triangle): faces_without_compression
+      max_slope (float, m/m): largest rise per distance to a neighbour
+      height_in (float, per detail vertex, m): heights before the constraints
+    Outputs:
+      height_out (float, per detail vertex, m): constrained heights; must not alias height_in
+    """
     i = wp.tid()
     h = wp.max(height_in[i], 0.0)
     if kind[i] == 2 and face_uncompressed[owner_face[i]] != 0:
@@ -552,7 +854,15 @@ def faces_without_compression(
     edge_deficit: wp.array(dtype=float),
     uncompressed: wp.array(dtype=wp.int32),
 ):
-    """1 for coarse faces none of whose edges is shorter than at rest (§4.3.4)."""
+    """Flag coarse faces none of whose edges is shorter than at rest (§4.3.4): they get no wrinkles.
+
+    Launch: one thread per coarse triangle (dim = num_coarse_triangles).
+    Inputs:
+      face_edges (int32, 3 per coarse triangle): the face's edges (sides 0 -> 1, 0 -> 2, 1 -> 2)
+      edge_deficit (float, per coarse edge, m): edge_length_deficit
+    Outputs:
+      uncompressed (int32, per coarse triangle): 1 where no edge is compressed, else 0
+    """
     f = wp.tid()
     s = int(1)
     for k in range(3):
@@ -563,6 +873,17 @@ def faces_without_compression(
 
 @wp.kernel
 def add_heights(height: wp.array(dtype=float), change: wp.array(dtype=float)):
+    """Apply the wrinkle update: height += change.
+
+    A separate launch because wrinkle_heights reads the neighbours' heights, which must not change
+    while it runs.
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      change (float, per detail vertex, m): wrinkle_heights
+    In/out:
+      height (float, per detail vertex, m): heights
+    """
     i = wp.tid()
     height[i] = height[i] + change[i]
 
@@ -574,8 +895,18 @@ def smooth_heights(
     height_in: wp.array(dtype=float),
     height_out: wp.array(dtype=float),
 ):
-    """One Jacobi pass halfway to the neighbours' mean height: per-sample forces are noisy, and
-    unsmoothed heights read as pimples rather than folds."""
+    """One Jacobi pass halfway to the neighbours' mean height.
+
+    Per-sample forces are noisy, and unsmoothed heights read as pimples rather than folds.
+
+    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Inputs:
+      nbr_start (int32, num_detail_vertices + 1): CSR offsets of the detail vertex adjacency
+      nbr (int32, per adjacency entry): neighbouring detail vertices
+      height_in (float, per detail vertex, m): heights before the pass
+    Outputs:
+      height_out (float, per detail vertex, m): smoothed heights; must not alias height_in
+    """
     i = wp.tid()
     total = float(0.0)
     count = float(0.0)

@@ -1,14 +1,21 @@
 """Hair strand kernels: particle polylines flattened with offsets, one launch for every strand.
 
-Step order (composed by sim.hair_solver.HairSolver), four to six launches per substep:
-  predict_positions (integration, pinned roots on the skin, root hold)
-  -> [follow_guides]
-  -> [shape_match_rotations (full variant) -> shape_match_step] x passes
-  -> follow_the_leader (length, collision and the velocity update)
+Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launches per substep:
+
+    predict_positions (integration, pinned roots on the skin, root hold)
+    -> [follow_guides]
+    -> [shape_match_rotations (full variant) -> shape_match_step] x passes
+    -> [collision.points_clearance (optional, see follow_the_leader)]
+    -> follow_the_leader (length, collision and the velocity update)
+
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
 (window goals, root positions, FTL corrections) is recomputed or carried in registers instead,
 because on a GPU the bytes moved, not the arithmetic, set the cost.
 """
+
+# float(0.0), int(0) and bool(False) declare variables that a kernel reassigns (Warp treats a
+# bare literal as a constant); the nested ifs are kept as the kernels were written and verified
+# ruff: noqa: UP018, RUF046, SIM102
 
 import warp as wp
 
@@ -53,15 +60,49 @@ def predict_positions(
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
 ):
-    """Symplectic Euler prediction of free particles; air_drag [1/s] pulls velocity toward the local
-    wind, damping [1/s] decays it. The gusts' time is clock[0] + time_offset (the clock lives on the
-    device, so a captured frame replays at any time).
+    """First launch of a hair substep: symplectic Euler prediction, pinned roots on the skin, root hold.
 
-    With bound != 0 the collider is posed for the end of the step: particles with a binding
+    Free particles integrate gravity, air drag toward the local wind (air_drag, with optional gusts of
+    smooth noise in space and time) and damping. The gusts' time is clock[0] + time_offset: the clock
+    lives on the device, so a captured frame replays at any time.
+
+    With bound != 0 the collider is posed for the end of the substep: particles with a binding
     (particle_binding >= 0, the pinned roots) are placed on the skin, and every particle is pulled
     toward its groomed position carried by its root triangle's frame by hold * hold_stiffness: the
-    global shape constraint of TressFX (Han & Harada), fading from the root to zero a few
-    centimetres out, so the groom's lift and parting survive gravity while the lengths swing.
+    global shape constraint of TressFX (Han & Harada), fading from the root to zero a few centimetres
+    out, so the groom's lift and parting survive gravity while the lengths swing. With bound == 0 the
+    mesh and binding arrays are not read and may be None.
+
+    Launch: one thread per particle of all strands (dim = num_particles).
+    Inputs:
+      x (vec3, per particle, m): positions at the start of the substep
+      v (vec3, per particle, m/s): velocities at the start of the substep
+      inv_mass (float, per particle): 0 marks pinned particles; other values are not used as masses
+      gravity (vec3, m/s^2): acceleration of gravity, e.g. (0, -9.81, 0)
+      wind (vec3, m/s): mean air velocity
+      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
+      damping (float, 1/s): rate at which velocity decays
+      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
+      turbulence_scale (float, 1/m): spatial frequency of the gusts
+      turbulence_rate (float, 1/s): how fast the gust pattern changes
+      clock (float, 1 element, s): device clock
+      time_offset (float, s): time of this substep relative to clock[0]
+      dt (float, s): substep length
+      bound (int, flag): non-zero when the strands are bound to the collider below
+      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
+      mesh_indices (int32, 3 per collider triangle): collider triangles
+      particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
+      bind_triangle (int32, per binding): collider triangle of each binding
+      bind_barycentric (vec3, per binding): weights of that triangle's corners
+      bind_local (vec3, per binding, m): offset in that triangle's frame
+      particle_strand (int32, per particle): strand of each particle
+      root_binding (int32, per strand): binding of the strand's root particle
+      root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
+      hold (float, per particle): root-hold weight, 1 at the root falling to 0 along the strand
+      hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+    Outputs:
+      x_out (vec3, per particle, m): predicted positions
+      v_out (vec3, per particle, m/s): velocities after forces; pinned particles keep theirs
     """
     i = wp.tid()
     p = x[i]
@@ -105,8 +146,14 @@ def rotation_from_covariance(A: wp.mat33):
     """Optimal rotation of classic shape matching (Mueller et al. 2005): argmax_R trace(R^T A).
 
     The SVD runs in float64: float32 svd3 loses up to 1e-2 in R when two singular values are close,
-    which hair windows (nearly straight or nearly planar) often have. Used to start the warm-started
-    refinement below, so it runs once, not every substep.
+    which hair windows (nearly straight or nearly planar) often have. It only starts the warm-started
+    refinement (refine_rotation), so it runs once, not every substep.
+
+    Inputs:
+      A (mat33): covariance sum_k (x_k - c) r_k^T of current and rest offsets; any scale
+    Returns:
+      mat33: proper rotation (determinant +1); a reflection is turned into one by flipping the axis
+          of the smallest singular value
     """
     Ad = wp.mat33d(A)
     U = wp.mat33d()
@@ -134,7 +181,16 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
     With M = A R^T, trace(R'^T A) for R' = exp([w]) R is, to second order, F + w.g - w^T H w / 2
     with g = axial(M - M^T) (= sum_j r_j x a_j) and H = trace(M) I - sym(M). Near the optimum H is
     positive definite and the Newton step w = H^-1 g converges quadratically; elsewhere the step of
-    Müller, Bender, Chentanez, Macklin 2016, w = g / |trace(M)|, which never flips, is taken.
+    Müller, Bender, Chentanez, Macklin 2016, w = g / |trace(M)|, which never flips, is taken. Steps
+    are capped at 1 radian.
+
+    Inputs:
+      q (quat): rotation to start from, usually last substep's
+      A (mat33): covariance of current and rest offsets, scaled to unit Frobenius norm so the small
+          guards are relative
+      iterations (int): most Newton steps; stops early when a step is below 1e-9 radians
+    Returns:
+      quat: the refined unit rotation
     """
     for _it in range(iterations):
         R = wp.quat_to_matrix(q)
@@ -161,6 +217,15 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
 
 @wp.func
 def window_centroid(x: wp.array(dtype=wp.vec3), first: int, size: int):
+    """Mean position of the window's particles first .. first + size - 1.
+
+    Inputs:
+      x (vec3, per particle, m): positions
+      first (int, index): first particle of the window
+      size (int): particles in the window
+    Returns:
+      vec3 (m): centroid
+    """
     c = wp.vec3(0.0)
     for k in range(size):
         c += x[first + k]
@@ -178,11 +243,24 @@ def shape_match_rotations(
     rotations: wp.array(dtype=wp.quat),
     centroids: wp.array(dtype=wp.vec3),
 ):
-    """Per-window optimal rotation of the rest offsets onto the current window (full variant), and
-    the window's centroid, which shape_match_step reads instead of summing the window again.
+    """Per-window optimal rotation of the rest offsets onto the current window (full variant).
 
-    exact = 1 solves it outright (float64 SVD); otherwise `iterations` refinement steps continue
-    from the rotation stored last time.
+    Also stores the window's centroid, which shape_match_step reads instead of summing the window
+    again. exact = 1 solves it outright (float64 SVD); otherwise iterations refinement steps
+    continue from the rotation stored last time, which is cheaper and, between substeps, as good.
+
+    Launch: one thread per window (dim = num_windows).
+    Inputs:
+      x (vec3, per particle, m): current positions
+      window_first (int32, per window): first particle of each window
+      window_size (int): particles per window
+      window_rest (vec3, window_size per window, m): rest offsets from the window's rest centroid
+      exact (int, flag): non-zero solves from scratch (first substep, after a reset)
+      iterations (int): refinement steps when exact == 0
+    In/out:
+      rotations (quat, per window): last rotations in (read only when exact == 0), new ones out
+    Outputs:
+      centroids (vec3, per window, m): current centroid of each window
     """
     w = wp.tid()
     first = window_first[w]
@@ -203,14 +281,28 @@ def shape_match_rotations(
 def window_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, rest: wp.array(dtype=wp.vec3),
                 offsets: wp.array(dtype=float), rotations: wp.array(dtype=wp.quat),
                 centroids: wp.array(dtype=wp.vec3), variant: int, w: int):
-    """Goal of slot k of window w (its particles first .. first + size - 1).
+    """Goal position of slot k of window w (its particles first .. first + size - 1).
 
     simplified (Hayashimoto et al. §3.6, window of 3): g_k = c + d_k u along the current first-to-last
     direction u, with d_k the rest offset along the rest first-to-last direction. No rotation, so
-    curls straighten.
-    full (Mueller et al. 2005): g_k = c + R r_k with r_k the rest offset from the rest centroid and R
-    the window's optimal rotation and c its centroid, both from shape_match_rotations. A window of 3
-    holds bend angles only; wider windows also hold torsion, so helices keep their shape.
+    curls straighten. full (Mueller et al. 2005): g_k = c + R r_k with r_k the rest offset from the
+    rest centroid, and R and c the window's optimal rotation and centroid from shape_match_rotations.
+    A window of 3 holds bend angles only; wider windows also hold torsion, so helices keep their shape.
+
+    Inputs:
+      x (vec3, per particle, m): current positions
+      first (int, index): first particle of the window
+      size (int): particles per window
+      k (int, index): slot within the window, 0 .. size - 1
+      rest (vec3, size per window, m): rest offsets from the rest centroid (full variant)
+      offsets (float, size per window, m): rest offsets along the rest first-to-last direction
+          (simplified variant)
+      rotations (quat, per window): window rotations (full variant)
+      centroids (vec3, per window, m): window centroids (full variant)
+      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
+      w (int, index): the window
+    Returns:
+      vec3 (m): the goal; the particle's own position for a degenerate simplified window
     """
     if variant == SHAPE_SIMPLIFIED:
         e = x[first + size - 1] - x[first]
@@ -236,13 +328,30 @@ def shape_match_step(
     stiffness: float,
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """One shape-matching pass: each free particle moves toward the average goal of the windows
-    that contain it (Jacobi: every goal is computed from x, results go to x_out).
+    """One shape-matching pass: each free particle moves toward the average goal of its windows.
 
-    window_at[j] is the window starting at particle j (-1 if none); windows never cross strands,
-    so a window starting at i - k inside this strand holds particle i at slot k. Each particle
-    computes the goals of its windows itself instead of reading them from a buffer of goals: the
-    neighbours' positions it reads are in cache, a goal buffer would be a round trip to memory.
+    Jacobi: every goal is computed from x and results go to x_out. window_at[j] is the window starting
+    at particle j (-1 if none); windows never cross strands, so a window starting at i - k inside this
+    strand holds particle i at slot k. Each particle computes the goals of its windows itself instead
+    of reading them from a buffer of goals: the neighbours' positions it reads are in cache, a goal
+    buffer would be a round trip to memory.
+
+    Launch: one thread per particle of all strands (dim = num_particles).
+    Inputs:
+      x (vec3, per particle, m): positions before this pass
+      inv_mass (float, per particle): 0 marks pinned particles, which are copied through
+      particle_strand (int32, per particle): strand of each particle
+      window_at (int32, per particle): window starting at each particle, -1 when none
+      window_size (int): particles per window
+      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
+      window_offsets (float, window_size per window, m): rest offsets along the rest first-to-last
+          direction (simplified)
+      rotations (quat, per window): from shape_match_rotations (full variant only)
+      centroids (vec3, per window, m): from shape_match_rotations (full variant only)
+      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
+      stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+    Outputs:
+      x_out (vec3, per particle, m): positions after this pass; must not alias x
     """
     i = wp.tid()
     p = x[i]
@@ -283,17 +392,38 @@ def follow_the_leader(
     dt: float,
     v: wp.array(dtype=wp.vec3),
 ):
-    """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, one thread per strand,
-    then the velocities.
+    """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, then the velocities.
 
     Each particle is put at its rest distance from its parent; a contact push-out is resolved inline
     and the particle is then put back on the sphere of rest radius, so every segment leaves with its
     exact rest length. With use_clearance != 0, clearance (collision.points_clearance of the
     positions before this pass, computed in parallel) skips the collider query for particles that
     moved too little to touch: the same result with fewer queries in this serial loop, which on a
-    GPU is latency-bound. Velocities are v = (x - x_prev) / dt minus ftl_damping * d_(i+1) / dt for free
-    particles, d_(i+1) the child's correction (dynamic FTL); the correction is carried to the next
-    particle in a register rather than stored.
+    GPU is latency-bound. Velocities are v = (x - x_prev) / dt minus ftl_damping * d_(i+1) / dt for
+    free particles, d_(i+1) the child's correction (dynamic FTL); the correction is carried to the
+    next particle in a register rather than stored.
+
+    Launch: one thread per strand (dim = num_strands).
+    Inputs:
+      x_prev (vec3, per particle, m): positions at the start of the substep
+      inv_mass (float, per particle): 0 marks pinned particles, whose velocity is not damped
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+      rest_length (float, per particle, m): rest distance to the previous particle (unused for roots)
+      pinned_per_strand (int): leading particles of each strand left where they are; at least 1,
+          since a root has no parent to follow (with 0 it would read the previous strand's tip)
+      collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
+      margin (float, m): distance kept outside the collider
+      search (float, m): mesh query radius
+      use_clearance (int, flag): non-zero skips queries using clearance
+      clearance (float, per particle, m): points_clearance of x before this pass; read only when
+          use_clearance != 0
+      ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+      dt (float, s): substep length
+    In/out:
+      x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out
+    Outputs:
+      v (vec3, per particle, m/s): velocities at the end of the substep
     """
     s = wp.tid()
     start = strand_start[s]
@@ -347,7 +477,20 @@ def count_unhealthy(
     bad_count: wp.array(dtype=wp.int32),
     first_bad: wp.array(dtype=wp.int32),
 ):
-    """Count particles that are non-finite or faster than max_speed [m/s]; remember the lowest index."""
+    """Count particles that are non-finite or faster than max_speed and remember the lowest index.
+
+    Used to stop a run with a clear message instead of writing an exploded cache; both results are
+    device arrays, so the check can be queued without waiting.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x (vec3, per particle, m): positions
+      v (vec3, per particle, m/s): velocities
+      max_speed (float, m/s): speed above which a particle counts as exploded
+    In/out:
+      bad_count (int32, 1 element): incremented per bad particle; zero it before the launch
+      first_bad (int32, 1 element): lowest bad index (atomic min); fill with the int32 maximum before
+    """
     i = wp.tid()
     p = x[i]
     vel = v[i]
@@ -359,7 +502,16 @@ def count_unhealthy(
 
 @wp.func
 def guide_point(guide_points: wp.array(dtype=wp.vec3), g: int, count: int, s: float):
-    """Point at normalised arc parameter s in [0, 1] along guide g (count vertices, evenly spaced)."""
+    """Point at normalised arc parameter s along guide g, linear between its vertices.
+
+    Inputs:
+      guide_points (vec3, count per guide, m): guide polylines back to back
+      g (int, index): the guide's block in guide_points (frame * num_guides + guide for follow_guides)
+      count (int): vertices per guide, evenly spaced along the arc; at least 2
+      s (float): arc parameter, 0 at the root and 1 at the tip; clamped to [0, 1]
+    Returns:
+      vec3 (m): the point
+    """
     u = wp.clamp(s, 0.0, 1.0) * float(count - 1)
     k = wp.min(int(u), count - 2)
     t = u - float(k)
@@ -384,10 +536,34 @@ def follow_guides(
     time_offset: float,
     stiffness: float,
 ):
-    """Pull each free particle toward its captured guides' shape: the strand's own root plus the
-    weighted guides' offsets from their roots at the particle's normalised arc position. The guides
-    are linear between captured frames (guide_frames: frame-major, held past the ends) at time
-    clock[0] + time_offset. stiffness is the fraction of the way moved this substep."""
+    """Pull each free particle toward the shape of its captured guides.
+
+    The target is the strand's own root plus the weighted guides' offsets from their roots at the
+    particle's normalised arc position, so captured motion drives the shape while the strand stays
+    on its own root. The guides are linear between captured frames (held past the ends) at time
+    clock[0] + time_offset. x is updated in place: the strand's root must be pinned (inv_mass 0),
+    since other threads read it while they write.
+
+    Launch: one thread per particle of all strands (dim = num_particles).
+    Inputs:
+      inv_mass (float, per particle): 0 marks pinned particles, which are left alone
+      particle_strand (int32, per particle): strand of each particle
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+      strand_guides (vec3i, per strand): up to three guide indices
+      strand_guide_weights (vec3, per strand): weight of each guide, summing to 1; 0 skips a slot
+      particle_param (float, per particle): normalised arc length from the root (0) to the tip (1)
+      guide_frames (vec3, num_frames * num_guides * guide_vertices, m): captured guides, frame-major
+      num_frames (int): captured frames
+      num_guides (int): guides per frame
+      guide_vertices (int): vertices per guide, evenly spaced along its arc; at least 2
+      guide_fps (float, 1/s): frames per second of the capture, which starts at time 0
+      clock (float, 1 element, s): device clock
+      time_offset (float, s): time of this substep relative to clock[0]
+      stiffness (float, fraction per substep): share of the way to the target moved, e.g.
+          1 - exp(-rate * dt)
+    In/out:
+      x (vec3, per particle, m): positions, moved toward the targets
+    """
     i = wp.tid()
     if inv_mass[i] == 0.0:
         return
