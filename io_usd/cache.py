@@ -361,7 +361,7 @@ class CacheReader:
             if not role_attr or not role_attr.HasAuthoredValue():
                 continue
             name = prim.GetName()
-            role = str(role_attr.Get())
+            role = str(role_attr.Get(Usd.TimeCode.EarliestTime()))  # DCCs may time-sample it
             color = vertex_colors = None
             gprim = UsdGeom.Gprim(prim)
             dc = gprim.GetDisplayColorPrimvar()
