@@ -146,6 +146,16 @@ class Collider:
         tri = self.points.numpy()[self.faces_np[face]].astype(np.float64)
         return np.einsum("nk,nkj->nj", bary, tri), face, bary
 
+    def visible_from(self, points, eye, tolerance=1.0e-3):
+        """(N,) bool: which points a camera at `eye` sees past the posed mesh (grooming tools touch
+        only those); points within `tolerance` [m] of where their sight line meets the mesh count as seen."""
+        pts = wp.array(np.asarray(points, np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)
+        visible = wp.zeros(len(pts), dtype=wp.int32, device=self.device)
+        wp.launch(collision.visible_from_eye, len(pts),
+                  [pts, self.mesh.id, wp.vec3(*np.asarray(eye, np.float32)), float(tolerance), visible],
+                  device=self.device)
+        return visible.numpy().astype(bool)
+
     def sphere_tree_depth(self, points):
         """Deepest penetration [m] of each point into the posed sphere tree's leaves."""
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)

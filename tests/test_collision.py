@@ -150,3 +150,28 @@ def test_clearance_bounds_the_distance_and_skipping_queries_changes_nothing(head
         results.append(s0.x.numpy())
     np.testing.assert_array_equal(results[0], results[1])
     assert np.abs(results[0] - pts).max() > 0.01  # the hair fell
+
+
+def test_visibility_from_an_eye_matches_the_sphere_it_sees():
+    """Points 2 mm above a sphere of radius R = 0.1 seen from D = 1 m away: a point is seen while its
+    sight line clears the ball, i.e. up to the angle from the eye direction where that line is
+    tangent, acos(R / D) + acos(R / r); points behind the occluder are hidden whatever their distance."""
+    from sim.collider import Collider
+
+    sphere = trimesh.creation.icosphere(5, radius=0.1)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    collider = Collider("ball", v, f, np.tile([1, 0, 0, 0], (len(v), 1)), np.tile([1.0, 0, 0, 0], (len(v), 1)), 2,
+                        sphere_leaves=0)
+    eye = np.array([0.0, 0.0, 1.0])
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    points = 0.102 * d  # just outside the tessellated surface, like hair roots
+    seen = collider.visible_from(points, eye)
+    cosine = d[:, 2]
+    limit = np.cos(np.arccos(0.1 / 1.0) + np.arccos(0.1 / 0.102))
+    clear = np.abs(cosine - limit) > 0.02  # away from the grazing rim, where tessellation decides
+    np.testing.assert_array_equal(seen[clear], (cosine > limit)[clear])
+    behind = np.array([[0.0, 0.0, -0.3], [0.05, 0.0, -0.2], [0.0, 0.02, -1.5]])
+    assert not collider.visible_from(behind, eye).any()
+    assert collider.visible_from([[0.5, 0.0, 0.0], [0.0, 0.0, 0.5]], eye).all()

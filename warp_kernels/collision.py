@@ -291,6 +291,39 @@ def mesh_signed_distance(
 
 
 @wp.kernel
+def visible_from_eye(
+    points: wp.array(dtype=wp.vec3),
+    mesh: wp.uint64,
+    eye: wp.vec3,
+    tolerance: float,
+    visible: wp.array(dtype=wp.int32),
+):
+    """Whether each point can be seen from a pinhole camera at `eye`, with the mesh as the occluder.
+
+    Grooming tools act only on what the artist sees: a strand behind the head must not be combed or
+    cut by a stroke drawn over the face. Points on or just outside the surface (roots) count as
+    visible through `tolerance`.
+
+    Launch: one thread per point (dim = len(points)).
+    Inputs:
+      points (vec3, per point, m): query points, e.g. hair particles
+      mesh (uint64): wp.Mesh id of the occluder (the collider)
+      eye (vec3, m): the camera's centre
+      tolerance (float, m): hits this close to the point do not hide it
+    Outputs:
+      visible (int32, per point): 1 where the segment from the eye to the point misses the mesh, else 0
+    """
+    i = wp.tid()
+    to_point = points[i] - eye
+    distance = wp.length(to_point)
+    visible[i] = 1
+    if distance > tolerance:
+        q = wp.mesh_query_ray(mesh, eye, to_point / distance, distance - tolerance)
+        if q.result:
+            visible[i] = 0
+
+
+@wp.kernel
 def sphere_tree_penetration(points: wp.array(dtype=wp.vec3), shape: ColliderShape, depth: wp.array(dtype=float)):
     """sphere_tree_depth() of every point: how deep each lies inside the sphere tree's leaves.
 
