@@ -156,6 +156,14 @@ class Collider:
                   device=self.device)
         return visible.numpy().astype(bool)
 
+    def ray_hits(self, origins, directions, max_t=100.0):
+        """Distance [m] along each ray (N, 3 origins and unit directions) to the posed mesh, -1 for a miss."""
+        arr = lambda a: wp.array(np.asarray(a, np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)  # noqa: E731
+        o, d = arr(origins), arr(directions)
+        t = wp.zeros(len(o), dtype=float, device=self.device)
+        wp.launch(collision.first_ray_hits, len(o), [o, d, self.mesh.id, float(max_t), t], device=self.device)
+        return t.numpy()
+
     def sphere_tree_depth(self, points):
         """Deepest penetration [m] of each point into the posed sphere tree's leaves."""
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)

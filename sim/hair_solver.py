@@ -95,6 +95,7 @@ class HairSolver:
         # launches captured once in a CUDA graph replay at any time: step(time=t) passes t - clock
         self.clock = wp.zeros(1, dtype=float, device=device)
         self._clock_time = 0.0
+        self.comb = None  # a sim.comb.CombGrip holding strands, or None
 
     def set_clock(self, time):
         """Set the device clock to `time` [s] (e.g. a frame's start, before launching its graph)."""
@@ -156,6 +157,9 @@ class HairSolver:
                   [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search, int(use_clearance),
                    self.clearance, p.ftl_damping, dt, state_out.v], device=dev)
+        if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
+            blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
+            self.comb.launch(m, state_out, state_in, blend, dt)
 
     def reset(self):
         """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut).

@@ -473,8 +473,10 @@ class Scene:
             t0 = self.time
             if self.model is not None:
                 self.solver.set_clock(t0)
-                self._advance_solver("hair", t0, frame_dt, self.config.solver.substeps, animate, self._step_hair,
-                                     self._hair_refs)
+                # a comb adds a launch per substep: its frames are other graphs
+                held = getattr(self.solver.comb, "serial", 0)
+                self._advance_solver(("hair", held), t0, frame_dt, self.config.solver.substeps, animate,
+                                     self._step_hair, self._hair_refs)
             if self.cloth_model is not None:
                 self._advance_solver("cloth", t0, frame_dt, self.cloth_substeps, animate, self._step_cloth,
                                      self._cloth_refs)

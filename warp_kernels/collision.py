@@ -324,6 +324,32 @@ def visible_from_eye(
 
 
 @wp.kernel
+def first_ray_hits(
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    mesh: wp.uint64,
+    max_t: float,
+    hit_t: wp.array(dtype=float),
+):
+    """Where each ray first meets the mesh: a camera's pixel rays onto the head place a comb.
+
+    Launch: one thread per ray (dim = len(origins)).
+    Inputs:
+      origins (vec3, per ray, m): ray starts
+      directions (vec3, per ray): unit directions
+      mesh (uint64): wp.Mesh id of the surface
+      max_t (float, m): farthest hit looked for
+    Outputs:
+      hit_t (float, per ray, m): distance along the ray to the first hit, -1 where it misses
+    """
+    i = wp.tid()
+    q = wp.mesh_query_ray(mesh, origins[i], directions[i], max_t)
+    hit_t[i] = -1.0
+    if q.result:
+        hit_t[i] = q.t
+
+
+@wp.kernel
 def sphere_tree_penetration(points: wp.array(dtype=wp.vec3), shape: ColliderShape, depth: wp.array(dtype=float)):
     """sphere_tree_depth() of every point: how deep each lies inside the sphere tree's leaves.
 

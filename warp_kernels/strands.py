@@ -27,6 +27,7 @@ from .collision import ColliderShape, collide_point
 from .skinning import bound_position, face_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
+TAUT = wp.constant(0.995)  # hold_in_comb: a root-to-comb chain this close to straight is laid straight
 SHAPE_FULL = wp.constant(1)
 
 
@@ -467,6 +468,108 @@ def follow_the_leader(
             v[j] = vel
     last = end - 1
     v[last] = (x[last] - x_prev[last]) / dt
+
+
+@wp.func
+def _toward(anchor: wp.vec3, p: wp.vec3, length: float):
+    d = p - anchor
+    dist = wp.length(d)
+    if dist < 1.0e-12:
+        return anchor + wp.vec3(0.0, -length, 0.0)
+    return anchor + d * (length / dist)
+
+
+@wp.kernel
+def hold_in_comb(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    strand_start: wp.array(dtype=int),
+    rest_length: wp.array(dtype=float),
+    pinned_per_strand: int,
+    grip_from: wp.array(dtype=wp.vec3),
+    grip_to: wp.array(dtype=wp.vec3),
+    blend: float,
+    iterations: int,
+    dt: float,
+    grip: wp.array(dtype=int),
+    v: wp.array(dtype=wp.vec3),
+):
+    """Strands held by a comb: the gripped particle sits on the comb, the hair between root and comb
+    keeps its segment lengths, and the hair beyond hangs from the comb.
+
+    Hair slides through a comb: when the comb is farther from the root than the natural length of
+    hair up to the grip, the grip moves toward the tip until that length suffices (or the tip is
+    reached and the strand is pulled straight toward the comb). The root-to-grip chain is solved
+    with both ends fixed by alternating forward and backward follow-the-leader sweeps (FABRIK),
+    ending on the comb, so only the segment next to the root may keep a residual error; the rest
+    follows the gripped particle. Runs after follow_the_leader; strands
+    with grip < 0 are left untouched.
+
+    Launch: one thread per strand (dim = num_strands).
+    Inputs:
+      x_prev (vec3, per particle, m): positions at the start of the substep
+      strand_start (int, num_strands + 1): first particle of each strand
+      rest_length (float, per particle, m): rest distance to the previous particle (unused for roots)
+      pinned_per_strand (int): particles at the start of each strand bound to the skin (at least 1)
+      grip_from (vec3, per strand, m): where the comb holds each gripped strand at the frame's start
+      grip_to (vec3, per strand, m): and at its end (the comb is dragged during the frame)
+      blend (float, fraction): how far through the frame this substep ends, (0, 1]
+      iterations (int): backward/forward sweep pairs for the root-to-grip chain
+      dt (float, s): substep length
+    In/out:
+      x (vec3, per particle, m): positions after follow_the_leader in; held by the comb out
+      grip (int, per strand): particle index within the strand held by the comb, -1 for none; moves
+          toward the tip as the hair slides
+      v (vec3, per particle, m/s): velocities, recomputed for the moved particles of gripped strands
+    """
+    s = wp.tid()
+    g = grip[s]
+    if g < 0:
+        return
+    start = strand_start[s]
+    end = strand_start[s + 1]
+    root = start + pinned_per_strand - 1
+    target = grip_from[s] + (grip_to[s] - grip_from[s]) * blend
+    held = wp.min(wp.max(start + g, root + 1), end - 1)
+    natural = float(0.0)
+    for i in range(root + 1, held + 1):
+        natural += rest_length[i]
+    reach = wp.length(target - x[root])
+    while reach > natural and held < end - 1:
+        held += 1
+        natural += rest_length[held]
+    grip[s] = held - start
+    if reach >= TAUT * natural:
+        # (nearly) taut, where the sweeps converge slowest: the chain lies straight toward the comb,
+        # each segment shortened by at most 1 - TAUT; a strand too short to reach is pulled straight
+        scale = wp.min(reach / natural, 1.0)
+        direction = (target - x[root]) / reach
+        along = float(0.0)
+        for k in range(root + 1, held + 1):
+            along += rest_length[k] * scale
+            x[k] = x[root] + direction * along
+        target = x[held]
+    else:
+        # a chain folded back along one line (straight hair lifted straight up) cannot take up its
+        # slack without leaving that line, and the sweeps never leave it: bow it sideways a little
+        axis = (target - x[root]) / wp.max(reach, 1.0e-9)
+        side = wp.cross(axis, wp.vec3(0.0, 0.0, 1.0))
+        if wp.length(side) < 1.0e-3:
+            side = wp.cross(axis, wp.vec3(1.0, 0.0, 0.0))
+        side = wp.normalize(side)
+        bow = 0.1 * (natural - reach)
+        for k in range(root + 1, held):
+            x[k] = x[k] + side * (bow * wp.sin(3.14159265 * float(k - root) / float(held - root)))
+        for _sweep in range(iterations):
+            for k in range(root + 1, held):
+                x[k] = _toward(x[k - 1], x[k], rest_length[k])
+            x[held] = target
+            for k in range(held - 1, root, -1):
+                x[k] = _toward(x[k + 1], x[k], rest_length[k + 1])
+    for k in range(held + 1, end):
+        x[k] = _toward(x[k - 1], x[k], rest_length[k])
+    for k in range(root + 1, end):
+        v[k] = (x[k] - x_prev[k]) / dt
 
 
 @wp.kernel

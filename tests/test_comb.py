@@ -1,0 +1,150 @@
+"""The comb (sim.comb): grips slide exactly when the hair up to them is too short, hidden hair is
+never grabbed, and held hair goes where the comb is dragged, keeping its lengths."""
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+
+from io_usd.preview import Camera
+from sim.collider import Collider
+from sim.comb import Comb, CombGrip, place_comb, pixel_rays, resample_stroke
+from sim.hair_solver import HairParams, HairSolver
+from sim.strands import StrandBuilder
+from warp_kernels import strands as strand_kernels
+
+SPACING = 0.01
+
+
+def _sphere_collider(radius=0.1, subdivisions=4):
+    s = trimesh.creation.icosphere(subdivisions, radius=radius)
+    v, f = np.asarray(s.vertices), np.asarray(s.faces)
+    return Collider("head", v, f, np.tile([1, 0, 0, 0], (len(v), 1)), np.tile([1.0, 0, 0, 0], (len(v), 1)), 2,
+                    sphere_leaves=0)
+
+
+def _hanging(roots, count=10):
+    """Straight strands hanging down from each root, SPACING apart."""
+    steps = np.arange(count)[:, None] * [0.0, -SPACING, 0.0]
+    return np.concatenate([r + steps for r in roots]), np.full(len(roots), count)
+
+
+def _hold(x, grip, target, pinned=2):
+    """One hold_in_comb launch on one strand; returns (positions, grip)."""
+    x = np.asarray(x, np.float32)
+    xa = wp.array(x, dtype=wp.vec3)
+    v = wp.zeros(len(x), dtype=wp.vec3)
+    start = wp.array([0, len(x)], dtype=int)
+    rest = np.r_[0.0, np.linalg.norm(np.diff(x, axis=0), axis=1)].astype(np.float32)
+    g = wp.array([grip], dtype=int)
+    t = wp.array([target], dtype=wp.vec3)
+    wp.launch(strand_kernels.hold_in_comb, 1, [xa, wp.array(x, dtype=wp.vec3), start, wp.array(rest, dtype=float),
+                                               pinned, t, t, 1.0, 16, 0.01, g, v])
+    return xa.numpy().astype(np.float64), int(g.numpy()[0]), rest
+
+
+@pytest.mark.parametrize("reach, expected", [(0.0299, 4), (0.0301, 5), (0.0599, 7), (0.0601, 8), (0.5, 9)])
+def test_grip_slides_exactly_when_the_comb_is_beyond_the_natural_length(reach, expected):
+    # root = particle 1 (two pinned); the hair from it to particle g is (g - 1) * SPACING long
+    x, _ = _hanging([np.zeros(3)])
+    direction = np.array([0.6, -0.8, 0.0])
+    target = x[1] + reach * direction
+    out, grip, rest = _hold(x, 4, target)
+    assert grip == expected
+    natural = (grip - 1) * SPACING
+    if reach <= 0.09:  # reachable: the held particle is on the comb
+        np.testing.assert_allclose(out[grip], target, atol=1e-6)
+    else:  # the whole strand is too short: pulled straight toward the comb
+        np.testing.assert_allclose(out[grip], x[1] + natural * direction, atol=2e-4)
+    seg = np.linalg.norm(np.diff(out, axis=0), axis=1)
+    # all but the segment at the root keep their length (a nearly taut chain is laid straight, its
+    # segments shortened by at most 1 - TAUT = 0.5%)
+    np.testing.assert_allclose(seg[2:], rest[3:], rtol=5e-3)
+    # that one converges over the sweeps, slowest when the chain is nearly taut (one launch: 16 sweeps)
+    assert abs(seg[1] - SPACING) < 0.1 * SPACING
+    np.testing.assert_array_equal(out[:2], x[:2].astype(np.float32))
+
+
+def test_ungripped_strands_are_untouched():
+    x, _ = _hanging([np.zeros(3)])
+    out, grip, _ = _hold(x, -1, [1.0, 1.0, 1.0])
+    assert grip == -1
+    np.testing.assert_array_equal(out, x.astype(np.float32))
+
+
+def test_stroke_resampling_and_rays():
+    samples = resample_stroke([[0, 0], [30, 0], [30, 40]], 7.0)  # 70 px long: 11 samples 7 px apart
+    assert len(samples) == 11 and np.allclose(samples[[0, -1]], [[0, 0], [30, 40]])
+    arc = np.where(samples[:, 1] == 0.0, samples[:, 0], 30.0 + samples[:, 1])  # distance along the stroke
+    np.testing.assert_allclose(arc, np.arange(11) * 7.0, atol=1e-9)
+    camera = Camera.look_at([0.0, 0.0, 1.0], [0.0, 0.0, 0.0], width=200, height=100)
+    rays = pixel_rays(camera, [[100, 50], [150, 20]])
+    np.testing.assert_allclose(rays[0], [0.0, 0.0, -1.0], atol=1e-12)
+    np.testing.assert_allclose(camera.project(camera.eye + 0.7 * rays[1]), [[150, 20]], atol=1e-9)
+
+
+def test_hidden_hair_behind_the_head_is_never_grabbed():
+    collider = _sphere_collider()
+    # strands in front of the head and behind it, overlapping on screen
+    front = [[x, -0.02, 0.102] for x in np.linspace(-0.04, 0.04, 5)]
+    back = [[x, -0.02, -0.102] for x in np.linspace(-0.04, 0.04, 5)]
+    points, counts = _hanging(front + back, 12)
+    start = np.r_[0, np.cumsum(counts)]
+    camera = Camera.look_at([0.0, 0.0, 1.0], [0.0, 0.0, 0.0], width=400, height=400)
+    row = camera.project([[0.0, -0.06, 0.102]])[0, 1]  # a stroke across the hair, over the head
+    comb = place_comb(camera, [[100, row], [300, row]], collider, points, start)
+    assert sorted(comb.strands) == [0, 1, 2, 3, 4]
+    held = start[comb.strands] + comb.grip
+    np.testing.assert_allclose(points[held, 1], -0.06, atol=SPACING / 2 + 1e-9)
+    assert np.all(np.abs(np.linalg.norm(comb.curve, axis=1) - 0.1) < 2e-3)  # the comb lies on the head
+    with pytest.raises(ValueError, match="does not touch the head"):
+        place_comb(camera, [[0, 0], [20, 0]], collider, points, start)
+
+
+@pytest.mark.parametrize("drag", [(30.0, -40.0), (0.0, -40.0)])  # the second folds straight hair onto itself
+def test_lifted_hair_follows_the_comb_and_falls_when_released(drag):
+    collider = _sphere_collider()
+    roots = [[x, 0.0, 0.102] for x in np.linspace(-0.03, 0.03, 4)]
+    points, counts = _hanging(roots, 12)
+    model = StrandBuilder().add_strands(points, counts).finalize("cpu")
+    model.bind_to_mesh(collider.posed_points(), collider.faces_np)
+    params = HairParams(substeps=4, collision="none", shape_matching="none")
+    solver = HairSolver(model, params)
+    a, b = model.state(), model.state()
+    camera = Camera.look_at([0.0, -0.05, 1.0], [0.0, -0.05, 0.0], width=400, height=400)
+    row = camera.project([[0.0, -0.06, 0.102]])[0, 1]
+    comb = place_comb(camera, [[120, row], [280, row]], collider, points, model.strand_start.numpy())
+    assert len(comb.strands) == 4
+    grip = CombGrip(model, comb)
+    solver.comb = grip
+    offset = comb.drag_offset(drag)  # up (and to the right) on the screen
+    assert offset[1] > 0.0 and abs(offset[2]) < 1e-12
+    dt = 1.0 / 24 / params.substeps
+    for frame in range(6):
+        solver.set_clock(frame / 24)
+        grip.move_to(offset * min(1.0, (frame + 1) / 3))
+        for k in range(1, params.substeps + 1):
+            solver.step(a, b, collider, dt, frame / 24 + k * dt)
+            a, b = b, a
+    x = a.x.numpy().copy()  # on the CPU numpy() is a view of the buffer the next steps reuse
+    held = model.strand_start.numpy()[comb.strands] + grip.grips()
+    np.testing.assert_allclose(x[held], comb.anchor + offset, atol=1e-5)
+    rest = model.rest_length.numpy()
+    seg = np.linalg.norm(x[1:] - x[:-1], axis=1)
+    inner = np.ones(len(seg), bool)
+    inner[np.cumsum(counts)[:-1] - 1] = False
+    np.testing.assert_allclose(seg[inner], rest[1:][inner], rtol=0.05)
+    solver.comb = None  # release: the lifted hair falls back
+    for k in range(12):
+        solver.step(a, b, collider, dt, 0.25 + k * dt)
+        a, b = b, a
+    assert np.all(a.x.numpy()[held, 1] < x[held, 1] - 1e-3)
+
+
+def test_comb_drag_stays_in_the_plane_facing_the_camera():
+    camera = Camera.look_at([1.0, 0.5, 1.0], [0.0, 0.0, 0.0], width=300, height=300)
+    comb = Comb(camera, np.zeros((2, 3)), np.zeros(3), -camera.pose[:3, 2], np.zeros(0, int), np.zeros(0, int),
+                np.zeros((0, 3)))
+    move = comb.drag_offset([25.0, -10.0])
+    assert abs(np.dot(move, comb.normal)) < 1e-12
+    np.testing.assert_allclose(camera.project([move])[0] - camera.project([np.zeros(3)])[0], [25.0, -10.0], atol=1e-6)
