@@ -137,6 +137,25 @@ def cmd_preview(args):
     return 0
 
 
+def cmd_score(args):
+    """Score a haircut against a target hairstyle: four-view hair silhouettes and strand lengths."""
+    from io_usd.score import score_caches, write_report
+
+    if args.output and os.path.splitext(args.output)[1].lower() != ".png":
+        return _fail(f"{args.output}: the score report is a PNG; name it .png", EXIT_INPUT)
+    try:
+        size = _size(args.size)
+    except ValueError:
+        return _fail(f"--size: expected WIDTHxHEIGHT in pixels, e.g. 480x480, got {args.size!r}", EXIT_INPUT)
+    report = score_caches(args.result, args.target, frame=args.frame, size=size, images=bool(args.output))
+    print(report.table())
+    if args.output:
+        write_report(report, args.output)
+        if not args.quiet:
+            print(f"wrote {args.output} in {report.seconds:.1f} s", file=sys.stderr)
+    return 0
+
+
 def cmd_view(args):
     from io_usd.viewer import has_display, view
 
@@ -245,6 +264,16 @@ def build_parser():
     p.add_argument("--focus", help="frame only this prim or role, e.g. face")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=cmd_preview)
+
+    p = sub.add_parser("score", help="score a haircut against a target: hair silhouettes from four views "
+                                     "(front, left, right, back) and per-strand lengths, 0-100")
+    p.add_argument("result", help="the cut hairstyle's cache")
+    p.add_argument("target", help="the target hairstyle's cache")
+    p.add_argument("-o", "--output", help="also write a side-by-side PNG report (result, target, difference)")
+    p.add_argument("--frame", type=int, help="frame of both caches (default: each cache's last)")
+    p.add_argument("--size", default="480x480", help="WIDTHxHEIGHT of each view in pixels")
+    p.add_argument("-q", "--quiet", action="store_true")
+    p.set_defaults(func=cmd_score)
 
     p = sub.add_parser("view", help="open the interactive viewer (needs a display)")
     p.add_argument("cache")
