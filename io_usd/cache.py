@@ -216,15 +216,46 @@ class CacheWriter:
         curves.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
         if color is not None:
             curves.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([Gf.Vec3f(*color)])
-        self._tag(curves, name, role, "curves", widths=widths_vt, animated=True)
+        self._tag(curves, name, role, "curves", widths=widths_vt, animated=True,
+                  counts=np.asarray(counts, np.int32).copy(), width_values=widths.copy(), frames=[], varying=False)
         return curves
 
-    # -- frames ------------------------------------------------------------------------------
-    def write_frame(self, frame, points_by_name, normals_by_name=None):
-        """Write time samples of points (and extent, and normals where given) at time code `frame`."""
+    def _set_curves(self, name, frame, counts, widths):
+        """A curves prim's topology at `frame`. Nothing is sampled while it stays the one add_curves
+        gave; from its first change on, curveVertexCounts and widths are sampled at every frame
+        written (the frames before are filled in), so no reader ever interpolates between topologies."""
+        info = self._prims[name]
+        counts = np.asarray(counts, np.int32)
+        widths = np.asarray(widths, np.float32)
+        if not info["varying"]:
+            if np.array_equal(counts, info["counts"]) and np.array_equal(widths, info["width_values"]):
+                return
+            info["varying"] = True
+            first = (Vt.IntArray.FromNumpy(info["counts"]), Vt.FloatArray.FromNumpy(info["width_values"]))
+            for earlier in info["frames"]:
+                self._sample_curves(info["prim"], earlier, *first)
+        info["widths"] = Vt.FloatArray.FromNumpy(widths)
+        self._sample_curves(info["prim"], frame, Vt.IntArray.FromNumpy(counts), info["widths"])
+
+    @staticmethod
+    def _sample_curves(curves, frame, counts, widths):
         t = Usd.TimeCode(float(frame))
+        curves.GetCurveVertexCountsAttr().Set(counts, t)
+        curves.GetWidthsAttr().Set(widths, t)
+
+    # -- frames ------------------------------------------------------------------------------
+    def write_frame(self, frame, points_by_name, normals_by_name=None, curves=None):
+        """Write time samples of points (and extent, and normals where given) at time code `frame`.
+
+        curves: {name: (curveVertexCounts, widths)} of curves prims whose strands may change between
+        frames (cut, grown, erased); once they differ from add_curves' they are time-sampled."""
+        t = Usd.TimeCode(float(frame))
+        for name, (counts, widths) in (curves or {}).items():
+            self._set_curves(name, frame, counts, widths)
         for name, points in points_by_name.items():
             info = self._prims[name]
+            if "frames" in info:
+                info["frames"].append(frame)
             geom = info["prim"]
             pts = _vec3f(points)
             geom.GetPointsAttr().Set(pts, t)
@@ -328,6 +359,7 @@ class CachePrim:
     widths: np.ndarray = field(default=None)  # curves
     color: tuple = field(default=None)
     vertex_colors: np.ndarray = field(default=None)  # (V, 3) where displayColor is per vertex
+    varying: bool = False  # curves whose curveVertexCounts change over time (a haircut): see counts()
 
 
 class CacheReader:
@@ -373,10 +405,12 @@ class CacheReader:
                     color = tuple(float(c) for c in values[0])
             if prim.IsA(UsdGeom.BasisCurves):
                 c = UsdGeom.BasisCurves(prim)
-                counts = np.array(c.GetCurveVertexCountsAttr().Get(), np.int32)
-                widths = np.array(c.GetWidthsAttr().Get(), np.float32)
+                start = Usd.TimeCode(self.start_frame)
+                counts = np.array(c.GetCurveVertexCountsAttr().Get(start), np.int32)
+                widths = np.array(c.GetWidthsAttr().Get(start) or [], np.float32)
                 self.prims[name] = CachePrim(name, str(prim.GetPath()), role, "curves", int(counts.sum()),
-                                             counts, widths=widths, color=color)
+                                             counts, widths=widths, color=color,
+                                             varying=c.GetCurveVertexCountsAttr().GetNumTimeSamples() > 0)
             elif prim.IsA(UsdGeom.Mesh):
                 m = UsdGeom.Mesh(prim)
                 counts = np.array(m.GetFaceVertexCountsAttr().Get(), np.int32)
@@ -401,6 +435,23 @@ class CacheReader:
             frames.update(int(round(t)) for t in samples) if samples else frames.add(self.start_frame)
         return sorted(frames) or [self.start_frame]
 
+    def counts(self, name, frame):
+        """curveVertexCounts of a curves prim at `frame` (they change where strands were cut, grown
+        or erased); faceVertexCounts of a mesh."""
+        prim = self.prims[name]
+        if not prim.varying:
+            return prim.counts
+        attr = UsdGeom.BasisCurves(self.stage.GetPrimAtPath(prim.path)).GetCurveVertexCountsAttr()
+        return np.array(attr.Get(Usd.TimeCode(float(frame))), np.int32)
+
+    def widths(self, name, frame):
+        """Widths of a curves prim at `frame` (one per vertex, per curve or constant)."""
+        prim = self.prims[name]
+        if not prim.varying:
+            return prim.widths
+        attr = UsdGeom.BasisCurves(self.stage.GetPrimAtPath(prim.path)).GetWidthsAttr()
+        return np.array(attr.Get(Usd.TimeCode(float(frame))) or [], np.float32)
+
     def normals(self, name, frame):
         """Per-vertex normals of a mesh prim at `frame`, or None where the cache has none."""
         attr = UsdGeom.Mesh(self.stage.GetPrimAtPath(self.prims[name].path)).GetNormalsAttr()
@@ -422,8 +473,12 @@ class CacheReader:
         return self._frame.to_engine(world).astype(np.float32)
 
     def read_points(self, name):
-        """All frames of one prim: (frames, points, 3) float32."""
-        return np.stack([self.points(name, f) for f in self.frames(name)])
+        """All frames of one prim: (frames, points, 3) float32, or a list of (points, 3) arrays per
+        frame when the number of points changes (cut hair)."""
+        frames = [self.points(name, f) for f in self.frames(name)]
+        if len({len(f) for f in frames}) > 1:
+            return frames
+        return np.stack(frames)
 
     def triangles(self, name):
         """Triangulated faces of a mesh prim as (T, 3), each polygon fanned from its first corner."""

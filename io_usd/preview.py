@@ -297,13 +297,17 @@ class SceneBuilder:
         if len(points) == 0:
             return None
         if prim.kind == "curves":
-            if name not in self._strand_looks:
-                colors = np.repeat(hair_colors(prim.counts, self._color(prim), self.seed), 2, 0)
-                twist = np.random.default_rng(self.seed + 1).normal(0.0, 0.6, len(prim.counts))
-                self._strand_looks[name] = colors, twist
-            colors, twist = self._strand_looks[name]
+            # strands cut, grown or erased (a haircut) change the counts from frame to frame
+            counts = self.reader.counts(name, frame)
+            widths = self.reader.widths(name, frame) if prim.varying else prim.widths
+            key = (name, counts.tobytes()) if prim.varying else name
+            if key not in self._strand_looks:
+                colors = np.repeat(hair_colors(counts, self._color(prim), self.seed), 2, 0)
+                twist = np.random.default_rng(self.seed + 1).normal(0.0, 0.6, len(counts))
+                self._strand_looks[key] = colors, twist
+            colors, twist = self._strand_looks[key]
             distance = np.linalg.norm(points - np.asarray(eye, np.float32), axis=1)
-            vertices, faces, normals = hair_ribbons(points, prim.counts, prim.widths, eye, twist=twist,
+            vertices, faces, normals = hair_ribbons(points, counts, widths, eye, twist=twist,
                                                     min_width=self.hair_pixels * distance / focal)
         else:
             if name not in self._triangles:

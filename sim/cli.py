@@ -137,6 +137,32 @@ def cmd_preview(args):
     return 0
 
 
+def cmd_studio(args):
+    """The interactive haircut studio on a scene's hair."""
+    import sim
+    from io_usd.viewer import has_display
+
+    from .studio import Session, StudioWindow
+
+    if not has_display():
+        return _fail("cfx studio needs a display (DISPLAY is not set); script the same edits as [[haircut]] "
+                     "tables in the scene file and use cfx run", EXIT_INPUT)
+    for path in (args.cache, args.script):
+        if path and os.path.abspath(path) == os.path.abspath(args.scene):
+            return _fail(f"{path}: would overwrite the scene file", EXIT_INPUT)
+    try:
+        width, height = _size(args.size)
+    except ValueError:
+        return _fail(f"--size: expected WIDTHxHEIGHT in pixels, e.g. 960x720, got {args.size!r}", EXIT_INPUT)
+    session = Session(sim.load_scene(args.scene, _overrides(args)), width, height)
+    StudioWindow(session, args.cache, args.script, max_frames=args.max_frames).run()
+    saved = [p for p in (args.cache, args.script) if p]
+    if saved:
+        print(f"wrote {' and '.join(saved)}: {len(session.events)} edits over {len(session.frames)} frames",
+              file=sys.stderr)
+    return 0
+
+
 def cmd_score(args):
     """Score a haircut against a target hairstyle: four-view hair silhouettes and strand lengths."""
     from io_usd.score import score_caches, write_report
@@ -264,6 +290,16 @@ def build_parser():
     p.add_argument("--focus", help="frame only this prim or role, e.g. face")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=cmd_preview)
+
+    p = sub.add_parser("studio", help="the interactive haircut studio: comb, cut and wax the scene's hair with "
+                                      "the mouse (needs a display)")
+    p.add_argument("scene")
+    p.add_argument("--cache", help="save the session's frames to this cache (.usdc, .usd or .usda)")
+    p.add_argument("--script", help="save the scene file with the session's [[haircut]] timeline (.toml)")
+    p.add_argument("--size", default="960x720", help="window WIDTHxHEIGHT in pixels")
+    p.add_argument("--max-frames", type=int, help="stop simulating after this many frames (the window stays)")
+    p.add_argument("--device", help="override the device (cpu, cuda, cuda:0)")
+    p.set_defaults(func=cmd_studio)
 
     p = sub.add_parser("score", help="score a haircut against a target: hair silhouettes from four views "
                                      "(front, left, right, back) and per-strand lengths, 0-100")

@@ -25,29 +25,10 @@ from scipy.interpolate import CubicHermiteSpline
 
 from warp_kernels import strands as strand_kernels
 
+from . import strokes
+
 SWEEPS = 8  # backward/forward sweeps of the root-to-comb chain per substep
 _SERIALS = itertools.count(1)  # graph keys: a new grip is a new set of arrays, never an old one's id
-
-
-def resample_stroke(stroke, spacing):
-    """Points every `spacing` pixels along a screen polyline (its ends included)."""
-    stroke = np.asarray(stroke, np.float64).reshape(-1, 2)
-    if len(stroke) < 2:
-        raise ValueError("a stroke needs at least two points")
-    arc = np.r_[0.0, np.cumsum(np.linalg.norm(np.diff(stroke, axis=0), axis=1))]
-    if arc[-1] <= 0.0:
-        raise ValueError("a stroke needs two distinct points")
-    at = np.linspace(0.0, arc[-1], max(2, int(np.ceil(arc[-1] / spacing)) + 1))
-    return np.stack([np.interp(at, arc, stroke[:, k]) for k in range(2)], 1)
-
-
-def pixel_rays(camera, pixels):
-    """Unit world directions (N, 3) of the view rays through pixel positions (N, 2) of `camera`
-    (an io_usd.preview.Camera); every ray starts at camera.eye."""
-    uv = np.asarray(pixels, np.float64).reshape(-1, 2) - (0.5 * camera.width, 0.5 * camera.height)
-    local = np.stack([uv[:, 0], -uv[:, 1], np.full(len(uv), -camera.focal)], 1)
-    world = local @ np.asarray(camera.pose, np.float64)[:3, :3].T
-    return world / np.linalg.norm(world, axis=1, keepdims=True)
 
 
 def catmull_rom(points, samples_per_span=8):
@@ -95,10 +76,7 @@ class Comb:
     def drag_offset(self, pixels):
         """The world displacement (3,) of a drag by (du, dv) pixels: parallel to the screen, at the
         comb's depth, so the comb stays under the cursor."""
-        du, dv = np.asarray(pixels, np.float64)
-        pose = np.asarray(self.camera.pose, np.float64)
-        depth = float(np.dot(self.centre - pose[:3, 3], -pose[:3, 2]))
-        return (du * pose[:3, 0] - dv * pose[:3, 1]) * depth / self.camera.focal
+        return strokes.screen_drag(self.camera, self.centre[None], pixels)[0]
 
 
 def place_comb(camera, stroke, collider, points, strand_start, pinned_per_strand=2, spacing=6.0):
@@ -106,10 +84,12 @@ def place_comb(camera, stroke, collider, points, strand_start, pinned_per_strand
 
     points: (P, 3) current hair positions; strand_start: (S + 1,) offsets. Raises ValueError when
     the stroke misses the head."""
-    samples = resample_stroke(stroke, spacing)
-    directions = pixel_rays(camera, samples)
+    samples = strokes.resample_stroke(stroke, spacing)
+    if len(samples) < 2:
+        raise ValueError("a comb stroke needs two distinct points")
+    origins, directions = strokes.pixel_rays(camera, samples)
     eye = camera.eye
-    t = collider.ray_hits(np.repeat(eye[None], len(samples), 0), directions)
+    t = collider.ray_hits(origins, directions)
     if not np.any(t > 0.0):
         raise ValueError("the comb stroke does not touch the head")
     hits = eye + directions[t > 0.0] * t[t > 0.0, None]
@@ -150,7 +130,7 @@ class CombGrip:
         grip[comb.strands] = comb.grip
         targets = np.zeros((model.num_strands, 3), np.float32)
         targets[comb.strands] = comb.anchor
-        self.comb = comb
+        self.comb, self.model, self.event = comb, model, None
         self.serial = next(_SERIALS)
         self.grip = wp.array(grip, dtype=int, device=device)
         self.grip_from = wp.array(targets, dtype=wp.vec3, device=device)
@@ -170,8 +150,55 @@ class CombGrip:
         """(G,) current grip particle of each held strand (they slide toward the tips)."""
         return self.grip.numpy()[self.comb.strands]
 
-    def launch(self, model, state_out, state_in, blend, dt):
+    def launch(self, model, state_out, state_in, blend, dt, collide_mode, shape, margin, search):
         wp.launch(strand_kernels.hold_in_comb, model.num_strands,
                   [state_out.x, state_in.x, model.strand_start, model.rest_length, model.pinned_per_strand,
-                   self.grip_from, self.grip_to, float(blend), SWEEPS, float(dt), self.grip, state_out.v],
+                   self.grip_from, self.grip_to, float(blend), SWEEPS, int(collide_mode), shape, float(margin),
+                   float(search), float(dt), self.grip, state_out.v],
                   device=model.device)
+
+
+# -- on a scene, from a timeline ---------------------------------------------------------------------
+def start_comb(scene, stroke, camera, event=None):
+    """Place a comb on the scene's head along `stroke` seen through `camera` and hold the hair it
+    crosses; ValueError when it misses the head or crosses no visible hair."""
+    m = scene.model
+    comb = place_comb(camera, stroke, scene.collider, scene.state.x.numpy(), m.strand_start_np, m.pinned_per_strand)
+    if len(comb.strands) == 0:
+        raise ValueError("the comb stroke crosses no hair the camera sees")
+    scene.held_comb = scene.solver.comb = CombGrip(m, comb)
+    scene.held_comb.event = event
+    return comb
+
+
+def comb_drag(event, frame):
+    """The comb's drag (du, dv) in pixels at `frame`: its `moves` keys [[frame, du, dv], ...]
+    interpolated linearly, from no drag at the frame it was placed, held after the last key."""
+    keys = [(float(event.frame), 0.0, 0.0)] + [tuple(map(float, k)) for k in (event.moves or ())]
+    f, du, dv = (np.array(c) for c in zip(*keys))
+    return np.array([np.interp(frame, f, du), np.interp(frame, f, dv)])
+
+
+def before_frame(scene, events, frame):
+    """Before the scene advances into `frame`: the comb placed by the latest comb event still held
+    moves to where its keys put it at `frame`; a released comb lets go. After an edit rebuilt the
+    groom under the comb (a cut of the lifted hair), the same strands are taken again, grips clamped
+    to shortened strands; an edit that removed strands releases it."""
+    held = [e for e in events if e.tool == "comb" and e.frame < frame and (e.release is None or e.release > frame)]
+    grip = getattr(scene, "held_comb", None)
+    same = grip is not None and held and (grip.event.frame, grip.event.stroke) == (held[-1].frame, held[-1].stroke)
+    if not same:
+        scene.held_comb = scene.solver.comb = None
+        return
+    grip.event = held[-1]  # the timeline as it stands: a live session adds moves as the comb is dragged
+    if grip.model is not scene.model:
+        if scene.model.num_strands != grip.model.num_strands:
+            scene.held_comb = scene.solver.comb = None
+            return
+        comb = grip.comb
+        comb.grip = np.minimum(grip.grips(), scene.model.counts[comb.strands] - 1)
+        regrip = CombGrip(scene.model, comb)
+        regrip.event, regrip._targets = grip.event, grip._targets
+        scene.held_comb = grip = regrip
+    scene.solver.comb = grip
+    grip.move_to(grip.comb.drag_offset(comb_drag(grip.event, frame)))

@@ -132,6 +132,17 @@ class FrameGraphs:
         graph.launch()  # a capture only records: this runs the frame
         self.replays += 1
 
+    def forget(self, name):
+        """Forget one solver's captured frames (keys starting with `name`), after its model or
+        buffers were replaced (a haircut); the other solvers keep theirs."""
+        def mine(key):
+            while isinstance(key, tuple) and key:  # keys may nest: (("hair", comb), animate, buffer)
+                key = key[0]
+            return key == name
+
+        self._graphs = {k: g for k, g in self._graphs.items() if not mine(k)}
+        self._seen = {k for k in self._seen if not mine(k)}
+
     def clear(self):
         """Forget captured frames (after a solver's constants or buffers changed, e.g. a reset)."""
         self._graphs.clear()

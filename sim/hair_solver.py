@@ -89,6 +89,7 @@ class HairSolver:
         self.clearance_pass = None  # parallel clearance before the length pass: None = automatic
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
+        self._waxed = bool(model.wax_np.any())  # waxed strands hold their shape even without a root hold
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=device)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=device)
         # time-dependent forces (gusts, captured guides) read the time from the device, so a frame's
@@ -115,7 +116,7 @@ class HairSolver:
         predicted, other = (state_out.x, self.shape_scratch) if passes % 2 == 0 else (self.shape_scratch, state_out.x)
         bound = m.bind_particle is not None and collider is not None
         c = collider
-        hold = p.root_stiffness if p.root_hold_length > 0.0 else 0.0
+        hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
         wp.launch(strands.predict_positions, m.num_particles,
                   [state_in.x, state_in.v, m.inv_mass, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag,
                    p.damping, p.wind_turbulence, p.wind_turbulence_scale, p.wind_turbulence_rate, self.clock,
@@ -159,7 +160,8 @@ class HairSolver:
                    self.clearance, p.ftl_damping, dt, state_out.v], device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
-            self.comb.launch(m, state_out, state_in, blend, dt)
+            self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
+                             p.collision_margin, p.collision_search)
 
     def reset(self):
         """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut).

@@ -23,6 +23,8 @@ from .errors import InputError
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
 from .hair_solver import HairParams, HairSolver
+from .comb import before_frame as comb_before_frame
+from .haircut import parse_timeline, run_events
 from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp, scalp_area
 from .head import HeadAnimation, mesh_head, procedural_head
 from .strands import StrandBuilder
@@ -119,6 +121,7 @@ class SceneConfig:
     cloth_detail: DetailParams = field(default_factory=DetailParams)
     face: FaceConfig = field(default_factory=FaceConfig)
     capture: CaptureConfig = field(default_factory=CaptureConfig)  # cfx capture synth only
+    haircut: tuple = ()  # sim.haircut.HaircutEvent, one per [[haircut]] table: the grooming timeline
     given_geometry: bool = False  # the geometry comes as SceneAssets: head, body and garment tables do not apply
 
     def settings(self):
@@ -134,6 +137,8 @@ class SceneConfig:
             out.update(cloth_solver=asdict(self.cloth_solver), cloth_detail=asdict(self.cloth_detail))
             if not self.given_geometry:
                 out.update(cloth=asdict(self.cloth))
+        if self.haircut:
+            out["haircut"] = {f"{k}": event.as_dict() for k, event in enumerate(self.haircut)}
         if self.face.enabled:
             face = asdict(self.face)
             face["expressions"] = [{"frame": k.frame, "emotion": k.emotion, "weight": k.weight,
@@ -151,9 +156,10 @@ SECTIONS = {"scene": ("timing", TimingConfig), "head": ("head", HeadConfig),
 def load_scene(path, overrides=None):
     """Read and validate a TOML scene file. overrides: {"scene": {"frames": 10}, ...}."""
     data = load_toml(path)
+    known = (*SECTIONS, "haircut")
     for section in data:
-        if section not in SECTIONS:
-            raise InputError(path, f"[{section}]", f"unknown table (known: {', '.join(SECTIONS)})")
+        if section not in known:
+            raise InputError(path, f"[{section}]", f"unknown table (known: {', '.join(known)})")
     return _build_config(str(path), data, overrides)
 
 
@@ -179,6 +185,7 @@ def _build_config(source, data, overrides, check_files=True):
     """check_files=False: the geometry comes as SceneAssets, so the tables name no files to check."""
     overrides = overrides or {}
     data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    timeline = data.pop("haircut", [])
     cloth_table = dict(data.get("cloth", {}))
     solver_table = cloth_table.pop("solver", {})
     detail_table = cloth_table.pop("detail", {})
@@ -202,6 +209,9 @@ def _build_config(source, data, overrides, check_files=True):
                                        overrides.get("cloth.detail"))
     if expressions:
         parts["face"] = replace(parts["face"], expressions=expressions)
+    parts["haircut"] = parse_timeline(timeline, source, parts["timing"])
+    if parts["haircut"] and not parts["hair"].enabled:
+        raise InputError(source, "haircut", "the scene has no hair to cut ([hair] enabled = false)")
     config = SceneConfig(source=source, given_geometry=not check_files, **parts)
     if not check_files:
         return config
@@ -349,9 +359,12 @@ class Scene:
         self.collider.apply_pose(0)
         self.collider.reset_motion()
 
-        self.model = self.solver = self.state = self.guides = None
+        self.model = self.solver = self.state = self.guides = self.hair_template = None
+        # the pose the groom is bound on: haircut edits map styled shapes back into it
+        self.groom_points = self.collider.posed_points().copy()  # a copy: on the CPU numpy() is a view
         if config.hair.enabled:
             self.model = self._groom()
+            self.hair_template = self.model  # what a haircut's "initialise" returns to
             self.solver = HairSolver(self.model, config.solver)
             self.state, self._scratch = self.model.state(), self.model.state()
             self.guides = None
@@ -431,7 +444,7 @@ class Scene:
 
     def _groom(self):
         cfg, head = self.config, self.head
-        rest_points = self.collider.posed_points()
+        rest_points = self.groom_points
         if self.assets is not None:
             points, counts, widths = self.assets.hair
             try:
@@ -742,10 +755,18 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
         # frame i - 1, so USD output overlaps the next frame's simulation on a GPU
         readback, pending = AsyncReadback(scene.device), None
 
-        def write(frame, wait, weights):
+        first_counts = scene.model.counts if scene.model is not None else None
+
+        def write(frame, wait, weights, hair):
             data = wait()
-            if scene.model is not None:
-                scene.solver.report_unhealthy(data["hair_bad"], data["hair_first"], frame, hair_prim)
+            curves = None
+            if hair is not None:  # the hair's model and solver when the frame was queued (haircuts replace them)
+                model, solver = hair
+                solver.report_unhealthy(data["hair_bad"], data["hair_first"], frame, hair_prim)
+                curves = {"hair": (model.counts, model.widths_np)}
+                if stage is not None and not np.array_equal(model.counts, first_counts):
+                    raise InputError(config.source, "haircut", "a cache layered over a USD stage keeps the "
+                                     "stage's curves: cut strands in a scene of their own")
             if scene.cloth_model is not None:
                 scene.cloth_solver.report_unhealthy(data["cloth_bad"], data["cloth_first"], frame, cloth_prim)
             samples = {name: data[name] for name in (scene.collider_name, "hair", "cloth", "cloth_detail")
@@ -764,15 +785,20 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
                     local = (data["face"] - transform[:3, 3]) @ transform[:3, :3]
                     move = float(np.linalg.norm(local - scene.face_rig.mesh.vertices, axis=1).max())
                     worst["face_max_offset"] = max(worst.get("face_max_offset", 0.0), move)
-            writer.write_frame(frame, samples, normals)
+            writer.write_frame(frame, samples, normals, curves=curves)
             bar.update(1)
 
         for i in range(t.frames):
             frame = t.start_frame + i
             if i > 0:
+                if config.haircut:  # a comb in the hair moves to where the timeline has it at this frame
+                    comb_before_frame(scene, config.haircut, frame)
                 scene.advance(1.0 / t.fps)
+            if config.haircut:
+                run_events(scene, config.haircut, frame)
             arrays, weights = scene.queue_outputs(frame)
-            ready = (frame, readback.begin(arrays), weights)
+            hair = (scene.model, scene.solver) if scene.model is not None else None
+            ready = (frame, readback.begin(arrays), weights, hair)
             if t.stats:
                 for key, value in scene.measure().items():
                     if key == "walk_agreement":  # reported over the whole run and for the worst frame

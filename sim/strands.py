@@ -25,7 +25,9 @@ class HairState:
 class HairModel:
     """What does not change during a run. Build with StrandBuilder.finalize()."""
 
-    def __init__(self, rest_positions, counts, widths, pinned_per_strand, device):
+    def __init__(self, rest_positions, counts, widths, pinned_per_strand, device, wax=None):
+        """wax: per-particle weight in [0, 1] with which the root hold also keeps a waxed strand's
+        styled shape (sim.haircut.wax); none by default."""
         rest = np.asarray(rest_positions, dtype=np.float64)
         counts = np.asarray(counts, dtype=np.int64)
         self.device = device
@@ -36,6 +38,7 @@ class HairModel:
         self.strand_start_np = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
         self.rest_positions_np = rest.astype(np.float32)
         self.widths_np = np.asarray(widths, dtype=np.float32)
+        self.wax_np = np.zeros(self.num_particles, np.float32) if wax is None else np.asarray(wax, np.float32)
 
         start = self.strand_start_np[:-1]
         local = np.arange(self.num_particles) - np.repeat(start, counts)
@@ -75,25 +78,31 @@ class HairModel:
             v=wp.zeros(self.num_particles, dtype=wp.vec3, device=self.device),
         )
 
-    def bind_to_mesh(self, mesh_points, mesh_indices):
+    def bind_to_mesh(self, mesh_points, mesh_indices, triangles=None, barycentric=None):
         """Bind the pinned particles of every strand to the triangle closest to the strand root.
 
         mesh_points/mesh_indices are the collider in the pose the rest shape was groomed on.
+        triangles (S,) and barycentric (S, 3): each root's triangle and weights, given instead of
+        searched (a rebuilt groom keeps its strands' bindings: sim.haircut).
         """
         device = self.device
         pts = wp.array(np.asarray(mesh_points, np.float32), dtype=wp.vec3, device=device)
         idx = wp.array(np.asarray(mesh_indices, np.int32).reshape(-1), dtype=wp.int32, device=device)
-        mesh = wp.Mesh(points=pts, indices=idx)
         roots = self.rest_positions_np[self.strand_start_np[:-1]]
-        face = wp.zeros(self.num_strands, dtype=wp.int32, device=device)
-        bary = wp.zeros(self.num_strands, dtype=wp.vec3, device=device)
-        wp.launch(collision.mesh_closest_face, self.num_strands,
-                  [wp.array(roots, dtype=wp.vec3, device=device), mesh.id, 1.0e6, face, bary],
-                  device=device)
+        if triangles is None:
+            mesh = wp.Mesh(points=pts, indices=idx)
+            face = wp.zeros(self.num_strands, dtype=wp.int32, device=device)
+            bary = wp.zeros(self.num_strands, dtype=wp.vec3, device=device)
+            wp.launch(collision.mesh_closest_face, self.num_strands,
+                      [wp.array(roots, dtype=wp.vec3, device=device), mesh.id, 1.0e6, face, bary],
+                      device=device)
+            triangles, barycentric = face.numpy(), bary.numpy()
+        self.root_triangle_np = np.asarray(triangles, np.int32).reshape(self.num_strands)
+        self.root_barycentric_np = np.asarray(barycentric, np.float32).reshape(self.num_strands, 3)
         k = self.pinned_per_strand
         particle = (self.strand_start_np[:-1, None] + np.arange(k)[None, :]).reshape(-1).astype(np.int32)
-        tri = np.repeat(face.numpy(), k).astype(np.int32)
-        bw = np.repeat(bary.numpy(), k, axis=0)
+        tri = np.repeat(self.root_triangle_np, k).astype(np.int32)
+        bw = np.repeat(self.root_barycentric_np, k, axis=0)
         self.bind_particle = wp.array(particle, dtype=wp.int32, device=device)
         binding = np.full(self.num_particles, -1, np.int32)
         binding[particle] = np.arange(len(particle), dtype=np.int32)
@@ -107,19 +116,20 @@ class HairModel:
                    self.bind_local], device=device)
         # every particle's rest offset from its root in the root triangle's frame (root hold)
         self.root_binding = wp.array(np.arange(self.num_strands, dtype=np.int32) * k, dtype=wp.int32, device=device)
-        frames = _triangle_frames(np.asarray(mesh_points, np.float64)[np.asarray(mesh_indices).reshape(-1, 3)[face.numpy()]])
+        frames = _triangle_frames(np.asarray(mesh_points, np.float64)[np.asarray(mesh_indices).reshape(-1, 3)[self.root_triangle_np]])
         offsets = self.rest_positions_np - np.repeat(roots, self.counts, axis=0)
         local = np.einsum("pji,pj->pi", np.repeat(frames, self.counts, axis=0), offsets)
         self.root_local = wp.array(local.astype(np.float32), dtype=wp.vec3, device=device)
         return self
 
     def root_hold_weights(self, length):
-        """Per-particle weight of the root hold: 1 at the root, falling linearly to 0 at `length` [m]."""
+        """Per-particle weight of the root hold: 1 at the root, falling linearly to 0 at `length` [m],
+        and never below the particle's wax weight."""
         if length <= 0.0:
-            return np.zeros(self.num_particles, np.float32)
+            return self.wax_np.copy()
         arc = np.cumsum(self.rest_length_np.astype(np.float64))
         arc -= np.repeat(arc[self.strand_start_np[:-1]], self.counts)
-        return np.clip(1.0 - arc / length, 0.0, 1.0).astype(np.float32)
+        return np.maximum(np.clip(1.0 - arc / length, 0.0, 1.0).astype(np.float32), self.wax_np)
 
 
 def _triangle_frames(tri):

@@ -8,10 +8,11 @@ import warp as wp
 
 from io_usd.preview import Camera
 from sim.collider import Collider
-from sim.comb import Comb, CombGrip, place_comb, pixel_rays, resample_stroke
+from sim.comb import Comb, CombGrip, place_comb
 from sim.hair_solver import HairParams, HairSolver
 from sim.strands import StrandBuilder
 from warp_kernels import strands as strand_kernels
+from warp_kernels.collision import ColliderShape
 
 SPACING = 0.01
 
@@ -39,7 +40,7 @@ def _hold(x, grip, target, pinned=2):
     g = wp.array([grip], dtype=int)
     t = wp.array([target], dtype=wp.vec3)
     wp.launch(strand_kernels.hold_in_comb, 1, [xa, wp.array(x, dtype=wp.vec3), start, wp.array(rest, dtype=float),
-                                               pinned, t, t, 1.0, 16, 0.01, g, v])
+                                               pinned, t, t, 1.0, 16, 0, ColliderShape(), 0.0, 0.0, 0.01, g, v])
     return xa.numpy().astype(np.float64), int(g.numpy()[0]), rest
 
 
@@ -70,17 +71,6 @@ def test_ungripped_strands_are_untouched():
     out, grip, _ = _hold(x, -1, [1.0, 1.0, 1.0])
     assert grip == -1
     np.testing.assert_array_equal(out, x.astype(np.float32))
-
-
-def test_stroke_resampling_and_rays():
-    samples = resample_stroke([[0, 0], [30, 0], [30, 40]], 7.0)  # 70 px long: 11 samples 7 px apart
-    assert len(samples) == 11 and np.allclose(samples[[0, -1]], [[0, 0], [30, 40]])
-    arc = np.where(samples[:, 1] == 0.0, samples[:, 0], 30.0 + samples[:, 1])  # distance along the stroke
-    np.testing.assert_allclose(arc, np.arange(11) * 7.0, atol=1e-9)
-    camera = Camera.look_at([0.0, 0.0, 1.0], [0.0, 0.0, 0.0], width=200, height=100)
-    rays = pixel_rays(camera, [[100, 50], [150, 20]])
-    np.testing.assert_allclose(rays[0], [0.0, 0.0, -1.0], atol=1e-12)
-    np.testing.assert_allclose(camera.project(camera.eye + 0.7 * rays[1]), [[150, 20]], atol=1e-9)
 
 
 def test_hidden_hair_behind_the_head_is_never_grabbed():

@@ -490,6 +490,10 @@ def hold_in_comb(
     grip_to: wp.array(dtype=wp.vec3),
     blend: float,
     iterations: int,
+    collide_mode: int,
+    shape: ColliderShape,
+    margin: float,
+    search: float,
     dt: float,
     grip: wp.array(dtype=int),
     v: wp.array(dtype=wp.vec3),
@@ -501,8 +505,10 @@ def hold_in_comb(
     hair up to the grip, the grip moves toward the tip until that length suffices (or the tip is
     reached and the strand is pulled straight toward the comb). The root-to-grip chain is solved
     with both ends fixed by alternating forward and backward follow-the-leader sweeps (FABRIK),
-    ending on the comb, so only the segment next to the root may keep a residual error; the rest
-    follows the gripped particle. Runs after follow_the_leader; strands
+    ending on the comb. A last sweep from the root keeps the hair out of the collider and the lengths
+    right: from the first particle it pushes out, or the first segment more than 1% off its rest
+    length, the rest follow at rest length, so where the comb would pull hair into the head (or a
+    one-segment chain cannot take up its slack) the held particle stops short of the comb. The hair beyond follows the gripped particle. Runs after follow_the_leader; strands
     with grip < 0 are left untouched.
 
     Launch: one thread per strand (dim = num_strands).
@@ -515,6 +521,11 @@ def hold_in_comb(
       grip_to (vec3, per strand, m): and at its end (the comb is dragged during the frame)
       blend (float, fraction): how far through the frame this substep ends, (0, 1]
       iterations (int): backward/forward sweep pairs for the root-to-grip chain
+      collide_mode (int): 0 none, 1 sphere tree, 2 mesh: held hair is kept out of the head (the comb
+          cannot pull hair into it)
+      shape (ColliderShape): the collider
+      margin (float, m): clearance kept from the collider
+      search (float, m): mesh query radius
       dt (float, s): substep length
     In/out:
       x (vec3, per particle, m): positions after follow_the_leader in; held by the comb out
@@ -557,18 +568,35 @@ def hold_in_comb(
         if wp.length(side) < 1.0e-3:
             side = wp.cross(axis, wp.vec3(1.0, 0.0, 0.0))
         side = wp.normalize(side)
-        bow = 0.1 * (natural - reach)
+        spread = float(0.0)
         for k in range(root + 1, held):
-            x[k] = x[k] + side * (bow * wp.sin(3.14159265 * float(k - root) / float(held - root)))
+            off = x[k] - x[root]
+            spread = wp.max(spread, wp.length(off - axis * wp.dot(off, axis)))
+        bow = 0.1 * (natural - reach)
+        if spread < 0.01 * bow:  # only a chain lying on the line: a bent one bends further by itself
+            for k in range(root + 1, held):
+                x[k] = x[k] + side * (bow * wp.sin(3.14159265 * float(k - root) / float(held - root)))
         for _sweep in range(iterations):
             for k in range(root + 1, held):
                 x[k] = _toward(x[k - 1], x[k], rest_length[k])
             x[held] = target
             for k in range(held - 1, root, -1):
                 x[k] = _toward(x[k + 1], x[k], rest_length[k + 1])
-    for k in range(held + 1, end):
-        x[k] = _toward(x[k - 1], x[k], rest_length[k])
+    # a last sweep from the root keeps every length and the head out: the comb cannot pull hair
+    # into the head, so where it tries, the held particle stops short of the comb
+    follow = int(0)  # once a particle had to be pushed out, the ones after it follow at rest length
     for k in range(root + 1, end):
+        p = x[k]
+        if wp.abs(wp.length(p - x[k - 1]) - rest_length[k]) > 0.01 * rest_length[k]:
+            follow = 1  # a chain too short to take up its slack (one segment) or not yet converged
+        if k > held or follow != 0:
+            p = _toward(x[k - 1], p, rest_length[k])
+        if collide_mode != 0:
+            pushed = collide_point(p, collide_mode, shape, margin, search)
+            if wp.length(pushed - p) > 0.0:
+                p = _toward(x[k - 1], pushed, rest_length[k])
+                follow = 1
+        x[k] = p
         v[k] = (x[k] - x_prev[k]) / dt
 
 
