@@ -207,6 +207,9 @@ def cmd_info(args):
     for name, prim in reader.prims.items():
         if prim.kind == "curves":
             detail = f"{len(prim.counts)} curves, {prim.num_points} points"
+            if getattr(prim, "varying", False):  # cut, grown or erased: the strands change over time
+                last = reader.counts(name, frames[-1])
+                detail += f" at the start; {len(last)} curves, {int(last.sum())} points at frame {frames[-1]}"
         else:
             detail = f"{len(prim.counts)} faces, {prim.num_points} points"
         print(f"  {prim.path:24s} role={prim.role:12s} {prim.kind:6s} {detail}")

@@ -185,7 +185,7 @@ def before_frame(scene, events, frame):
     groom under the comb (a cut of the lifted hair), the same strands are taken again, grips clamped
     to shortened strands; an edit that removed strands releases it."""
     held = [e for e in events if e.tool == "comb" and e.frame < frame and (e.release is None or e.release > frame)]
-    grip = getattr(scene, "held_comb", None)
+    grip = scene.held_comb
     same = grip is not None and held and (grip.event.frame, grip.event.stroke) == (held[-1].frame, held[-1].stroke)
     if not same:
         scene.held_comb = scene.solver.comb = None

@@ -360,6 +360,7 @@ class Scene:
         self.collider.reset_motion()
 
         self.model = self.solver = self.state = self.guides = self.hair_template = None
+        self.held_comb = None  # a sim.comb.CombGrip while a comb holds hair (haircut timelines, cfx studio)
         # the pose the groom is bound on: haircut edits map styled shapes back into it
         self.groom_points = self.collider.posed_points().copy()  # a copy: on the CPU numpy() is a view
         if config.hair.enabled:

@@ -93,6 +93,9 @@ class Session:
         self.comb = None  # the held comb's timeline table while the comb is in the hair
         self._comb_drag = np.zeros(2)
         self._Camera = Camera
+        from . import haircut
+
+        haircut.run_events(self.scene, config.haircut, self.frame)
         self._record()
 
     def view(self, yaw_degrees):
@@ -171,14 +174,15 @@ class Session:
     def step(self):
         """Simulate the next frame (the held comb moves toward its latest drag over it)."""
         from . import comb as combing
-
         from . import haircut
 
         nxt = self.frame + 1
         combs = [e for e in self.events if e["tool"] == "comb"]
-        combing.before_frame(self.scene, haircut.parse_timeline(combs, self.config.source), nxt)
+        timeline = self.config.haircut + haircut.parse_timeline(combs, self.config.source)
+        combing.before_frame(self.scene, timeline, nxt)
         self.scene.advance(1.0 / self.config.timing.fps)
         self.frame = nxt
+        haircut.run_events(self.scene, self.config.haircut, nxt)  # the scene file's own timeline plays too
         self._record()
 
     def _record(self):
@@ -219,7 +223,10 @@ def write_script(config, events, last_frame, path):
             for key, value in table.items():
                 if isinstance(value, str) and value and value != "builtin" and os.path.exists(os.path.join(base, value)):
                     table[key] = os.path.relpath(os.path.join(base, value), here)
-    data["haircut"] = [dict(e) for e in events]
+    # the scene's own timeline, then the session's edits: at a shared frame the file's come first,
+    # as they did in the session
+    timeline = list(data.get("haircut", [])) + [dict(e) for e in events]
+    data["haircut"] = sorted(timeline, key=lambda e: e["frame"])
     os.makedirs(here, exist_ok=True)
     with open(path, "wb") as f:
         tomli_w.dump(data, f)

@@ -138,3 +138,61 @@ def test_comb_drag_stays_in_the_plane_facing_the_camera():
     move = comb.drag_offset([25.0, -10.0])
     assert abs(np.dot(move, comb.normal)) < 1e-12
     np.testing.assert_allclose(camera.project([move])[0] - camera.project([np.zeros(3)])[0], [25.0, -10.0], atol=1e-6)
+
+
+# -- the comb in a scene's timeline --------------------------------------------------------------------
+def _timeline_config(events, frames=10):
+    from sim.scene import _build_config
+
+    data = {"scene": {"frames": frames, "preroll": 0.2, "stats": False}, "head": {"animation": "none"},
+            "hair": {"style": "straight", "count": 120, "length": 0.3, "vertices": 12},
+            "solver": {"substeps": 4}, "haircut": events}
+    return _build_config("<test>", data, None)
+
+
+SIDE = {"eye": [1.0, 0.32, 0.0], "target": [0.0, 0.32, 0.0], "yfov": 0.6, "width": 480, "height": 360}
+
+
+def test_a_timeline_comb_lifts_holds_and_releases():
+    """A comb placed at frame 2 across the side's lengths, lifted 40 px by frame 5, released at 8,
+    stepped the way run_scene steps a timeline: the held particles reach the comb, dragged in the
+    side view's image plane, stay there, and fall once released."""
+    from sim.comb import before_frame
+    from sim.haircut import run_events
+    from sim.scene import Scene
+
+    comb = {"frame": 2, "tool": "comb", "stroke": [[200, 230], [240, 232], [280, 230]], "camera": SIDE,
+            "moves": [[5, 0, -40]], "release": 8}
+    config = _timeline_config([comb])
+    scene = Scene(config)
+    scene.advance(config.timing.preroll, animate=False)
+    held = {}
+    for frame in range(1, 11):
+        if frame > 1:
+            before_frame(scene, config.haircut, frame)
+            scene.advance(1.0 / 24.0)
+        run_events(scene, config.haircut, frame)
+        grip = scene.held_comb
+        if grip is not None:
+            at = scene.model.strand_start_np[grip.comb.strands] + grip.grips()
+            held[frame] = (scene.state.x.numpy()[at].copy(), grip.comb.anchor + grip.comb.drag_offset([0, -40]), at)
+        elif frame >= 8:
+            held[frame] = (scene.state.x.numpy()[held[7][2]].copy(), None, held[7][2])
+    assert set(held) >= {2, 5, 6, 7, 8, 10} and scene.solver.comb is None
+    for frame in (5, 6, 7):
+        x, target, _ = held[frame]
+        reached = np.linalg.norm(x - target, axis=1) < 1e-3
+        assert reached.mean() > 0.8  # the rest were stopped short by the head
+    assert np.median(held[7][0][:, 1] - held[2][0][:, 1]) > 0.04  # 40 px at about 0.9 m: 6 cm
+    assert np.median(held[10][0][:, 1] - held[7][0][:, 1]) < -0.005  # released, it falls back
+
+
+@pytest.mark.parametrize("change, key", [({"moves": [[1, 0, 5]]}, "moves"), ({"release": 2}, "release"),
+                                         ({"stroke": [[5, 5]]}, "stroke"), ({"moves": [[4, 1]]}, "moves")])
+def test_bad_comb_tables_name_the_key(change, key):
+    from sim.errors import InputError
+
+    comb = {"frame": 2, "tool": "comb", "stroke": [[200, 230], [280, 230]], "camera": SIDE, **change}
+    with pytest.raises(InputError) as err:
+        _timeline_config([comb])
+    assert err.value.key == f"haircut[0].{key}"
