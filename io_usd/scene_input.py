@@ -4,8 +4,9 @@ Input. Every prim whose `cfx:role` is "collider", "hair" or "cloth" takes part; 
 the geometry itself or on the Xform above it (Blender writes an object's custom properties on its
 Xform, the geometry is its child), and `userProperties:cfx:role` counts too. Colliders are Meshes
 (several are merged into one collider); hair is BasisCurves (control points are the strand
-vertices, the first one the root); cloth is one Mesh of triangles and quads whose pinned vertices
-are a per-vertex `primvars:cfx_pinned` (> 0.5) or an int[] `cfx:pinned`. Settings are attributes
+vertices, the first one the root); cloth is Meshes of triangles and quads (several are simulated
+as one garment) whose pinned vertices are a per-vertex `primvars:cfx_pinned` (> 0.5) or an int[]
+`cfx:pinned`. Settings are attributes
 named `cfx:<table>:<key>` on a tagged prim: `solver` (hair solver on a hair prim, cloth solver on a
 cloth prim), `detail` (cloth), `scene` (any: preroll, device, stats, graphs). Time comes from the
 stage: timeCodesPerSecond, startTimeCode..endTimeCode, one cache frame per time code; positions are
@@ -14,7 +15,8 @@ taken in world space at each frame (transforms, deformation, upAxis and metersPe
 Output. The cache is a layer over the input: `over`s at the input's prim paths carrying
 time-sampled points (and extent) in each prim's own local space and units, plus the engine's
 metadata; it sublayers the input, so it opens alone as the animated scene and can also be stacked
-over the input in a shot. A detail surface, when asked for, is a new Mesh beside the garment.
+over the input in a shot. A detail surface, when asked for, is a new Mesh `/cfx_cloth_detail` at
+the root, in the stage's world space (it spans every garment).
 """
 
 import os
@@ -27,6 +29,7 @@ from sim.embed import HostFrame, scene_config
 from sim.errors import InputError
 
 ROLES = ("collider", "hair", "cloth")
+DETAIL_PATH = "/cfx_cloth_detail"  # the detail surface over every garment, in the stage's world space
 SETTING_TABLES = {"hair": ("solver", "scene"), "cloth": ("solver", "detail", "scene"), "collider": ("scene",)}
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -57,7 +60,7 @@ class UsdScene:
     start_frame: int
     colliders: list  # TaggedPrim
     hair: list = field(default_factory=list)  # TaggedPrim, strands concatenated in this order
-    cloth: TaggedPrim = None
+    cloth: list = field(default_factory=list)  # TaggedPrim, garments concatenated in this order
     stage: Usd.Stage = None
 
     def cache_writer(self, out_path, settings=None, engine_version=None):
@@ -73,42 +76,37 @@ class UsdScene:
             writer.add_over(prim.path, "collider", prim.path, animated=False)
         for prim in self.hair:
             writer.add_over(prim.path, "hair", prim.path)
-        if self.cloth is not None:
-            writer.add_over(self.cloth.path, "cloth", self.cloth.path)
+        for prim in self.cloth:
+            writer.add_over(prim.path, "cloth", prim.path)
         return writer
 
     def add_detail(self, writer, triangles):
-        """The detail surface as a new Mesh beside the garment, in the garment's local space."""
-        path = f"{self.cloth.path}_detail"
-        writer.add_mesh(path, "cloth_detail", None, triangles, normals=True, path=path)
-        return path
+        """The detail surface as a new Mesh at the stage's root, in world space: it spans every garment."""
+        writer.add_mesh(DETAIL_PATH, "cloth_detail", None, triangles, normals=True, path=DETAIL_PATH)
+        return DETAIL_PATH
 
     def write_frame(self, writer, frame, samples, normals=None):
         """samples: {"hair", "cloth", "cloth_detail": engine positions}; written in local space."""
         t = Usd.TimeCode(float(frame))
-        out, offset = {}, 0
-        if "hair" in samples:
-            for prim in self.hair:
+        out = {}
+        for role in ("hair", "cloth"):
+            offset = 0
+            for prim in getattr(self, role) if role in samples else ():
                 count = _point_count(prim.geometry)
-                out[prim.path] = self._local(prim.geometry, samples["hair"][offset:offset + count], t)
+                out[prim.path] = self._local(prim.geometry, samples[role][offset:offset + count], t)
                 offset += count
-        if "cloth" in samples:
-            out[self.cloth.path] = self._local(self.cloth.geometry, samples["cloth"], t)
         local_normals = {}
         if "cloth_detail" in samples:
-            path = f"{self.cloth.path}_detail"
-            out[path] = self._local(self.cloth.geometry, samples["cloth_detail"], t)
+            out[DETAIL_PATH] = self._local(None, samples["cloth_detail"], t)
             if normals and "cloth_detail" in normals:
-                rotation = self._world_rotation(self.cloth.geometry, t)
-                n = np.asarray(normals["cloth_detail"], np.float64) @ self.frame_space.rotation @ np.linalg.inv(rotation)
-                local_normals[path] = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+                local_normals[DETAIL_PATH] = np.asarray(normals["cloth_detail"], np.float64) @ self.frame_space.rotation
         writer.write_frame(frame, out, local_normals)
 
-    def _world_rotation(self, prim, time):
-        return np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), np.float64)[:3, :3]
-
     def _local(self, prim, engine_points, time):
+        """Engine positions in `prim`'s local space and the stage's units (prim None: world space)."""
         world = np.asarray(engine_points, np.float64) @ self.frame_space.rotation / self.frame_space.meters_per_unit
+        if prim is None:
+            return world
         m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), np.float64)
         if np.array_equal(m, np.eye(4)):
             return world
@@ -137,8 +135,6 @@ def read_usd_scene(path, overrides=None):
         raise InputError(path, "cfx:role", "no prim is tagged \"collider\" (hair and cloth need something to move with)")
     if not hair and not cloth:
         raise InputError(path, "cfx:role", "no prim is tagged \"hair\" or \"cloth\": nothing to simulate")
-    if len(cloth) > 1:
-        raise InputError(path, cloth[1].path, "one cloth prim per stage (merge the garments into one mesh)")
 
     start = int(round(stage.GetStartTimeCode())) if stage.HasAuthoredTimeCodeRange() else 1
     end = int(round(stage.GetEndTimeCode())) if stage.HasAuthoredTimeCodeRange() else start
@@ -176,9 +172,9 @@ def read_usd_scene(path, overrides=None):
         widths = [_widths(p.geometry, len(pts), first) for p, pts in zip(hair, points)]
         widths = None if any(w is None for w in widths) else np.concatenate(widths) * frame_space.meters_per_unit
         strands = (np.concatenate(points), np.concatenate(counts), widths)
-    garment = _garment(path, cloth[0], frame_space, first) if cloth else None
+    garment = _garment(path, cloth, frame_space, first) if cloth else None
     assets = SceneAssets("collider", np.concatenate(faces), motion, strands, garment)
-    return UsdScene(path, config, assets, frame_space, start, colliders, hair, cloth[0] if cloth else None, stage)
+    return UsdScene(path, config, assets, frame_space, start, colliders, hair, cloth, stage)
 
 
 # -- tags and settings ------------------------------------------------------------------------------
@@ -298,16 +294,29 @@ def _widths(prim, count, time):
     return widths if len(widths) == count else np.full(count, widths[0])
 
 
-def _garment(path, prim, frame_space, time):
+def _garment(path, prims, frame_space, time):
+    """One garment of every cloth prim (a dress and its belt simulate as one cloth), each checked
+    on its own first so errors name the prim."""
     from sim.garment import checked_garment
 
-    mesh = UsdGeom.Mesh(prim.geometry)
-    counts, indices = mesh.GetFaceVertexCountsAttr().Get(time), mesh.GetFaceVertexIndicesAttr().Get(time)
-    if counts is None or indices is None:
-        raise InputError(path, prim.path, "faceVertexCounts or faceVertexIndices not authored")
-    points = _world_points(path, prim, frame_space, time)
-    return checked_garment(path, prim.path, prim.geometry.GetName(), points, np.asarray(counts), np.asarray(indices),
-                           _pinned(path, prim, len(points), time))
+    parts, offset = [], 0
+    for prim in prims:
+        mesh = UsdGeom.Mesh(prim.geometry)
+        counts, indices = mesh.GetFaceVertexCountsAttr().Get(time), mesh.GetFaceVertexIndicesAttr().Get(time)
+        if counts is None or indices is None:
+            raise InputError(path, prim.path, "faceVertexCounts or faceVertexIndices not authored")
+        points = _world_points(path, prim, frame_space, time)
+        part = checked_garment(path, prim.path, prim.geometry.GetName(), points, np.asarray(counts),
+                               np.asarray(indices), _pinned(path, prim, len(points), time))
+        parts.append((part, offset))
+        offset += len(points)
+    if len(parts) == 1:
+        return parts[0][0]
+    return checked_garment(path, ", ".join(p.path for p in prims), "garments",
+                           np.concatenate([g.vertices for g, _ in parts]),
+                           np.concatenate([g.face_counts for g, _ in parts]),
+                           np.concatenate([g.face_indices + o for g, o in parts]),
+                           np.concatenate([g.pinned + o for g, o in parts]))
 
 
 def _pinned(path, prim, count, time):

@@ -746,7 +746,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     hair_prim, cloth_prim = "/World/hair", "/World/cloth"
     if stage is not None:
         hair_prim = ", ".join(p.path for p in stage.hair)
-        cloth_prim = stage.cloth.path if stage.cloth is not None else cloth_prim
+        cloth_prim = ", ".join(p.path for p in stage.cloth) or cloth_prim
     with opened as writer:
         if stage is None:
             _add_prims(writer, scene)

@@ -285,3 +285,40 @@ def test_embedding_rejects_bad_arrays():
     bad[0, 0] = np.nan
     with pytest.raises(InputError, match="NaN"):
         sim.step(bad)
+
+
+def test_several_garments_simulate_as_one_and_write_back_to_their_prims(tmp_path):
+    """A second cape on the other side of the head: both prims get their own points back, both sets
+    of pins ride the collider, and the detail surface spans both, at the stage's root."""
+    scene = build_stage(tmp_path / "two.usda", extra=[("/root/Cape", "cfx:detail:level", Sdf.ValueTypeNames.Int, 2)])
+    stage = Usd.Stage.Open(str(scene))
+    back = UsdGeom.Xform.Define(stage, "/root/BackCape")
+    back.GetPrim().CreateAttribute("cfx:role", Sdf.ValueTypeNames.String, custom=True).Set("cloth")
+    back.AddTranslateOp().Set(Gf.Vec3d(*CENTRE))
+    gv, quads, pinned = _cape()
+    mirrored = gv * [1.0, -1.0, 1.0]  # hanging off the +Y side, its top row on the surface
+    plane = UsdGeom.Mesh.Define(stage, "/root/BackCape/Plane")
+    plane.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(mirrored.astype(np.float32)))
+    plane.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(quads), 4, np.int32)))
+    plane.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(quads[:, ::-1].ravel().astype(np.int32)))
+    plane.GetPrim().CreateAttribute("cfx:pinned", Sdf.ValueTypeNames.IntArray).Set([0, 1, 2, 3, 4])
+    stage.GetRootLayer().Save()
+
+    read = read_usd_scene(scene)
+    assert [p.path for p in read.cloth] == ["/root/Cape/Plane", "/root/BackCape/Plane"]
+    assert len(read.assets.garment.vertices) == 50 and list(read.assets.garment.pinned) == [0, 1, 2, 3, 4, 25, 26,
+                                                                                             27, 28, 29]
+    out = tmp_path / "two_cache.usdc"
+    assert main(["run", str(scene), "-o", str(out), "-q"]) == 0
+    cache = Usd.Stage.Open(str(out))
+    for frame in (1, FRAMES):
+        t, r = _head_pose(frame)
+        a = np.radians(r[2])
+        turn = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+        front, rear = _world(cache, "/root/Cape/Plane", frame), _world(cache, "/root/BackCape/Plane", frame)
+        np.testing.assert_allclose(front[:5], gv[:5] @ turn.T + t, atol=1e-4)
+        np.testing.assert_allclose(rear[:5], mirrored[:5] @ turn.T + t, atol=1e-4)
+    detail = _world(cache, "/cfx_cloth_detail", FRAMES)
+    assert detail[:, 1].min() < -RADIUS + 0.01 and detail[:, 1].max() > RADIUS - 0.01  # spans both sides
+    reader = CacheReader(out)
+    assert {p.role for p in reader.prims.values()} >= {"cloth", "cloth_detail", "hair", "collider"}
