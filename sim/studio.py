@@ -70,8 +70,6 @@ class Session:
     made so far (as timeline tables) and the frames simulated (for the cache)."""
 
     def __init__(self, config, width=640, height=480):
-        from io_usd.preview import Camera
-
         from .scene import Scene, quiet_warp
 
         if not config.hair.enabled:
@@ -92,7 +90,6 @@ class Session:
         self.frames = []  # (frame, hair points, counts, widths, collider points)
         self.comb = None  # the held comb's timeline table while the comb is in the hair
         self._comb_drag = np.zeros(2)
-        self._Camera = Camera
         from . import haircut
 
         haircut.run_events(self.scene, config.haircut, self.frame)
