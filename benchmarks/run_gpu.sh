@@ -10,7 +10,7 @@ export PYTHONPATH=.${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,clocks.max.sm --format=csv,noheader | tee -a "$out/device.txt"
 for part in "$@"; do
   case $part in
-    tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py 2>&1 | tee "$out/tests.log" ;;
+    tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_comb.py 2>&1 | tee "$out/tests.log" ;;
     hair) timeout ${HAIR_TIMEOUT:-540} python3 benchmarks/hair.py --device cuda ${HAIR_ARGS:-} 2>&1 | tee "$out/hair.log" ;;
     cloth) timeout ${CLOTH_TIMEOUT:-540} python3 benchmarks/cloth.py --device cuda ${CLOTH_ARGS:-} 2>&1 | tee "$out/cloth.log" ;;
     *) echo "unknown part $part"; exit 2 ;;

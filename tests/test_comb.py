@@ -17,11 +17,11 @@ from warp_kernels.collision import ColliderShape
 SPACING = 0.01
 
 
-def _sphere_collider(radius=0.1, subdivisions=4):
+def _sphere_collider(radius=0.1, subdivisions=4, device="cpu"):
     s = trimesh.creation.icosphere(subdivisions, radius=radius)
     v, f = np.asarray(s.vertices), np.asarray(s.faces)
     return Collider("head", v, f, np.tile([1, 0, 0, 0], (len(v), 1)), np.tile([1.0, 0, 0, 0], (len(v), 1)), 2,
-                    sphere_leaves=0)
+                    device=device, sphere_leaves=0)
 
 
 def _hanging(roots, count=10):
@@ -196,3 +196,23 @@ def test_bad_comb_tables_name_the_key(change, key):
     with pytest.raises(InputError) as err:
         _timeline_config([comb])
     assert err.value.key == f"haircut[0].{key}"
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="needs CUDA")
+def test_comb_and_visibility_kernels_agree_on_cuda():
+    """The comb's hold, the sight-line test and the ray hits give the CPU's numbers on a GPU."""
+    results = {}
+    for device in ("cpu", "cuda:0"):
+        with wp.ScopedDevice(device):
+            collider = _sphere_collider(device=device)
+            x, _ = _hanging([np.zeros(3)])
+            out, grip, _ = _hold(x, 4, x[1] + 0.045 * np.array([0.6, -0.8, 0.0]))
+            probes = np.array([[0.0, 0.0, 0.3], [0.0, 0.0, -0.3], [0.12, 0.0, 0.0]])
+            seen = collider.visible_from(probes, [0.0, 0.0, 1.0])
+            hits = collider.ray_hits(np.tile([0.0, 0.0, 1.0], (2, 1)), [[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+            results[device] = (out, grip, seen, hits)
+    cpu, gpu = results["cpu"], results["cuda:0"]
+    np.testing.assert_allclose(gpu[0], cpu[0], atol=1e-6)
+    assert gpu[1] == cpu[1]
+    np.testing.assert_array_equal(gpu[2], cpu[2])
+    np.testing.assert_allclose(gpu[3], cpu[3], atol=1e-6)
