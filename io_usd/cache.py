@@ -27,6 +27,25 @@ def _extent(points, widths=None):
     return UsdGeom.PointBased.ComputeExtent(points)
 
 
+def open_stage(path, source=None, key=None):
+    """A user's USD file opened, or InputError(source or path, key, reason): missing, unreadable, not USD."""
+    from sim.errors import InputError
+
+    path = os.fspath(path)
+    source = path if source is None else source
+    if not os.path.isfile(path):
+        raise InputError(source, key, f"no such file: {path}" if source != path else "no such file")
+    what = "cannot open as USD" if source == path else f"cannot open {os.path.basename(path)} as USD"
+    try:
+        stage = Usd.Stage.Open(path)
+    except Exception as err:  # pxr raises Tf.ErrorException for unreadable layers
+        detail = next((line.strip() for line in str(err).splitlines() if line.strip()), "")
+        raise InputError(source, key, f"{what}: {detail}" if detail else what) from None
+    if stage is None:
+        raise InputError(source, key, what)
+    return stage
+
+
 def check_cache_path(path):
     """Raise ValueError unless `path` names a USD file we can write (.usd, .usdc, .usda)."""
     path = os.fspath(path)

@@ -117,15 +117,10 @@ def read_usd_scene(path, overrides=None):
     """Read a tagged USD stage into a UsdScene; bad input raises InputError naming the prim and key."""
     from sim.scene import PointCacheMotion, SceneAssets
 
+    from .cache import open_stage
+
     path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise InputError(path, None, "no such file")
-    try:
-        stage = Usd.Stage.Open(path)
-    except Exception as err:  # pxr raises Tf.ErrorException for unreadable layers
-        raise InputError(path, None, f"cannot open as USD: {str(err).splitlines()[0]}") from None
-    if stage is None:
-        raise InputError(path, None, "cannot open as USD")
+    stage = open_stage(path)
     frame_space = HostFrame(str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage))
     tagged = _tagged_prims(path, stage)
     colliders = [p for p in tagged if p.role == "collider"]

@@ -137,13 +137,10 @@ def garment_from_usd(path_or_stage, prim_path=None, pinned=None, name=None):
     if isinstance(path_or_stage, Usd.Stage):
         stage, source = path_or_stage, path_or_stage.GetRootLayer().identifier
     else:
+        from io_usd.cache import open_stage
+
         source = str(path_or_stage)
-        if not os.path.isfile(source):
-            raise InputError(source, prim_path, "file not found")
-        try:
-            stage = Usd.Stage.Open(source)
-        except Exception as err:  # pxr raises Tf.ErrorException for unreadable layers
-            raise InputError(source, prim_path, f"cannot open as USD: {str(err).splitlines()[0]}") from None
+        stage = open_stage(source, key=prim_path)
     if not prim_path:
         prim = next((p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)), None)
         if prim is None:

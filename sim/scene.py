@@ -667,11 +667,9 @@ def _load_body(config):
 def _read_usd_body(config, path):
     from pxr import Usd, UsdGeom
 
-    from io_usd.cache import fan_triangles
+    from io_usd.cache import fan_triangles, open_stage
 
-    stage = Usd.Stage.Open(path)
-    if stage is None:
-        raise InputError(config.source, "body.mesh", f"{config.body.mesh} is not a USD stage")
+    stage = open_stage(path, config.source, "body.mesh")
     prim = stage.GetPrimAtPath(config.body.prim) if config.body.prim else None
     if prim is None or not prim.IsValid() or not prim.IsA(UsdGeom.Mesh):
         raise InputError(config.source, "body.prim", f"no UsdGeom.Mesh at '{config.body.prim}' in {config.body.mesh}")
