@@ -48,6 +48,7 @@ class Collider:
         nearest = np.asarray(nearest, np.int64).reshape(-1)
         self.sphere_rest_centers = arr(self.tree.centers, wp.vec3)
         self.sphere_centers = arr(self.tree.centers, wp.vec3)
+        self.prev_sphere_centers = arr(self.tree.centers, wp.vec3)
         self.sphere_radii = arr(self.tree.radii, float)
         self.sphere_skip = arr(self.tree.skip, wp.int32)
         self.sphere_is_leaf = arr(self.tree.is_leaf, wp.int32)
@@ -61,6 +62,9 @@ class Collider:
         self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
         self.bone_matrices = None
         self._pose_buffers = {}
+        # largest displacement of a vertex or leaf sphere in the last apply_pose: the hair solver's
+        # contact bounds shrink by it
+        self.motion = wp.zeros(1, dtype=float, device=device)
 
     def set_point_poses(self, points):
         """points: (K, V, 3) vertex positions for K upcoming poses (a point cache, e.g. from USD)."""
@@ -88,25 +92,32 @@ class Collider:
         return buffer
 
     def apply_pose(self, k):
+        """Pose the mesh, its BVH and the sphere tree to pose k of the uploaded ones; `motion` holds
+        how far the collider moved."""
         wp.copy(self.prev_points, self.points)
+        wp.copy(self.prev_sphere_centers, self.sphere_centers)
         if self._pose_points is not None:
             n = len(self.rest_points_np)
             wp.copy(self.points, self._pose_points, 0, k * n, n)
             refit_mesh(self.mesh)
-            return  # the sphere tree follows skinned poses only
-        offset = k * self.num_bones
-        wp.launch(skinning.skin_points, len(self.points),
-                  [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
-                   self.points], device=self.device)
-        refit_mesh(self.mesh)
-        wp.launch(skinning.skin_points, len(self.sphere_centers),
-                  [self.sphere_rest_centers, self.sphere_skin_indices, self.sphere_skin_weights,
-                   self.bone_matrices, offset, self.sphere_centers], device=self.device)
-        wp.launch(collision.clear_inner_radii, len(self.sphere_centers), [self.sphere_radii, self.sphere_is_leaf],
-                  device=self.device)
-        wp.launch(collision.refit_sphere_tree, len(self.sphere_centers),
-                  [self.sphere_centers, self.sphere_radii, self.sphere_parent, self.sphere_is_leaf],
-                  device=self.device)
+        else:  # the sphere tree follows skinned poses only
+            offset = k * self.num_bones
+            wp.launch(skinning.skin_points, len(self.points),
+                      [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
+                       self.points], device=self.device)
+            refit_mesh(self.mesh)
+            wp.launch(skinning.skin_points, len(self.sphere_centers),
+                      [self.sphere_rest_centers, self.sphere_skin_indices, self.sphere_skin_weights,
+                       self.bone_matrices, offset, self.sphere_centers], device=self.device)
+            wp.launch(collision.clear_inner_radii, len(self.sphere_centers), [self.sphere_radii, self.sphere_is_leaf],
+                      device=self.device)
+            wp.launch(collision.refit_sphere_tree, len(self.sphere_centers),
+                      [self.sphere_centers, self.sphere_radii, self.sphere_parent, self.sphere_is_leaf],
+                      device=self.device)
+        self.motion.zero_()
+        wp.launch(collision.collider_motion, len(self.points) + len(self.sphere_centers),
+                  [self.prev_points, self.points, self.prev_sphere_centers, self.sphere_centers, self.sphere_is_leaf,
+                   self.motion], device=self.device)
 
     def adjacency(self):
         """CSR vertex->vertex and vertex->face adjacency and per-vertex concave flags, built once

@@ -11,7 +11,6 @@ from warp_kernels import collision, strands
 
 from .errors import SimulationError
 
-CLEARANCE_MAX_STRANDS = 30000  # see HairSolver.step
 SHAPE_MATCHING = {"simplified": 0, "full": 1, "none": -1}
 COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
 
@@ -84,9 +83,11 @@ class HairSolver:
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
+        # contact bounds of the length pass (see strands.follow_the_leader): zero = query next substep
         self.clearance = wp.zeros(model.num_particles, dtype=float, device=device)
+        self.contact_bounds = True  # False queries every particle every substep (same result, slower)
+        self._no_motion = wp.zeros(1, dtype=float, device=device)
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
-        self.clearance_pass = None  # parallel clearance before the length pass: None = automatic
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
         self._waxed = bool(model.wax_np.any())  # waxed strands hold their shape even without a root hold
@@ -143,30 +144,22 @@ class HairSolver:
                        self.centroids, variant, p.shape_stiffness, dst], device=dev)
             src, dst = dst, src
         mode = COLLISION[p.collision] if collider is not None else 0
-        # with few strands the per-strand loop on a GPU is latency-bound: a parallel pass first finds
-        # which particles can touch at all (H100, 1k strands: 43 -> 22 ms/frame). With many strands
-        # the loop is throughput-bound and the extra pass costs more than it saves (100k: 100 -> 132),
-        # and on one CPU thread it always does
-        auto = wp.get_device(dev).is_cuda and m.num_strands <= CLEARANCE_MAX_STRANDS
-        auto = auto if self.clearance_pass is None else self.clearance_pass
-        use_clearance = mode != 0 and auto
-        if use_clearance:
-            wp.launch(collision.points_clearance, m.num_particles,
-                      [state_out.x, mode, c.shape, p.collision_margin, p.collision_search, self.clearance],
-                      device=dev)
         wp.launch(strands.follow_the_leader, m.num_strands,
                   [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
-                   c.shape if c else self._no_shape, p.collision_margin, p.collision_search, int(use_clearance),
-                   self.clearance, p.ftl_damping, dt, state_out.v], device=dev)
+                   c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
+                   int(self.contact_bounds), c.motion if c else self._no_motion, self.clearance, p.ftl_damping,
+                   dt, state_out.v], device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
-                             p.collision_margin, p.collision_search)
+                             p.collision_margin, p.collision_search, self.clearance)
 
     def reset(self):
-        """Forget warm-start data; call after moving the state discontinuously (a new groom, a cut).
-        Frames captured in CUDA graphs must be captured again (sim.graphs.FrameGraphs.clear)."""
+        """Forget warm-start data and contact bounds; call after moving the state or the collider
+        discontinuously (a new groom, a cut, a jump in time). Frames captured in CUDA graphs must be
+        captured again (sim.graphs.FrameGraphs.clear)."""
         self._rotations_exact = True
+        self.clearance.zero_()
 
     def count_unhealthy(self, state):
         """Launch the count of non-finite or too fast particles without waiting: (count, first

@@ -560,10 +560,10 @@ def _install(scene, model, x, v):
     from .hair_solver import HairSolver
     from .strands import HairState
 
-    clearance = scene.solver.clearance_pass
+    bounds = scene.solver.contact_bounds
     scene.model = model
     scene.solver = HairSolver(model, scene.config.solver)
-    scene.solver.clearance_pass = clearance
+    scene.solver.contact_bounds = bounds
     x, v = np.asarray(x, np.float32), np.asarray(v, np.float32)
     scene.state, scene._scratch = (HairState(wp.array(x, dtype=wp.vec3, device=scene.device),
                                              wp.array(v, dtype=wp.vec3, device=scene.device)) for _ in range(2))

@@ -39,8 +39,13 @@ def _hold(x, grip, target, pinned=2):
     rest = np.r_[0.0, np.linalg.norm(np.diff(x, axis=0), axis=1)].astype(np.float32)
     g = wp.array([grip], dtype=int)
     t = wp.array([target], dtype=wp.vec3)
+    bounds = wp.full(len(x), 1.0, dtype=float)  # the length pass's contact bounds, lost where the comb moves hair
     wp.launch(strand_kernels.hold_in_comb, 1, [xa, wp.array(x, dtype=wp.vec3), start, wp.array(rest, dtype=float),
-                                               pinned, t, t, 1.0, 16, 0, ColliderShape(), 0.0, 0.0, 0.01, g, v])
+                                               pinned, t, t, 1.0, 16, 0, ColliderShape(), 0.0, 0.0, 0.01, g, v, bounds])
+    if grip >= 0:  # a held strand: every particle after the root was moved
+        np.testing.assert_array_equal(bounds.numpy(), np.r_[np.ones(pinned), np.zeros(len(x) - pinned)])
+    else:
+        np.testing.assert_array_equal(bounds.numpy(), 1.0)
     return xa.numpy().astype(np.float64), int(g.numpy()[0]), rest
 
 

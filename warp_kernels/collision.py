@@ -109,6 +109,35 @@ def sphere_tree_depth(p: wp.vec3, shape: ColliderShape):
 
 
 @wp.func
+def mesh_push_out_bounded(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
+    """mesh_push_out(), and p's signed distance from the surface found by the same query.
+
+    Inputs:
+      p (vec3, m): the point
+      mesh (uint64): wp.Mesh id of a closed, outward-wound mesh
+      margin (float, m): distance kept outside the surface
+      max_dist (float, m): query radius; a point farther than this from the surface is not seen
+    Returns:
+      vec3 (m): the pushed point (p itself when nothing was in reach)
+      float (m): p's distance from the surface, negative inside; max_dist when nothing was in reach
+    """
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if not q.result:
+        return p, max_dist
+    cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+    n = wp.mesh_eval_face_normal(mesh, q.face)
+    d = p - cp
+    dist = wp.length(d)
+    if q.sign < 0.0:
+        return cp + n * margin, -dist
+    if dist < margin:
+        if dist > 1.0e-9:
+            return cp + d * (margin / dist), dist
+        return cp + n * margin, dist
+    return p, dist
+
+
+@wp.func
 def mesh_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
     """Project p onto the mesh surface plus margin when it is inside or closer than margin.
 
@@ -124,21 +153,39 @@ def mesh_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
     Returns:
       vec3 (m): the pushed point (p itself when nothing was in reach)
     """
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
-    if q.result:
-        cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-        n = wp.mesh_eval_face_normal(mesh, q.face)
-        if q.sign < 0.0:
-            p = cp + n * margin
+    pushed, _distance = mesh_push_out_bounded(p, mesh, margin, max_dist)
+    return pushed
+
+
+@wp.func
+def sphere_tree_clearance(p: wp.vec3, shape: ColliderShape, search: float):
+    """Distance from p to the nearest leaf sphere's surface (negative inside one), capped at search.
+
+    Branch and bound: a node's sphere bounds its leaves' spheres, so a node no nearer than the best
+    leaf so far cannot hold a nearer one.
+
+    Inputs:
+      p (vec3, m): the point
+      shape (ColliderShape): the collider; only its sphere tree is read
+      search (float, m): the cap; nodes farther than this are not entered
+    Returns:
+      float (m): min over the leaves of |p - centre| - radius, or search when that is larger
+    """
+    best = search
+    centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
+    n = centers.shape[0]
+    i = int(0)
+    while i < n:
+        d = wp.length(p - centers[i]) - radii[i]
+        if d < best:
+            if is_leaf[i] != 0:
+                best = d
+                i = skip[i]
+            else:
+                i = i + 1
         else:
-            d = p - cp
-            dist = wp.length(d)
-            if dist < margin:
-                if dist > 1.0e-9:
-                    p = cp + d * (margin / dist)
-                else:
-                    p = cp + n * margin
-    return p
+            i = skip[i]
+    return best
 
 
 @wp.func
@@ -164,48 +211,68 @@ def collide_point(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, se
 
 
 @wp.func
-def clearance(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, search: float):
-    """How far p may move before collide_point (same margin and search) could push it.
+def collide_point_bounded(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, search: float):
+    """collide_point(), and how far p is from the collider: the bound that lets a caller skip p's
+    next queries while p and the collider have moved less than that distance minus margin.
 
-    A point displaced by less than clearance - margin is left where it is, which lets the serial
-    length pass of the strands skip most collider queries. Sphere tree: the distance to the nearest
-    leaf sphere, capped at search. Mesh: the signed distance (negative inside) when the surface is
-    within 2 search; otherwise search + margin, since collide_point's query (radius search) cannot
-    reach the surface from a point that moved less than search.
+    Mesh: one query gives both, the push and p's signed distance when the surface is within search;
+    beyond, search (the sign is not known there: a point deeper than search inside is not seen,
+    as collide_point does not see it). Sphere tree: the nearest leaf's distance, capped at search,
+    and the push sweeps only when it is within margin, where collide_point would push.
 
     Inputs:
       p (vec3, m): the point
       mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
       shape (ColliderShape): the collider
-      margin (float, m): the margin collide_point will use
-      search (float, m): the search radius collide_point will use
+      margin (float, m): distance kept outside the collider
+      search (float, m): mesh query radius, and the cap of the distance returned
     Returns:
-      float (m): the clearance; 1e30 for COLLIDE_NONE
+      vec3 (m): the resolved point, as collide_point() resolves it
+      float (m): p's distance from the collider (negative inside), capped at search; 1e30 for
+          COLLIDE_NONE
     """
-    if mode == COLLIDE_SPHERE_TREE:
-        # branch and bound: a node's sphere bounds its leaves' spheres, so a node no nearer than the
-        # best leaf so far cannot hold a nearer one
-        best = search
-        centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
-        n = centers.shape[0]
-        i = int(0)
-        while i < n:
-            d = wp.length(p - centers[i]) - radii[i]
-            if d < best:
-                if is_leaf[i] != 0:
-                    best = d
-                    i = skip[i]
-                else:
-                    i = i + 1
-            else:
-                i = skip[i]
-        return best
     if mode == COLLIDE_MESH:
-        q = wp.mesh_query_point_sign_normal(shape.mesh, p, 2.0 * search)
-        if q.result:
-            return q.sign * wp.length(p - wp.mesh_eval_position(shape.mesh, q.face, q.u, q.v))
-        return search + margin
-    return 1.0e30
+        return mesh_push_out_bounded(p, shape.mesh, margin, search)
+    if mode == COLLIDE_SPHERE_TREE:
+        distance = sphere_tree_clearance(p, shape, search)
+        # push_out pushes within margin of a leaf; the tolerance keeps rounding from skipping a push
+        if distance > margin + 1.0e-6:
+            return p, distance
+        return collide_point(p, mode, shape, margin, search), distance
+    return p, 1.0e30
+
+
+@wp.kernel
+def collider_motion(
+    points_before: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+    centers_before: wp.array(dtype=wp.vec3),
+    centers: wp.array(dtype=wp.vec3),
+    is_leaf: wp.array(dtype=wp.int32),
+    motion: wp.array(dtype=float),
+):
+    """Largest displacement of a collider vertex or leaf sphere centre between two poses.
+
+    No point of the triangle mesh (a barycentric blend of its vertices) and no leaf sphere (fixed
+    radius) moved farther, so a point's distance from the collider changed by at most this much:
+    the bound the strand length pass subtracts before skipping a query.
+
+    Launch: one thread per vertex and sphere-tree node (dim = len(points) + len(centers)).
+    Inputs:
+      points_before (vec3, per vertex, m): mesh vertices in the previous pose
+      points (vec3, per vertex, m): and in the new one
+      centers_before (vec3, per tree node, m): sphere centres in the previous pose
+      centers (vec3, per tree node, m): and in the new one
+      is_leaf (int32, per tree node): 1 for leaf spheres; inner nodes are not counted
+    In/out:
+      motion (float, 1 element, m): zeroed before the launch; the largest displacement out
+    """
+    i = wp.tid()
+    n = points.shape[0]
+    if i < n:
+        wp.atomic_max(motion, 0, wp.length(points[i] - points_before[i]))
+    elif is_leaf[i - n] != 0:
+        wp.atomic_max(motion, 0, wp.length(centers[i - n] - centers_before[i - n]))
 
 
 @wp.kernel
@@ -217,23 +284,22 @@ def points_clearance(
     search: float,
     out: wp.array(dtype=float),
 ):
-    """clearance() of every point, in parallel.
-
-    The strand solver's length pass is serial along each strand; computing the clearances first in a
-    wide launch lets that pass query the collider only for the particles that may touch.
+    """The distance collide_point_bounded() reports for every point, in parallel.
 
     Launch: one thread per point (dim = len(points)).
     Inputs:
-      points (vec3, per point, m): positions, e.g. the predicted strand particles
+      points (vec3, per point, m): positions
       mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
       shape (ColliderShape): the collider
-      margin (float, m): the margin the later collision uses
-      search (float, m): the search radius the later collision uses
+      margin (float, m): distance kept outside the collider
+      search (float, m): mesh query radius and cap of the distance
     Outputs:
-      out (float, per point, m): clearance of each point
+      out (float, per point, m): each point's distance from the collider, negative inside, capped
+          at search
     """
     i = wp.tid()
-    out[i] = clearance(points[i], mode, shape, margin, search)
+    _pushed, distance = collide_point_bounded(points[i], mode, shape, margin, search)
+    out[i] = distance
 
 
 @wp.kernel

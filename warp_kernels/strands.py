@@ -5,7 +5,6 @@ Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launche
     predict_positions (integration, pinned roots on the skin, root hold)
     -> [follow_guides]
     -> [shape_match_rotations (full variant) -> shape_match_step] x passes
-    -> [collision.points_clearance (optional, see follow_the_leader)]
     -> follow_the_leader (length, collision and the velocity update)
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
@@ -23,7 +22,7 @@ import warp as wp
 # the lean launch path (no grid-stride loop) lowers per-thread overhead
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
-from .collision import ColliderShape, collide_point
+from .collision import ColliderShape, collide_point, collide_point_bounded
 from .skinning import bound_position, face_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
@@ -387,7 +386,8 @@ def follow_the_leader(
     shape: ColliderShape,
     margin: float,
     search: float,
-    use_clearance: int,
+    use_bounds: int,
+    collider_moved: wp.array(dtype=float),
     clearance: wp.array(dtype=float),
     ftl_damping: float,
     dt: float,
@@ -397,16 +397,22 @@ def follow_the_leader(
 
     Each particle is put at its rest distance from its parent; a contact push-out is resolved inline
     and the particle is then put back on the sphere of rest radius, so every segment leaves with its
-    exact rest length. With use_clearance != 0, clearance (collision.points_clearance of the
-    positions before this pass, computed in parallel) skips the collider query for particles that
-    moved too little to touch: the same result with fewer queries in this serial loop, which on a
-    GPU is latency-bound. Velocities are v = (x - x_prev) / dt minus ftl_damping * d_(i+1) / dt for
+    exact rest length. Velocities are v = (x - x_prev) / dt minus ftl_damping * d_(i+1) / dt for
     free particles, d_(i+1) the child's correction (dynamic FTL); the correction is carried to the
     next particle in a register rather than stored.
 
+    Contact bounds (use_bounds != 0): each particle keeps a lower bound of its distance from the
+    collider, set by its last query and lowered every substep by how far it moved (from x_prev) and
+    how far the collider moved (collider_moved). While that bound stays above margin no query could
+    push the particle, so none is made: most hair is centimetres from the head, and the queries of
+    this serial loop are its cost. The result is the same as querying every particle, except for
+    particles already deeper than search inside the collider, which no query sees anyway until
+    they are within margin of its surface. A caller that moves particles or the collider in any other
+    way must lower their bounds (zero them) first.
+
     Launch: one thread per strand (dim = num_strands).
     Inputs:
-      x_prev (vec3, per particle, m): positions at the start of the substep
+      x_prev (vec3, per particle, m): positions at the start of the substep (where the bounds hold)
       inv_mass (float, per particle): 0 marks pinned particles, whose velocity is not damped
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       rest_length (float, per particle, m): rest distance to the previous particle (unused for roots)
@@ -416,13 +422,15 @@ def follow_the_leader(
       shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
       margin (float, m): distance kept outside the collider
       search (float, m): mesh query radius
-      use_clearance (int, flag): non-zero skips queries using clearance
-      clearance (float, per particle, m): points_clearance of x before this pass; read only when
-          use_clearance != 0
+      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      collider_moved (float, 1 element, m): largest displacement of the collider since the last substep
+          (collision.collider_motion); read only when use_bounds != 0
       ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
       dt (float, s): substep length
     In/out:
       x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out
+      clearance (float, per particle, m): contact bounds at x_prev in, at x out (zero: unknown);
+          written only when collide_mode != COLLIDE_NONE
     Outputs:
       v (vec3, per particle, m/s): velocities at the end of the substep
     """
@@ -443,21 +451,26 @@ def follow_the_leader(
                     d = parent - x[i - 2]
                 dist = wp.length(d)
             p = parent + d * (length / dist)
-            near = True
-            if use_clearance != 0:
-                near = clearance[i] - wp.length(p - predicted) <= margin + 1.0e-6
-            if collide_mode != 0 and near:
-                # putting the particle back at rest length can re-enter the collider near a crease
-                # (between two spheres, in a concave corner); a second round settles it
-                for _round in range(2):
-                    pushed = collide_point(p, collide_mode, shape, margin, search)
-                    if pushed == p:
-                        break
-                    p = pushed
-                    d = p - parent
-                    dist = wp.length(d)
-                    if dist > 1.0e-12:
-                        p = parent + d * (length / dist)
+            if collide_mode != 0:
+                bound = float(0.0)
+                if use_bounds != 0:
+                    bound = clearance[i] - wp.length(p - x_prev[i]) - collider_moved[0]
+                if use_bounds == 0 or bound <= margin + 1.0e-5:
+                    # putting the particle back at rest length can re-enter the collider near a
+                    # crease (between two spheres, in a concave corner); a second round settles it
+                    queried = p
+                    for _round in range(2):
+                        queried = p
+                        pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, search)
+                        if pushed == p:
+                            break
+                        p = pushed
+                        d = p - parent
+                        dist = wp.length(d)
+                        if dist > 1.0e-12:
+                            p = parent + d * (length / dist)
+                    bound = bound - wp.length(p - queried)
+                clearance[i] = bound
             correction = p - predicted
             x[i] = p
         if i > start:
@@ -497,6 +510,7 @@ def hold_in_comb(
     dt: float,
     grip: wp.array(dtype=int),
     v: wp.array(dtype=wp.vec3),
+    clearance: wp.array(dtype=float),
 ):
     """Strands held by a comb: the gripped particle sits on the comb, the hair between root and comb
     keeps its segment lengths, and the hair beyond hangs from the comb.
@@ -532,6 +546,8 @@ def hold_in_comb(
       grip (int, per strand): particle index within the strand held by the comb, -1 for none; moves
           toward the tip as the hair slides
       v (vec3, per particle, m/s): velocities, recomputed for the moved particles of gripped strands
+      clearance (float, per particle, m): follow_the_leader's contact bounds, zeroed (unknown) for
+          the particles this moves
     """
     s = wp.tid()
     g = grip[s]
@@ -598,6 +614,7 @@ def hold_in_comb(
                 follow = 1
         x[k] = p
         v[k] = (x[k] - x_prev[k]) / dt
+        clearance[k] = 0.0
 
 
 @wp.kernel
