@@ -387,6 +387,7 @@ def follow_the_leader(
     margin: float,
     search: float,
     use_bounds: int,
+    probe: float,
     collider_moved: wp.array(dtype=float),
     clearance: wp.array(dtype=float),
     ftl_damping: float,
@@ -423,6 +424,8 @@ def follow_the_leader(
       margin (float, m): distance kept outside the collider
       search (float, m): mesh query radius
       use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      probe (float, m): query radius, at most search, for particles whose bound shows them no
+          deeper than probe inside; read only when use_bounds != 0
       collider_moved (float, 1 element, m): largest displacement of the collider since the last substep
           (collision.collider_motion); read only when use_bounds != 0
       ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
@@ -456,12 +459,19 @@ def follow_the_leader(
                 if use_bounds != 0:
                     bound = clearance[i] - wp.length(p - x_prev[i]) - collider_moved[0]
                 if use_bounds == 0 or bound <= margin + 1.0e-5:
+                    # a particle known to be no deeper than probe inside needs only a probe-sized
+                    # query: one within probe finds what a search-sized one finds, and one that finds
+                    # nothing shows it outside (a query's cost grows fast with its radius)
+                    reach = search
+                    if use_bounds != 0 and bound > -probe:
+                        reach = probe
                     # putting the particle back at rest length can re-enter the collider near a
                     # crease (between two spheres, in a concave corner); a second round settles it
                     queried = p
                     for _round in range(2):
                         queried = p
-                        pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, search)
+                        pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, reach)
+                        reach = search
                         if pushed == p:
                             break
                         p = pushed
