@@ -91,9 +91,10 @@ class Collider:
             buffer.assign(values)
         return buffer
 
-    def apply_pose(self, k):
-        """Pose the mesh, its BVH and the sphere tree to pose k of the uploaded ones; `motion` holds
-        how far the collider moved."""
+    def apply_pose(self, k, motion=True):
+        """Pose the mesh, its BVH and the sphere tree to pose k of the uploaded ones. With motion,
+        `motion` then holds how far the collider moved (what hair's contact bounds need; the cloth
+        does without, which saves a pass over the vertices per step)."""
         wp.copy(self.prev_points, self.points)
         wp.copy(self.prev_sphere_centers, self.sphere_centers)
         if self._pose_points is not None:
@@ -114,6 +115,8 @@ class Collider:
             wp.launch(collision.refit_sphere_tree, len(self.sphere_centers),
                       [self.sphere_centers, self.sphere_radii, self.sphere_parent, self.sphere_is_leaf],
                       device=self.device)
+        if not motion:
+            return
         self.motion.zero_()
         wp.launch(collision.collider_motion, len(self.points) + len(self.sphere_centers),
                   [self.prev_points, self.points, self.prev_sphere_centers, self.sphere_centers, self.sphere_is_leaf,

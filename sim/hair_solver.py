@@ -109,8 +109,9 @@ class HairSolver:
         self.clock.fill_(self._clock_time)
 
     def step(self, state_in, state_out, collider, dt, time=0.0, guides=None):
-        """One substep. The collider must already be posed for the end of the substep; guides (a
-        sim.guides.GuideTargets) pull the strands toward captured motion at `time`."""
+        """One substep. The collider must already be posed for the end of the substep, by
+        Collider.apply_pose(k, motion=True): the contact bounds subtract how far that moved it.
+        Guides (a sim.guides.GuideTargets) pull the strands toward captured motion at `time`."""
         m, p, dev = self.model, self.params, self.model.device
         offset = float(time - self._clock_time)
         variant = SHAPE_MATCHING[p.shape_matching]
