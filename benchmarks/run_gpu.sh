@@ -3,6 +3,7 @@
 #   bash benchmarks/run_gpu.sh tests    # graph checks on cuda and cpu (tests/test_graphs.py)
 #   bash benchmarks/run_gpu.sh hair     # benchmarks/hair.py on cuda with Newton chains
 #   bash benchmarks/run_gpu.sh cloth    # benchmarks/cloth.py on cuda with Newton VBD and XPBD
+#   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 # Logs go to $OUT (or ./out/gpu); warp-lang, newton, usd-core and trimesh must be importable.
 set -uo pipefail
 out=${OUT:-out/gpu}; mkdir -p "$out"
@@ -13,6 +14,7 @@ for part in "$@"; do
     tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_comb.py 2>&1 | tee "$out/tests.log" ;;
     hair) timeout ${HAIR_TIMEOUT:-540} python3 benchmarks/hair.py --device cuda ${HAIR_ARGS:-} 2>&1 | tee "$out/hair.log" ;;
     cloth) timeout ${CLOTH_TIMEOUT:-540} python3 benchmarks/cloth.py --device cuda ${CLOTH_ARGS:-} 2>&1 | tee "$out/cloth.log" ;;
+    realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
 done
