@@ -12,15 +12,31 @@ an odd number of swaps per frame simply alternates between two graphs.
 On a CUDA device a frame is one CUDA graph. On the CPU Warp records a frame's operations and
 replays them in a loop in C++, without Python's cost per launch; a mesh refit is the one operation
 it does not record there, so a CPU frame is split into recorded pieces with the refits between
-them (refit_mesh). With graphs disabled `run` calls the frame's function directly, so every path
-shares one definition of the frame.
+them (refit_mesh). Work on disjoint data can be split into branches (run_parallel) that a CPU
+frame replays on several threads at once. With graphs disabled `run` calls the frame's function
+directly, so every path shares one definition of the frame.
 """
 
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 
 import warp as wp
 
-_cpu_frame = None  # the CPU frame being captured, which refit_mesh splits
+_cpu_frame = None  # the CPU frame being captured, which refit_mesh and run_parallel split
+_pool = None  # worker threads replaying the branches of parallel steps
+
+
+def run_parallel(branches):
+    """Run `branches`, functions that only launch work and touch disjoint data (the strand ranges
+    of one hair substep), as one step of a frame. In a frame captured on the CPU each branch becomes
+    a graph of its own and the replays run on as many threads at once: Warp runs a CPU launch on one
+    thread, and a replay releases Python's lock, so the branches use the machine's cores. Anywhere
+    else (CUDA, eager frames, graphs off) they run one after the other."""
+    if len(branches) > 1 and _cpu_frame is not None:
+        _cpu_frame.split_parallel(branches)
+        return
+    for branch in branches:
+        branch()
 
 
 def refit_mesh(mesh):
@@ -69,11 +85,34 @@ class _CpuFrame:
         self.steps.append(host_step)
         wp.capture_begin(device=self.device, force_module_load=False)
 
+    def split_parallel(self, branches):
+        """Capture each branch as its own graph; launch() replays them at the same time."""
+        self.steps.append(wp.capture_end(device=self.device))
+        graphs = []
+        for branch in branches:
+            wp.capture_begin(device=self.device, force_module_load=False)
+            try:
+                branch()
+            finally:
+                graphs.append(wp.capture_end(device=self.device))
+        self.steps.append(tuple(graphs))
+        wp.capture_begin(device=self.device, force_module_load=False)
+
     def launch(self):
+        global _pool
         kept = []
         for step in self.steps:
             if callable(step):
                 step()
+                kept.append(step)
+                continue
+            if isinstance(step, tuple):
+                if _pool is None:  # threads start as needed, one per extra branch
+                    _pool = ThreadPoolExecutor(max_workers=8, thread_name_prefix="cfx-replay")
+                others = [_pool.submit(wp.capture_launch, graph) for graph in step[1:]]
+                wp.capture_launch(step[0])
+                for other in others:
+                    other.result()
                 kept.append(step)
                 continue
             try:

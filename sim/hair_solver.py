@@ -4,6 +4,8 @@ follow-the-leader inextensibility and head collision, one fixed sequence of laun
 
 from dataclasses import asdict, dataclass
 
+import os
+
 import numpy as np
 import warp as wp
 
@@ -17,6 +19,39 @@ COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
 # mesh query's cost grows fast with its radius (1k strands on the CPU, full+mesh: 216 -> 186 ms/frame
 # against querying collision_search = 2 cm; 5 mm re-queries far particles too often to gain more)
 PROBE = 0.01
+MAX_PARTS = 8  # strand ranges stepped side by side on the CPU
+
+
+@dataclass(frozen=True)
+class StrandRange:
+    """Consecutive whole strands, with their particles and shape-matching windows (which never
+    cross strands): the part of the hair one set of launches steps."""
+
+    first_strand: int
+    strands: int
+    first_particle: int
+    particles: int
+    first_window: int
+    windows: int
+
+
+def split_strands(model, windows, count):
+    """`count` StrandRanges of about equal particle counts covering every strand in order (fewer
+    when there are fewer strands)."""
+    start = model.strand_start_np
+    cuts = np.searchsorted(start, np.linspace(0, model.num_particles, max(1, count) + 1)[1:-1])
+    bounds = np.unique(np.r_[0, cuts, model.num_strands])
+    ranges = []
+    for s0, s1 in zip(bounds[:-1], bounds[1:]):
+        p0, p1 = int(start[s0]), int(start[s1])
+        w0, w1 = (int(i) for i in np.searchsorted(windows.first_np, [p0, p1]))
+        ranges.append(StrandRange(int(s0), int(s1 - s0), p0, p1 - p0, w0, w1 - w0))
+    return ranges
+
+
+def cpu_cores():
+    """Cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 @dataclass(frozen=True)
@@ -78,11 +113,17 @@ class HairParams:
 class HairSolver:
     """Advances a HairModel's state by one substep: state_in -> state_out."""
 
-    def __init__(self, model, params=HairParams()):
+    def __init__(self, model, params=HairParams(), parts=None):
+        """parts: how many StrandRanges to step separately (self.parts); by default one per CPU core
+        on the CPU, where Warp runs a launch on one thread, and one on a GPU."""
         self.model = model
         self.params = params
         device = model.device
         self.windows = model.shape_windows(params.window_size)
+        self.whole = StrandRange(0, model.num_strands, 0, model.num_particles, 0, self.windows.count)
+        if parts is None:
+            parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
+        self.parts = split_strands(model, self.windows, parts)
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
@@ -108,11 +149,16 @@ class HairSolver:
         self._clock_time = float(time)
         self.clock.fill_(self._clock_time)
 
-    def step(self, state_in, state_out, collider, dt, time=0.0, guides=None):
+    def step(self, state_in, state_out, collider, dt, time=0.0, guides=None, part=None):
         """One substep. The collider must already be posed for the end of the substep, by
         Collider.apply_pose(k, motion=True): the contact bounds subtract how far that moved it.
-        Guides (a sim.guides.GuideTargets) pull the strands toward captured motion at `time`."""
+        Guides (a sim.guides.GuideTargets) pull the strands toward captured motion at `time`.
+
+        part: one of self.parts (a StrandRange) steps only those strands; every launch touches only
+        their particles and windows, so the parts of one substep may run at the same time (on the
+        CPU's cores: sim.graphs.FrameGraphs.parallel). Each substep must step every part."""
         m, p, dev = self.model, self.params, self.model.device
+        r = part if part is not None else self.whole
         offset = float(time - self._clock_time)
         variant = SHAPE_MATCHING[p.shape_matching]
         win = self.windows
@@ -123,41 +169,44 @@ class HairSolver:
         bound = m.bind_particle is not None and collider is not None
         c = collider
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
-        wp.launch(strands.predict_positions, m.num_particles,
+        wp.launch(strands.predict_positions, r.particles,
                   [state_in.x, state_in.v, m.inv_mass, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag,
                    p.damping, p.wind_turbulence, p.wind_turbulence_scale, p.wind_turbulence_rate, self.clock,
                    offset, dt, int(bound), c.points if bound else None, c.indices if bound else None,
                    m.particle_binding if bound else None, m.bind_triangle if bound else None,
                    m.bind_barycentric if bound else None, m.bind_local if bound else None, m.particle_strand,
                    m.root_binding if bound else None, m.root_local if bound else None, self.hold, hold,
-                   predicted, state_out.v], device=dev)
+                   predicted, state_out.v, r.first_particle], device=dev)
         if guides is not None and p.guide_stiffness > 0.0:
-            wp.launch(strands.follow_guides, m.num_particles,
+            wp.launch(strands.follow_guides, r.particles,
                       [predicted, m.inv_mass, m.particle_strand, m.strand_start, guides.strand_guides,
                        guides.strand_guide_weights, guides.particle_param, guides.frame_points,
                        guides.num_frames, guides.num_guides, guides.vertices, guides.fps, self.clock, offset,
-                       float(1.0 - np.exp(-p.guide_stiffness * dt))], device=dev)
+                       float(1.0 - np.exp(-p.guide_stiffness * dt)), r.first_particle], device=dev)
         src, dst = predicted, other
+        exact = int(self._rotations_exact)  # the first pass after a reset solves outright, later ones refine
         for _ in range(passes):
-            if variant == SHAPE_MATCHING["full"]:
-                wp.launch(strands.shape_match_rotations, win.count,
-                          [src, win.first, win.size, win.rest, int(self._rotations_exact),
-                           p.rotation_iterations, self.rotations, self.centroids], device=dev)
-                self._rotations_exact = False
-            wp.launch(strands.shape_match_step, m.num_particles,
+            if variant == SHAPE_MATCHING["full"] and r.windows > 0:
+                wp.launch(strands.shape_match_rotations, r.windows,
+                          [src, win.first, win.size, win.rest, exact, p.rotation_iterations, self.rotations,
+                           self.centroids, r.first_window], device=dev)
+                exact = 0
+            wp.launch(strands.shape_match_step, r.particles,
                       [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets, self.rotations,
-                       self.centroids, variant, p.shape_stiffness, dst], device=dev)
+                       self.centroids, variant, p.shape_stiffness, dst, r.first_particle], device=dev)
             src, dst = dst, src
+        if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
+            self._rotations_exact = False  # once every part has solved its windows outright
         mode = COLLISION[p.collision] if collider is not None else 0
-        wp.launch(strands.follow_the_leader, m.num_strands,
+        wp.launch(strands.follow_the_leader, r.strands,
                   [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), min(PROBE, p.collision_search), c.motion if c else self._no_motion, self.clearance, p.ftl_damping,
-                   dt, state_out.v], device=dev)
+                   int(self.contact_bounds), min(PROBE, p.collision_search), c.motion if c else self._no_motion,
+                   self.clearance, p.ftl_damping, dt, state_out.v, r.first_strand], device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
-                             p.collision_margin, p.collision_search, self.clearance)
+                             p.collision_margin, p.collision_search, self.clearance, r)
 
     def reset(self):
         """Forget warm-start data and contact bounds; call after moving the state or the collider

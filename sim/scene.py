@@ -9,6 +9,7 @@ import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
+from functools import partial
 
 import numpy as np
 import warp as wp
@@ -18,7 +19,7 @@ from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
 from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
-from .graphs import AsyncReadback, FrameGraphs
+from .graphs import AsyncReadback, FrameGraphs, run_parallel
 from .errors import InputError
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
@@ -528,7 +529,10 @@ class Scene:
         return (lambda: (self.cloth_state, self._cloth_scratch)), put
 
     def _step_hair(self, dt, t):
-        self.solver.step(self.state, self._scratch, self.collider, dt, t, self.guides)
+        # the solver's strand ranges, side by side on the CPU's cores once the frame is a graph
+        step = self.solver.step
+        run_parallel([partial(step, self.state, self._scratch, self.collider, dt, t, self.guides, part)
+                      for part in self.solver.parts])
         self.state, self._scratch = self._scratch, self.state
 
     def _step_cloth(self, dt, t):

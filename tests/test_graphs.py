@@ -57,6 +57,29 @@ def test_graph_frames_equal_eager_frames(make, device):
     assert moved > 0.0
 
 
+def test_hair_in_strand_ranges_side_by_side_equals_one_range():
+    """A CPU frame steps the solver's strand ranges as branches replayed on threads at once: three
+    ranges (more than this machine may have cores) give the one-range strands bit for bit, and the
+    replayed frames do hold the parallel steps."""
+    from sim.hair_solver import HairSolver
+
+    results = []
+    for parts in (1, 3):
+        scene = Scene(_hair_config("cpu", True))
+        scene.solver = HairSolver(scene.model, scene.config.solver, parts=parts)
+        assert len(scene.solver.parts) == parts
+        assert sum(r.strands for r in scene.solver.parts) == scene.model.num_strands
+        scene.advance(0.1, animate=False)
+        for _ in range(5):
+            scene.advance(1.0 / scene.config.timing.fps)
+        steps = [step for graph, _ in scene.graphs._graphs.values() for step in graph.steps]
+        branched = [step for step in steps if isinstance(step, tuple)]
+        assert (len(branched) > 0) == (parts > 1) and all(len(step) == parts for step in branched)
+        results.append(scene.state.x.numpy())
+    np.testing.assert_array_equal(results[0], results[1])
+    assert np.abs(results[0] - Scene(_hair_config("cpu", True)).state.x.numpy()).max() > 0.01  # the hair moved
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_async_readback_caches_equal(tmp_path, device):
     from io_usd.cache import CacheReader

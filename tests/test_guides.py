@@ -30,7 +30,7 @@ def test_follow_guides_matches_a_float64_reference():
     wp.launch(kernels.follow_guides, model.num_particles,
               [x, model.inv_mass, model.particle_strand, model.strand_start, targets.strand_guides,
                targets.strand_guide_weights, targets.particle_param, targets.frame_points, targets.num_frames,
-               targets.num_guides, targets.vertices, targets.fps, clock, 0.01, stiffness])
+               targets.num_guides, targets.vertices, targets.fps, clock, 0.01, stiffness, 0])
     # reference: the same rule in float64
     g = 0.5 * (targets.frames[0] + targets.frames[1])
     idx, w = targets.strand_guides.numpy(), targets.strand_guide_weights.numpy().astype(np.float64)

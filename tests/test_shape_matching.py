@@ -64,13 +64,13 @@ def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1,
     refined = wp.zeros(win.count, dtype=wp.quat)
     wp.copy(refined, rotations)
     wp.launch(kernels.shape_match_rotations, win.count,
-              [xs, win.first, win.size, win.rest, int(exact), iterations, refined, centroids])
+              [xs, win.first, win.size, win.rest, int(exact), iterations, refined, centroids, 0])
     if refine:
         rotations = refined
     out = wp.zeros_like(xs)
     wp.launch(kernels.shape_match_step, model.num_particles,
               [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations,
-               centroids, variant, stiffness, out])
+               centroids, variant, stiffness, out, 0])
     return out.numpy(), rotations
 
 

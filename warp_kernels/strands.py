@@ -59,6 +59,7 @@ def predict_positions(
     hold_stiffness: float,
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
+    first: int,
 ):
     """First launch of a hair substep: symplectic Euler prediction, pinned roots on the skin, root hold.
 
@@ -73,7 +74,7 @@ def predict_positions(
     out, so the groom's lift and parting survive gravity while the lengths swing. With bound == 0 the
     mesh and binding arrays are not read and may be None.
 
-    Launch: one thread per particle of all strands (dim = num_particles).
+    Launch: one thread per particle of a range of whole strands (dim = particles in the range).
     Inputs:
       x (vec3, per particle, m): positions at the start of the substep
       v (vec3, per particle, m/s): velocities at the start of the substep
@@ -100,11 +101,12 @@ def predict_positions(
       root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
       hold (float, per particle): root-hold weight, 1 at the root falling to 0 along the strand
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+      first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): predicted positions
       v_out (vec3, per particle, m/s): velocities after forces; pinned particles keep theirs
     """
-    i = wp.tid()
+    i = wp.tid() + first
     p = x[i]
     vel = v[i]
     if inv_mass[i] == 0.0:
@@ -242,6 +244,7 @@ def shape_match_rotations(
     iterations: int,
     rotations: wp.array(dtype=wp.quat),
     centroids: wp.array(dtype=wp.vec3),
+    first: int,
 ):
     """Per-window optimal rotation of the rest offsets onto the current window (full variant).
 
@@ -249,7 +252,7 @@ def shape_match_rotations(
     again. exact = 1 solves it outright (float64 SVD); otherwise iterations refinement steps
     continue from the rotation stored last time, which is cheaper and, between substeps, as good.
 
-    Launch: one thread per window (dim = num_windows).
+    Launch: one thread per window of a range of whole strands (dim = windows in the range).
     Inputs:
       x (vec3, per particle, m): current positions
       window_first (int32, per window): first particle of each window
@@ -257,19 +260,20 @@ def shape_match_rotations(
       window_rest (vec3, window_size per window, m): rest offsets from the window's rest centroid
       exact (int, flag): non-zero solves from scratch (first substep, after a reset)
       iterations (int): refinement steps when exact == 0
+      first (int, index): the range's first window; thread t works on window first + t (0 for all of them)
     In/out:
       rotations (quat, per window): last rotations in (read only when exact == 0), new ones out
     Outputs:
       centroids (vec3, per window, m): current centroid of each window
     """
-    w = wp.tid()
-    first = window_first[w]
+    w = wp.tid() + first
+    start = window_first[w]
     base = w * window_size
-    centroid = window_centroid(x, first, window_size)
+    centroid = window_centroid(x, start, window_size)
     centroids[w] = centroid
     A = wp.mat33(0.0)
     for k in range(window_size):
-        A += wp.outer(x[first + k] - centroid, window_rest[base + k])
+        A += wp.outer(x[start + k] - centroid, window_rest[base + k])
     A = A / wp.sqrt(wp.max(wp.ddot(A, A), 1.0e-30))  # scale-free, so the 1e-9 guard is relative
     if exact != 0:
         rotations[w] = wp.quat_from_matrix(rotation_from_covariance(A))
@@ -327,6 +331,7 @@ def shape_match_step(
     variant: int,
     stiffness: float,
     x_out: wp.array(dtype=wp.vec3),
+    first: int,
 ):
     """One shape-matching pass: each free particle moves toward the average goal of its windows.
 
@@ -336,7 +341,7 @@ def shape_match_step(
     of reading them from a buffer of goals: the neighbours' positions it reads are in cache, a goal
     buffer would be a round trip to memory.
 
-    Launch: one thread per particle of all strands (dim = num_particles).
+    Launch: one thread per particle of a range of whole strands (dim = particles in the range).
     Inputs:
       x (vec3, per particle, m): positions before this pass
       inv_mass (float, per particle): 0 marks pinned particles, which are copied through
@@ -350,10 +355,11 @@ def shape_match_step(
       centroids (vec3, per window, m): from shape_match_rotations (full variant only)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+      first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): positions after this pass; must not alias x
     """
-    i = wp.tid()
+    i = wp.tid() + first
     p = x[i]
     if inv_mass[i] == 0.0:
         x_out[i] = p
@@ -393,6 +399,7 @@ def follow_the_leader(
     ftl_damping: float,
     dt: float,
     v: wp.array(dtype=wp.vec3),
+    first: int,
 ):
     """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, then the velocities.
 
@@ -411,7 +418,7 @@ def follow_the_leader(
     they are within margin of its surface. A caller that moves particles or the collider in any other
     way must lower their bounds (zero them) first.
 
-    Launch: one thread per strand (dim = num_strands).
+    Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
       x_prev (vec3, per particle, m): positions at the start of the substep (where the bounds hold)
       inv_mass (float, per particle): 0 marks pinned particles, whose velocity is not damped
@@ -430,6 +437,7 @@ def follow_the_leader(
           (collision.collider_motion); read only when use_bounds != 0
       ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
       dt (float, s): substep length
+      first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out
       clearance (float, per particle, m): contact bounds at x_prev in, at x out (zero: unknown);
@@ -437,7 +445,7 @@ def follow_the_leader(
     Outputs:
       v (vec3, per particle, m/s): velocities at the end of the substep
     """
-    s = wp.tid()
+    s = wp.tid() + first
     start = strand_start[s]
     end = strand_start[s + 1]
     for i in range(start, end):
@@ -521,6 +529,7 @@ def hold_in_comb(
     grip: wp.array(dtype=int),
     v: wp.array(dtype=wp.vec3),
     clearance: wp.array(dtype=float),
+    first: int,
 ):
     """Strands held by a comb: the gripped particle sits on the comb, the hair between root and comb
     keeps its segment lengths, and the hair beyond hangs from the comb.
@@ -535,7 +544,7 @@ def hold_in_comb(
     one-segment chain cannot take up its slack) the held particle stops short of the comb. The hair beyond follows the gripped particle. Runs after follow_the_leader; strands
     with grip < 0 are left untouched.
 
-    Launch: one thread per strand (dim = num_strands).
+    Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
       x_prev (vec3, per particle, m): positions at the start of the substep
       strand_start (int, num_strands + 1): first particle of each strand
@@ -551,6 +560,7 @@ def hold_in_comb(
       margin (float, m): clearance kept from the collider
       search (float, m): mesh query radius
       dt (float, s): substep length
+      first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): positions after follow_the_leader in; held by the comb out
       grip (int, per strand): particle index within the strand held by the comb, -1 for none; moves
@@ -559,7 +569,7 @@ def hold_in_comb(
       clearance (float, per particle, m): follow_the_leader's contact bounds, zeroed (unknown) for
           the particles this moves
     """
-    s = wp.tid()
+    s = wp.tid() + first
     g = grip[s]
     if g < 0:
         return
@@ -693,6 +703,7 @@ def follow_guides(
     clock: wp.array(dtype=float),
     time_offset: float,
     stiffness: float,
+    first: int,
 ):
     """Pull each free particle toward the shape of its captured guides.
 
@@ -702,7 +713,7 @@ def follow_guides(
     clock[0] + time_offset. x is updated in place: the strand's root must be pinned (inv_mass 0),
     since other threads read it while they write.
 
-    Launch: one thread per particle of all strands (dim = num_particles).
+    Launch: one thread per particle of a range of whole strands (dim = particles in the range).
     Inputs:
       inv_mass (float, per particle): 0 marks pinned particles, which are left alone
       particle_strand (int32, per particle): strand of each particle
@@ -719,10 +730,11 @@ def follow_guides(
       time_offset (float, s): time of this substep relative to clock[0]
       stiffness (float, fraction per substep): share of the way to the target moved, e.g.
           1 - exp(-rate * dt)
+      first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): positions, moved toward the targets
     """
-    i = wp.tid()
+    i = wp.tid() + first
     if inv_mass[i] == 0.0:
         return
     u = wp.clamp((clock[0] + time_offset) * guide_fps, 0.0, float(num_frames - 1))
