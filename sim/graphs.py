@@ -93,8 +93,11 @@ class _CpuFrame:
             wp.capture_begin(device=self.device, force_module_load=False)
             try:
                 branch()
-            finally:
-                graphs.append(wp.capture_end(device=self.device))
+            except Exception:
+                wp.capture_end(device=self.device)
+                wp.capture_begin(device=self.device, force_module_load=False)  # capture() ends this one
+                raise
+            graphs.append(wp.capture_end(device=self.device))
         self.steps.append(tuple(graphs))
         wp.capture_begin(device=self.device, force_module_load=False)
 
