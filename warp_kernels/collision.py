@@ -109,8 +109,13 @@ def sphere_tree_depth(p: wp.vec3, shape: ColliderShape):
 
 
 @wp.func
-def mesh_push_out_bounded(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
-    """mesh_push_out(), and p's signed distance from the surface found by the same query.
+def mesh_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
+    """Project p onto the mesh surface plus margin when it is inside or closer than margin, and
+    report p's signed distance from the surface found by the same query.
+
+    Inside points go out along the closest face's normal; outside points move along their own
+    direction from the closest point, which stays continuous around edges and corners where the face
+    normal jumps.
 
     Inputs:
       p (vec3, m): the point
@@ -135,26 +140,6 @@ def mesh_push_out_bounded(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: 
             return cp + d * (margin / dist), dist
         return cp + n * margin, dist
     return p, dist
-
-
-@wp.func
-def mesh_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
-    """Project p onto the mesh surface plus margin when it is inside or closer than margin.
-
-    Inside points go out along the closest face's normal; outside points move along their own
-    direction from the closest point, which stays continuous around edges and corners where the face
-    normal jumps.
-
-    Inputs:
-      p (vec3, m): the point
-      mesh (uint64): wp.Mesh id of a closed, outward-wound mesh
-      margin (float, m): distance kept outside the surface
-      max_dist (float, m): query radius; a point farther than this from the surface is not seen
-    Returns:
-      vec3 (m): the pushed point (p itself when nothing was in reach)
-    """
-    pushed, _distance = mesh_push_out_bounded(p, mesh, margin, max_dist)
-    return pushed
 
 
 @wp.func
@@ -206,7 +191,7 @@ def collide_point(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, se
         p = sphere_tree_push_out(p, shape, margin)
         p = sphere_tree_push_out(p, shape, margin)
     elif mode == COLLIDE_MESH:
-        p = mesh_push_out(p, shape.mesh, margin, search)
+        p, _distance = mesh_push_out(p, shape.mesh, margin, search)
     return p
 
 
@@ -232,7 +217,7 @@ def collide_point_bounded(p: wp.vec3, mode: int, shape: ColliderShape, margin: f
           COLLIDE_NONE
     """
     if mode == COLLIDE_MESH:
-        return mesh_push_out_bounded(p, shape.mesh, margin, search)
+        return mesh_push_out(p, shape.mesh, margin, search)
     if mode == COLLIDE_SPHERE_TREE:
         distance = sphere_tree_clearance(p, shape, search)
         # push_out pushes within margin of a leaf; the tolerance keeps rounding from skipping a push
