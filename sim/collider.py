@@ -62,9 +62,6 @@ class Collider:
         self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
         self.bone_matrices = None
         self._pose_buffers = {}
-        # largest displacement of a vertex or leaf sphere in the last apply_pose: the hair solver's
-        # contact bounds shrink by it
-        self.motion = wp.zeros(1, dtype=float, device=device)
 
     def set_point_poses(self, points):
         """points: (K, V, 3) vertex positions for K upcoming poses (a point cache, e.g. from USD)."""
@@ -91,10 +88,9 @@ class Collider:
             buffer.assign(values)
         return buffer
 
-    def apply_pose(self, k, motion=True):
-        """Pose the mesh, its BVH and the sphere tree to pose k of the uploaded ones. With motion,
-        `motion` then holds how far the collider moved (what hair's contact bounds need; the cloth
-        does without, which saves a pass over the vertices per step)."""
+    def apply_pose(self, k):
+        """Pose the mesh, its BVH and the sphere tree to pose k of the uploaded ones; the pose before
+        stays in prev_points and prev_sphere_centers (surface velocities, hair contact bounds)."""
         wp.copy(self.prev_points, self.points)
         wp.copy(self.prev_sphere_centers, self.sphere_centers)
         if self._pose_points is not None:
@@ -115,12 +111,6 @@ class Collider:
             wp.launch(collision.refit_sphere_tree, len(self.sphere_centers),
                       [self.sphere_centers, self.sphere_radii, self.sphere_parent, self.sphere_is_leaf],
                       device=self.device)
-        if not motion:
-            return
-        self.motion.zero_()
-        wp.launch(collision.collider_motion, len(self.points) + len(self.sphere_centers),
-                  [self.prev_points, self.points, self.prev_sphere_centers, self.sphere_centers, self.sphere_is_leaf,
-                   self.motion], device=self.device)
 
     def adjacency(self):
         """CSR vertex->vertex and vertex->face adjacency and per-vertex concave flags, built once

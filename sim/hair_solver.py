@@ -33,6 +33,7 @@ class StrandRange:
     particles: int
     first_window: int
     windows: int
+    reach: float = float("inf")  # m: its particles stay this close to the model's anchor (HairModel.reach)
 
 
 def split_strands(model, windows, count):
@@ -45,8 +46,16 @@ def split_strands(model, windows, count):
     for s0, s1 in zip(bounds[:-1], bounds[1:]):
         p0, p1 = int(start[s0]), int(start[s1])
         w0, w1 = (int(i) for i in np.searchsorted(windows.first_np, [p0, p1]))
-        ranges.append(StrandRange(int(s0), int(s1 - s0), p0, p1 - p0, w0, w1 - w0))
+        ranges.append(StrandRange(int(s0), int(s1 - s0), p0, p1 - p0, w0, w1 - w0, model.reach(int(s0), int(s1 - s0))))
     return ranges
+
+
+def _contact_motion(device):
+    motion = strands.ContactMotion()
+    motion.moved = wp.zeros(1, dtype=float, device=device)
+    motion.rigid = wp.array([np.eye(4)], dtype=wp.mat44, device=device)
+    motion.center = wp.zeros(1, dtype=wp.vec3, device=device)
+    return motion
 
 
 def cpu_cores():
@@ -120,7 +129,8 @@ class HairSolver:
         self.params = params
         device = model.device
         self.windows = model.shape_windows(params.window_size)
-        self.whole = StrandRange(0, model.num_strands, 0, model.num_particles, 0, self.windows.count)
+        self.whole = StrandRange(0, model.num_strands, 0, model.num_particles, 0, self.windows.count,
+                                 model.reach(0, model.num_strands))
         if parts is None:
             parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
         self.parts = split_strands(model, self.windows, parts)
@@ -129,9 +139,10 @@ class HairSolver:
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
         # contact bounds of the length pass (see strands.follow_the_leader): zero = query next substep
-        self.clearance = wp.zeros(model.num_particles, dtype=float, device=device)
+        self.clearance = wp.full(model.num_particles, strands.NO_BOUND, dtype=float, device=device)
         self.contact_bounds = True  # False queries every particle every substep (same result, slower)
-        self._no_motion = wp.zeros(1, dtype=float, device=device)
+        # how the collider moved near each range in the substep (strands.contact_motion)
+        self._motion = {r: _contact_motion(device) for r in [*self.parts, self.whole]}
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
@@ -151,7 +162,7 @@ class HairSolver:
 
     def step(self, state_in, state_out, collider, dt, time=0.0, guides=None, part=None):
         """One substep. The collider must already be posed for the end of the substep, by
-        Collider.apply_pose(k, motion=True): the contact bounds subtract how far that moved it.
+        Collider.apply_pose(k): the contact bounds subtract how far that moved it near the strands.
         Guides (a sim.guides.GuideTargets) pull the strands toward captured motion at `time`.
 
         part: one of self.parts (a StrandRange) steps only those strands; every launch touches only
@@ -198,22 +209,37 @@ class HairSolver:
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright
         mode = COLLISION[p.collision] if collider is not None else 0
+        motion = self._motion[r]
+        if mode != 0 and self.contact_bounds:
+            adjacency = c.adjacency()
+            wp.launch(strands.anchor_frame, 1, [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
+            wp.launch(strands.contact_motion, len(c.points) + len(c.sphere_centers),
+                      [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
+                       c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), r.reach,
+                       p.collision_search, motion], device=dev)
         wp.launch(strands.follow_the_leader, r.strands,
                   [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), min(PROBE, p.collision_search), c.motion if c else self._no_motion,
+                   int(self.contact_bounds), min(PROBE, p.collision_search), motion, r.reach,
                    self.clearance, p.ftl_damping, dt, state_out.v, r.first_strand], device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
                              p.collision_margin, p.collision_search, self.clearance, r)
 
+    def contact_motion(self, part=None):
+        """What the last substep measured of the collider's motion near a range of strands (the whole
+        hair by default), as NumPy: (largest relative displacement [m], the anchor's rigid motion as a
+        4x4 matrix, the anchor's centre [m])."""
+        motion = self._motion[part if part is not None else self.whole]
+        return float(motion.moved.numpy()[0]), motion.rigid.numpy()[0], motion.center.numpy()[0]
+
     def reset(self):
         """Forget warm-start data and contact bounds; call after moving the state or the collider
         discontinuously (a new groom, a cut, a jump in time). Frames captured in CUDA graphs must be
         captured again (sim.graphs.FrameGraphs.clear)."""
         self._rotations_exact = True
-        self.clearance.zero_()
+        self.clearance.fill_(strands.NO_BOUND)
 
     def count_unhealthy(self, state):
         """Launch the count of non-finite or too fast particles without waiting: (count, first

@@ -65,6 +65,8 @@ class HairModel:
         self.rest_length = arr(self.rest_length_np, float)
         self.inv_mass = arr(self.inv_mass_np, float)
         self.bind_particle = None  # set by bind_to_mesh
+        self.anchor_face = -1  # a root triangle near the middle of the roots (bind_to_mesh)
+        self.anchor_center_np = np.zeros(3, np.float32)  # its centroid in the bind pose
 
     def shape_windows(self, size):
         """Shape-matching windows of `size` consecutive particles (cached per size)."""
@@ -120,7 +122,25 @@ class HairModel:
         offsets = self.rest_positions_np - np.repeat(roots, self.counts, axis=0)
         local = np.einsum("pji,pj->pi", np.repeat(frames, self.counts, axis=0), offsets)
         self.root_local = wp.array(local.astype(np.float32), dtype=wp.vec3, device=device)
+        # the root triangle nearest the roots' middle: the hair's contact bounds are kept in the
+        # frame it moves with (strands.contact_motion)
+        centroids = np.asarray(mesh_points, np.float64)[np.asarray(mesh_indices).reshape(-1, 3)[self.root_triangle_np]].mean(1)
+        nearest = int(np.argmin(np.linalg.norm(centroids - roots.mean(0), axis=1))) if self.num_strands else 0
+        self.anchor_face = int(self.root_triangle_np[nearest]) if self.num_strands else -1
+        self.anchor_center_np = centroids[nearest].astype(np.float32) if self.num_strands else np.zeros(3, np.float32)
         return self
+
+    def reach(self, first_strand, strands):
+        """How far [m] from the anchor triangle's centroid the particles of `strands` strands from
+        `first_strand` can be: each root's distance from it in the bind pose plus its strand's length
+        (the length pass keeps every segment at its rest length), with room for the skin around the
+        roots to stretch a little. Infinite for an unbound model."""
+        if self.anchor_face < 0 or strands == 0:
+            return float("inf")
+        s = slice(first_strand, first_strand + strands)
+        roots = self.rest_positions_np[self.strand_start_np[:-1][s]].astype(np.float64)
+        far = np.linalg.norm(roots - self.anchor_center_np, axis=1) + self.natural_length_np[s]
+        return float(1.05 * far.max() + 0.005)
 
     def root_hold_weights(self, length):
         """Per-particle weight of the root hold: 1 at the root, falling linearly to 0 at `length` [m],

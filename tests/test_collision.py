@@ -156,7 +156,7 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
         kept, moved = 0, 0.0
         for k in range(1, substeps + 1):
             moving.apply_pose(k)
-            moved = max(moved, float(moving.motion.numpy()[0]))
+            moved = max(moved, float(np.linalg.norm(moving.points.numpy() - moving.prev_points.numpy(), axis=1).max()))
             solver.step(s0, s1, moving, dt)
             s0, s1 = s1, s0
             kept += int(np.sum(solver.clearance.numpy() > margin + 1e-5))
@@ -199,3 +199,78 @@ def test_visibility_from_an_eye_matches_the_sphere_it_sees():
     behind = np.array([[0.0, 0.0, -0.3], [0.05, 0.0, -0.2], [0.0, 0.02, -1.5]])
     assert not collider.visible_from(behind, eye).any()
     assert collider.visible_from([[0.5, 0.0, 0.0], [0.0, 0.0, 0.5]], eye).all()
+
+
+def test_contact_motion_follows_the_anchor_and_counts_only_the_collider_near_the_hair():
+    """A head (bone 0) with hair and a hand (bone 1). The head's rigid motion is undone, so it moves
+    nothing; the hand counts only once it comes within the hair's reach (NumPy float64 reference of
+    the rule); and a hand sweeping through the hair from afar leaves the strands bit-identical to
+    querying every particle."""
+    from sim.collider import Collider
+
+    head_v, head_f = (np.asarray(a) for a in (trimesh.creation.icosphere(3, radius=0.1).vertices,
+                                               trimesh.creation.icosphere(3, radius=0.1).faces))
+    hand = trimesh.creation.icosphere(2, radius=0.05)
+    v = np.concatenate([head_v, np.asarray(hand.vertices) + [0.8, 0.0, 0.0]])
+    f = np.concatenate([head_f, np.asarray(hand.faces) + len(head_v)])
+    bone = np.r_[np.zeros(len(head_v), int), np.ones(len(hand.vertices), int)]
+    skin = np.zeros((len(v), 4), int)
+    skin[:, 0] = bone
+    weights = np.tile([1.0, 0.0, 0.0, 0.0], (len(v), 1))
+    collider = Collider("body", v, f, skin, weights, 2, "cpu", sphere_leaves=0)
+
+    def pose(angle, head_shift, hand_shift):
+        c, s = np.cos(angle), np.sin(angle)
+        b = np.tile(np.eye(4), (2, 1, 1))
+        b[0, :2, :2] = [[c, -s], [s, c]]
+        b[0, :3, 3], b[1, :3, 3] = head_shift, hand_shift
+        return b
+
+    # the hand far away, then brought next to the hair, then swept through it and out again
+    hand_path = [[0.0, 0.0, 0.0], [0.0, 0.3, 0.0]] + [[x - 0.8, 0.2, 0.0] for x in np.linspace(0.2, -0.3, 40)]
+    poses = np.array([pose(0.02 * k, [0.002 * k, 0.0, 0.0], h) for k, h in enumerate(hand_path)])
+    collider.set_poses(poses)
+    collider.apply_pose(0)
+    rng = np.random.default_rng(4)
+    up = rng.normal(size=(40, 3)) * [0.4, 0.0, 0.4] + [0.0, 1.0, 0.0]
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    pts = (0.1 * up[:, None] + 0.001 * up[:, None] + 0.02 * np.arange(8)[None, :, None] * up[:, None]).reshape(-1, 3)
+    model = StrandBuilder().add_strands(pts, np.full(40, 8), np.full(40 * 8, 1e-4)).finalize("cpu").bind_to_mesh(
+        collider.posed_points(), f)
+    params = HairParams(collision="mesh", gravity=(0.0, 0.0, 0.0))
+    results = []
+    for use in (True, False):
+        solver = HairSolver(model, params)
+        solver.contact_bounds = use
+        s0, s1 = model.state(), model.state()
+        collider.apply_pose(0)
+        for k in range(1, len(poses)):
+            before = collider.points.numpy().astype(np.float64)
+            collider.apply_pose(k)
+            solver.step(s0, s1, collider, 1.0 / 240.0)
+            s0, s1 = s1, s0
+            if not use:
+                continue
+            moved, rigid, center = solver.contact_motion()
+            after = collider.points.numpy().astype(np.float64)
+            turn = poses[k, 0] @ np.linalg.inv(poses[k - 1, 0])
+            np.testing.assert_allclose(rigid, turn, atol=2e-6)  # the head bone's own motion
+            # the rule in float64: a vertex counts when one of its edges reaches within reach + search
+            reach, search = solver.whole.reach, params.collision_search
+            edge = np.zeros(len(after))
+            for a, b in ((0, 1), (1, 2), (2, 0)):
+                length = np.linalg.norm(after[f[:, a]] - after[f[:, b]], axis=1)
+                np.maximum.at(edge, f[:, a], length)
+                np.maximum.at(edge, f[:, b], length)
+            near = np.linalg.norm(after - center, axis=1) - reach - search - edge <= 0.0
+            relative = np.linalg.norm(after - (before @ turn[:3, :3].T + turn[:3, 3]), axis=1)
+            expected = relative[near].max()
+            assert abs(moved - expected) < 2e-6
+            if k == 1:  # the hand moved 30 cm but far away; the head turned rigidly
+                assert near[len(head_v):].sum() == 0 and moved < 1e-5
+                assert np.linalg.norm(after - before, axis=1)[: len(head_v)].max() > 1e-3
+            if k == 3:
+                assert near[len(head_v):].all() and moved > 0.01
+        results.append(s0.x.numpy())
+    np.testing.assert_array_equal(results[0], results[1])
+    assert np.abs(results[0] - model.rest_positions_np).max() > 0.02  # the hand pushed the hair aside

@@ -228,39 +228,6 @@ def collide_point_bounded(p: wp.vec3, mode: int, shape: ColliderShape, margin: f
 
 
 @wp.kernel
-def collider_motion(
-    points_before: wp.array(dtype=wp.vec3),
-    points: wp.array(dtype=wp.vec3),
-    centers_before: wp.array(dtype=wp.vec3),
-    centers: wp.array(dtype=wp.vec3),
-    is_leaf: wp.array(dtype=wp.int32),
-    motion: wp.array(dtype=float),
-):
-    """Largest displacement of a collider vertex or leaf sphere centre between two poses.
-
-    No point of the triangle mesh (a barycentric blend of its vertices) and no leaf sphere (fixed
-    radius) moved farther, so a point's distance from the collider changed by at most this much:
-    the bound the strand length pass subtracts before skipping a query.
-
-    Launch: one thread per vertex and sphere-tree node (dim = len(points) + len(centers)).
-    Inputs:
-      points_before (vec3, per vertex, m): mesh vertices in the previous pose
-      points (vec3, per vertex, m): and in the new one
-      centers_before (vec3, per tree node, m): sphere centres in the previous pose
-      centers (vec3, per tree node, m): and in the new one
-      is_leaf (int32, per tree node): 1 for leaf spheres; inner nodes are not counted
-    In/out:
-      motion (float, 1 element, m): zeroed before the launch; the largest displacement out
-    """
-    i = wp.tid()
-    n = points.shape[0]
-    if i < n:
-        wp.atomic_max(motion, 0, wp.length(points[i] - points_before[i]))
-    elif is_leaf[i - n] != 0:
-        wp.atomic_max(motion, 0, wp.length(centers[i - n] - centers_before[i - n]))
-
-
-@wp.kernel
 def points_clearance(
     points: wp.array(dtype=wp.vec3),
     mode: int,

@@ -5,6 +5,7 @@ Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launche
     predict_positions (integration, pinned roots on the skin, root hold)
     -> [follow_guides]
     -> [shape_match_rotations (full variant) -> shape_match_step] x passes
+    -> anchor_frame -> contact_motion (how far the collider moved near these strands)
     -> follow_the_leader (length, collision and the velocity update)
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
@@ -23,11 +24,12 @@ import warp as wp
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
 from .collision import ColliderShape, collide_point, collide_point_bounded
-from .skinning import bound_position, face_frame
+from .skinning import bound_position, face_frame, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
 TAUT = wp.constant(0.995)  # hold_in_comb: a root-to-comb chain this close to straight is laid straight
 SHAPE_FULL = wp.constant(1)
+NO_BOUND = wp.constant(-1.0e30)  # a contact bound that says nothing: the next query looks as far as it can
 
 
 @wp.kernel
@@ -380,6 +382,160 @@ def shape_match_step(
     x_out[i] = p
 
 
+@wp.struct
+class ContactMotion:
+    """How the collider moved near a range of strands in the last substep, as contact_motion measured
+    it: what the contact bounds of follow_the_leader are lowered by.
+
+    Fields:
+      moved (float, 1 element, m): largest displacement of a collider vertex or leaf sphere within
+          reach, measured in the frame that rigid carries along
+      rigid (mat44, 1 element): the rigid motion of the anchor triangle over the substep (identity
+          without an anchor); distances seen in the frame it carries change only by relative motion
+      center (vec3, 1 element, m): the anchor triangle's centroid after the substep; every particle
+          within reach of it is covered by moved
+    """
+
+    moved: wp.array(dtype=float)
+    rigid: wp.array(dtype=wp.mat44)
+    center: wp.array(dtype=wp.vec3)
+
+
+@wp.func
+def anchor_motion(points_before: wp.array(dtype=wp.vec3), points: wp.array(dtype=wp.vec3),
+                  indices: wp.array(dtype=wp.int32), face: int):
+    """The rigid motion that carries a triangle's frame from one pose to the next.
+
+    Inputs:
+      points_before (vec3, per vertex, m): collider vertices in the previous pose
+      points (vec3, per vertex, m): and in the new one
+      indices (int32, 3 per triangle): collider triangles
+      face (int): the anchor triangle; below 0 for none (the identity, centred at the origin)
+    Returns:
+      mat44: x -> R x + t, R the turn of the triangle's frame (skinning.triangle_frame) and t moving
+          its centroid to the new one
+      vec3 (m): the centroid in the new pose
+    """
+    rotation = wp.identity(3, dtype=float)
+    before = wp.vec3(0.0)
+    after = wp.vec3(0.0)
+    if face >= 0:
+        a0 = points_before[indices[3 * face]]
+        b0 = points_before[indices[3 * face + 1]]
+        c0 = points_before[indices[3 * face + 2]]
+        a1 = points[indices[3 * face]]
+        b1 = points[indices[3 * face + 1]]
+        c1 = points[indices[3 * face + 2]]
+        rotation = triangle_frame(a1, b1, c1) * wp.transpose(triangle_frame(a0, b0, c0))
+        before = (a0 + b0 + c0) / 3.0
+        after = (a1 + b1 + c1) / 3.0
+    t = after - rotation * before
+    m = wp.mat44(rotation[0, 0], rotation[0, 1], rotation[0, 2], t[0],
+                 rotation[1, 0], rotation[1, 1], rotation[1, 2], t[1],
+                 rotation[2, 0], rotation[2, 1], rotation[2, 2], t[2],
+                 0.0, 0.0, 0.0, 1.0)
+    return m, after
+
+
+@wp.kernel
+def anchor_frame(
+    points_before: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    anchor_face: int,
+    motion: ContactMotion,
+):
+    """The first launch of contact_motion's pair: the anchor triangle's rigid motion and centre.
+
+    Launch: one thread per range of strands (dim = 1).
+    Inputs:
+      points_before (vec3, per vertex, m): collider vertices in the previous pose
+      points (vec3, per vertex, m): and in the new one
+      indices (int32, 3 per triangle): collider triangles
+      anchor_face (int): a triangle the strands' roots move with; below 0 for none
+    Outputs:
+      motion (ContactMotion): rigid and center written, moved zeroed
+    """
+    rigid, center = anchor_motion(points_before, points, indices, anchor_face)
+    motion.rigid[0] = rigid
+    motion.center[0] = center
+    motion.moved[0] = 0.0
+
+
+@wp.kernel
+def contact_motion(
+    points_before: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+    centers_before: wp.array(dtype=wp.vec3),
+    centers: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    is_leaf: wp.array(dtype=wp.int32),
+    neighbor_start: wp.array(dtype=wp.int32),
+    neighbors: wp.array(dtype=wp.int32),
+    local: int,
+    reach: float,
+    search: float,
+    motion: ContactMotion,
+):
+    """How far the collider moved near a range of strands, relative to an anchor triangle.
+
+    Distances do not change under a rigid motion, so a particle's distance from the collider changes
+    by at most its own displacement and the collider's, both measured after undoing the anchor's
+    rigid motion (anchor_frame, launched first): on a walking body the head and the hair near it
+    barely move in that frame. Only the collider near the strands counts: a triangle with a point
+    within reach + search of the anchor's new centre has every corner within reach + search of it
+    plus that corner's longest edge in the new pose, and one entirely farther is more than search
+    from any particle within reach, beyond any bound follow_the_leader keeps. So the arms and legs
+    of a walking body, which move fast, do not shrink the bounds of the hair.
+
+    Launch: one thread per vertex and sphere-tree node (dim = len(points) + len(centers)).
+    Inputs:
+      points_before (vec3, per vertex, m): mesh vertices in the previous pose
+      points (vec3, per vertex, m): and in the new one
+      centers_before (vec3, per tree node, m): sphere centres in the previous pose
+      centers (vec3, per tree node, m): and in the new one
+      radii (float, per tree node, m): sphere radii; leaf radii do not change with the pose
+      is_leaf (int32, per tree node): 1 for leaf spheres; inner nodes are not counted
+      neighbor_start (int32, vertices + 1): CSR offsets of each vertex's edge neighbours
+      neighbors (int32, per vertex-neighbour pair): the neighbours (sim.Collider.adjacency)
+      local (int, flag): 0 counts every vertex and leaf (no anchor triangle)
+      reach (float, m): every particle of the strands lies within this of the anchor's centroid
+      search (float, m): the largest contact bound follow_the_leader keeps (its query radius)
+    In/out:
+      motion (ContactMotion): rigid and center read; moved raised to the largest displacement
+    """
+    i = wp.tid()
+    rigid = motion.rigid[0]
+    n = points.shape[0]
+    q = wp.vec3(0.0)
+    q_before = wp.vec3(0.0)
+    if i < n:
+        q = points[i]
+        q_before = points_before[i]
+    else:
+        if is_leaf[i - n] == 0:
+            return
+        q = centers[i - n]
+        q_before = centers_before[i - n]
+    moved = wp.length(q - wp.transform_point(rigid, q_before))
+    if moved <= motion.moved[0]:
+        return  # cannot raise the maximum (a stale read only costs this shortcut)
+    if local != 0:
+        gap = wp.length(q - motion.center[0]) - reach - search
+        if i < n:
+            edge = float(0.0)
+            k = neighbor_start[i]
+            while gap - edge > 0.0 and k < neighbor_start[i + 1]:
+                edge = wp.max(edge, wp.length(points[neighbors[k]] - q))
+                k += 1
+            gap = gap - edge
+        else:
+            gap = gap - radii[i - n]
+        if gap > 0.0:
+            return
+    wp.atomic_max(motion.moved, 0, moved)
+
+
 @wp.kernel
 def follow_the_leader(
     x: wp.array(dtype=wp.vec3),
@@ -394,7 +550,8 @@ def follow_the_leader(
     search: float,
     use_bounds: int,
     probe: float,
-    collider_moved: wp.array(dtype=float),
+    motion: ContactMotion,
+    strand_reach: float,
     clearance: wp.array(dtype=float),
     ftl_damping: float,
     dt: float,
@@ -410,13 +567,15 @@ def follow_the_leader(
     next particle in a register rather than stored.
 
     Contact bounds (use_bounds != 0): each particle keeps a lower bound of its distance from the
-    collider, set by its last query and lowered every substep by how far it moved (from x_prev) and
-    how far the collider moved (collider_moved). While that bound stays above margin no query could
+    collider, set by its last query and lowered every substep by how far it and the collider moved,
+    both seen in the frame that follows the anchor triangle (contact_motion): the particle's move is
+    measured from x_prev carried by motion.rigid. While that bound stays above margin no query could
     push the particle, so none is made: most hair is centimetres from the head, and the queries of
-    this serial loop are its cost. The result is the same as querying every particle, except for
+    this serial loop are its cost. A particle farther than strand_reach from motion.center gets a full
+    query. The result is the same as querying every particle, except for
     particles already deeper than search inside the collider, which no query sees anyway until
     they are within margin of its surface. A caller that moves particles or the collider in any other
-    way must lower their bounds (zero them) first.
+    way must set their bounds to NO_BOUND first.
 
     Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
@@ -433,14 +592,15 @@ def follow_the_leader(
       use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
       probe (float, m): query radius, at most search, for particles whose bound shows them no
           deeper than probe inside; read only when use_bounds != 0
-      collider_moved (float, 1 element, m): largest displacement of the collider since the last substep
-          (collision.collider_motion); read only when use_bounds != 0
+      motion (ContactMotion): how the collider moved near these strands (contact_motion, with the
+          same reach and search); read only when use_bounds != 0
+      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
       ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
       dt (float, s): substep length
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out
-      clearance (float, per particle, m): contact bounds at x_prev in, at x out (zero: unknown);
+      clearance (float, per particle, m): contact bounds at x_prev in, at x out (NO_BOUND: unknown);
           written only when collide_mode != COLLIDE_NONE
     Outputs:
       v (vec3, per particle, m/s): velocities at the end of the substep
@@ -463,9 +623,11 @@ def follow_the_leader(
                 dist = wp.length(d)
             p = parent + d * (length / dist)
             if collide_mode != 0:
-                bound = float(0.0)
+                bound = float(NO_BOUND)
                 if use_bounds != 0:
-                    bound = clearance[i] - wp.length(p - x_prev[i]) - collider_moved[0]
+                    if wp.length(p - motion.center[0]) <= strand_reach:
+                        carried = wp.transform_point(motion.rigid[0], x_prev[i])
+                        bound = clearance[i] - wp.length(p - carried) - motion.moved[0]
                 if use_bounds == 0 or bound <= margin + 1.0e-5:
                     # a particle known to be no deeper than probe inside needs only a probe-sized
                     # query: one within probe finds what a search-sized one finds, and one that finds
@@ -566,7 +728,7 @@ def hold_in_comb(
       grip (int, per strand): particle index within the strand held by the comb, -1 for none; moves
           toward the tip as the hair slides
       v (vec3, per particle, m/s): velocities, recomputed for the moved particles of gripped strands
-      clearance (float, per particle, m): follow_the_leader's contact bounds, zeroed (unknown) for
+      clearance (float, per particle, m): follow_the_leader's contact bounds, set to NO_BOUND for
           the particles this moves
     """
     s = wp.tid() + first
@@ -634,7 +796,7 @@ def hold_in_comb(
                 follow = 1
         x[k] = p
         v[k] = (x[k] - x_prev[k]) / dt
-        clearance[k] = 0.0
+        clearance[k] = NO_BOUND
 
 
 @wp.kernel
