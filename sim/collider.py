@@ -88,21 +88,26 @@ class Collider:
             buffer.assign(values)
         return buffer
 
-    def apply_pose(self, k):
+    def apply_pose(self, k, refit=True):
         """Pose the mesh, its BVH and the sphere tree to pose k of the uploaded ones; the pose before
-        stays in prev_points and prev_sphere_centers (surface velocities, hair contact bounds)."""
+        stays in prev_points and prev_sphere_centers (surface velocities, hair contact bounds).
+        refit=False leaves the BVH at an earlier pose, which saves most of the cost: for steps that
+        read only the points and the sphere tree (hair colliding with the sphere tree), never for
+        mesh queries."""
         wp.copy(self.prev_points, self.points)
         wp.copy(self.prev_sphere_centers, self.sphere_centers)
         if self._pose_points is not None:
             n = len(self.rest_points_np)
             wp.copy(self.points, self._pose_points, 0, k * n, n)
-            refit_mesh(self.mesh)
+            if refit:
+                refit_mesh(self.mesh)
         else:  # the sphere tree follows skinned poses only
             offset = k * self.num_bones
             wp.launch(skinning.skin_points, len(self.points),
                       [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
                        self.points], device=self.device)
-            refit_mesh(self.mesh)
+            if refit:
+                refit_mesh(self.mesh)
             wp.launch(skinning.skin_points, len(self.sphere_centers),
                       [self.sphere_rest_centers, self.sphere_skin_indices, self.sphere_skin_weights,
                        self.bone_matrices, offset, self.sphere_centers], device=self.device)

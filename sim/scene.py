@@ -491,15 +491,16 @@ class Scene:
                 # a comb adds a launch per substep: its frames are other graphs
                 held = getattr(self.solver.comb, "serial", 0)
                 self._advance_solver(("hair", held), t0, frame_dt, self.config.solver.substeps, animate,
-                                     self._step_hair, self._hair_refs)
+                                     self._step_hair, self._hair_refs, bvh=self.config.solver.collision == "mesh")
             if self.cloth_model is not None:
                 self._advance_solver("cloth", t0, frame_dt, self.cloth_substeps, animate, self._step_cloth,
                                      self._cloth_refs)
             if animate:
                 self.time = t0 + frame_dt
 
-    def _advance_solver(self, name, t0, frame_dt, substeps, animate, step, refs):
-        """One solver's frame."""
+    def _advance_solver(self, name, t0, frame_dt, substeps, animate, step, refs, bvh=True):
+        """One solver's frame. bvh=False: the solver makes no mesh queries, so the collider's BVH
+        is refitted only to the frame's last pose (which everything after the frame may query)."""
         dt = frame_dt / substeps
         times = t0 + dt * np.arange(0, substeps + 1) if animate else np.full(substeps + 1, t0)
         self._pose(times)  # the frame's poses, uploaded into the buffer the graph reads
@@ -507,10 +508,10 @@ class Scene:
         def frame():
             # start from the frame's first pose: another solver may have left the collider at the
             # frame's end, and surface velocities (cloth friction) come from consecutive poses
-            self.collider.apply_pose(0)
+            self.collider.apply_pose(0, refit=bvh)
             self.collider.reset_motion()
             for k in range(1, substeps + 1):
-                self.collider.apply_pose(k)
+                self.collider.apply_pose(k, refit=bvh or k == substeps)
                 step(dt, float(times[k]))
 
         self.graphs.run((name, animate, id(refs[0]()[0])), frame, refs)

@@ -179,3 +179,35 @@ def test_async_readback_on_the_cpu_copies_at_once():
     wait = AsyncReadback("cpu").begin({"x": a})
     a.fill_(wp.vec3(9.0, 9.0, 9.0))  # later work must not change what was read back
     np.testing.assert_array_equal(wait()["x"], np.arange(12, dtype=np.float32).reshape(4, 3))
+
+
+def test_sphere_tree_hair_frames_refit_the_bvh_once_and_step_the_same_hair(monkeypatch):
+    """Hair colliding with the sphere tree makes no mesh queries, so its frames refit the collider's
+    BVH only to the frame's last pose: the strands are bit-identical to refitting every substep, and
+    the BVH left behind answers queries as one built on the posed mesh."""
+    refits = []
+    refit = wp.Mesh.refit
+    monkeypatch.setattr(wp.Mesh, "refit", lambda mesh: (refits.append(1), refit(mesh))[1])
+    results = []
+    for always in (False, True):
+        scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "frames": 3, "preroll": 0.0, "stats": False},
+                                       "head": {"sphere_leaves": 128},
+                                       "hair": {"count": 60, "vertices": 10, "style": "wavy"},
+                                       "solver": {"substeps": 4, "collision": "sphere_tree"}}))
+        if always:
+            pose = scene.collider.apply_pose
+            scene.collider.apply_pose = lambda k, refit=True, pose=pose: pose(k, True)
+        refits.clear()
+        for _ in range(3):
+            scene.advance(1.0 / scene.config.timing.fps)
+        results.append((scene.state.x.numpy(), len(refits)))
+        if not always:  # the BVH matches the posed mesh
+            rng = np.random.default_rng(1)
+            points = scene.collider.points.numpy()[rng.choice(len(scene.collider.points), 300)]
+            points += rng.normal(scale=0.01, size=points.shape)
+            got, _, _ = scene.collider.closest_points(points)
+            scene.collider.mesh.refit()
+            np.testing.assert_array_equal(got, scene.collider.closest_points(points)[0])
+    (lean, lean_refits), (full, full_refits) = results
+    np.testing.assert_array_equal(lean, full)
+    assert (lean_refits, full_refits) == (3, 15)  # one per frame against one per pose (the frame's first and 4 substeps)
