@@ -507,8 +507,9 @@ class Scene:
 
         def frame():
             # start from the frame's first pose: another solver may have left the collider at the
-            # frame's end, and surface velocities (cloth friction) come from consecutive poses
-            self.collider.apply_pose(0, refit=bvh)
+            # frame's end, and surface velocities (cloth friction) come from consecutive poses; nothing
+            # queries this pose, so its BVH is not refitted
+            self.collider.apply_pose(0, refit=False)
             self.collider.reset_motion()
             for k in range(1, substeps + 1):
                 self.collider.apply_pose(k, refit=bvh or k == substeps)
