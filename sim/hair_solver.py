@@ -138,7 +138,7 @@ class HairSolver:
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
-        # contact bounds of the length pass (see strands.follow_the_leader): zero = query next substep
+        # contact bounds of the length pass (see strands.follow_the_leader): NO_BOUND = unknown, a full query
         self.clearance = wp.full(model.num_particles, strands.NO_BOUND, dtype=float, device=device)
         self.contact_bounds = True  # False queries every particle every substep (same result, slower)
         # how the collider moved near each range in the substep (strands.contact_motion)

@@ -124,10 +124,12 @@ class HairModel:
         self.root_local = wp.array(local.astype(np.float32), dtype=wp.vec3, device=device)
         # the root triangle nearest the roots' middle: the hair's contact bounds are kept in the
         # frame it moves with (strands.contact_motion)
-        centroids = np.asarray(mesh_points, np.float64)[np.asarray(mesh_indices).reshape(-1, 3)[self.root_triangle_np]].mean(1)
-        nearest = int(np.argmin(np.linalg.norm(centroids - roots.mean(0), axis=1))) if self.num_strands else 0
-        self.anchor_face = int(self.root_triangle_np[nearest]) if self.num_strands else -1
-        self.anchor_center_np = centroids[nearest].astype(np.float32) if self.num_strands else np.zeros(3, np.float32)
+        if self.num_strands:
+            tri = np.asarray(mesh_indices).reshape(-1, 3)[self.root_triangle_np]
+            centroids = np.asarray(mesh_points, np.float64)[tri].mean(1)
+            nearest = int(np.argmin(np.linalg.norm(centroids - roots.mean(0), axis=1)))
+            self.anchor_face = int(self.root_triangle_np[nearest])
+            self.anchor_center_np = centroids[nearest].astype(np.float32)
         return self
 
     def reach(self, first_strand, strands):

@@ -401,42 +401,6 @@ class ContactMotion:
     center: wp.array(dtype=wp.vec3)
 
 
-@wp.func
-def anchor_motion(points_before: wp.array(dtype=wp.vec3), points: wp.array(dtype=wp.vec3),
-                  indices: wp.array(dtype=wp.int32), face: int):
-    """The rigid motion that carries a triangle's frame from one pose to the next.
-
-    Inputs:
-      points_before (vec3, per vertex, m): collider vertices in the previous pose
-      points (vec3, per vertex, m): and in the new one
-      indices (int32, 3 per triangle): collider triangles
-      face (int): the anchor triangle; below 0 for none (the identity, centred at the origin)
-    Returns:
-      mat44: x -> R x + t, R the turn of the triangle's frame (skinning.triangle_frame) and t moving
-          its centroid to the new one
-      vec3 (m): the centroid in the new pose
-    """
-    rotation = wp.identity(3, dtype=float)
-    before = wp.vec3(0.0)
-    after = wp.vec3(0.0)
-    if face >= 0:
-        a0 = points_before[indices[3 * face]]
-        b0 = points_before[indices[3 * face + 1]]
-        c0 = points_before[indices[3 * face + 2]]
-        a1 = points[indices[3 * face]]
-        b1 = points[indices[3 * face + 1]]
-        c1 = points[indices[3 * face + 2]]
-        rotation = triangle_frame(a1, b1, c1) * wp.transpose(triangle_frame(a0, b0, c0))
-        before = (a0 + b0 + c0) / 3.0
-        after = (a1 + b1 + c1) / 3.0
-    t = after - rotation * before
-    m = wp.mat44(rotation[0, 0], rotation[0, 1], rotation[0, 2], t[0],
-                 rotation[1, 0], rotation[1, 1], rotation[1, 2], t[1],
-                 rotation[2, 0], rotation[2, 1], rotation[2, 2], t[2],
-                 0.0, 0.0, 0.0, 1.0)
-    return m, after
-
-
 @wp.kernel
 def anchor_frame(
     points_before: wp.array(dtype=wp.vec3),
@@ -445,20 +409,40 @@ def anchor_frame(
     anchor_face: int,
     motion: ContactMotion,
 ):
-    """The first launch of contact_motion's pair: the anchor triangle's rigid motion and centre.
+    """The first launch of contact_motion's pair: the rigid motion that carries the anchor
+    triangle's frame (skinning.triangle_frame) from the previous pose to the new one, and the
+    triangle's new centroid.
 
     Launch: one thread per range of strands (dim = 1).
     Inputs:
       points_before (vec3, per vertex, m): collider vertices in the previous pose
       points (vec3, per vertex, m): and in the new one
       indices (int32, 3 per triangle): collider triangles
-      anchor_face (int): a triangle the strands' roots move with; below 0 for none
+      anchor_face (int): a triangle the strands' roots move with; below 0 for none (the identity,
+          centred at the origin)
     Outputs:
-      motion (ContactMotion): rigid and center written, moved zeroed
+      motion (ContactMotion): rigid (x -> R x + t: R the frame's turn, t taking the old centroid to
+          the new one) and center written, moved zeroed
     """
-    rigid, center = anchor_motion(points_before, points, indices, anchor_face)
-    motion.rigid[0] = rigid
-    motion.center[0] = center
+    rotation = wp.identity(3, dtype=float)
+    before = wp.vec3(0.0)
+    after = wp.vec3(0.0)
+    if anchor_face >= 0:
+        a0 = points_before[indices[3 * anchor_face]]
+        b0 = points_before[indices[3 * anchor_face + 1]]
+        c0 = points_before[indices[3 * anchor_face + 2]]
+        a1 = points[indices[3 * anchor_face]]
+        b1 = points[indices[3 * anchor_face + 1]]
+        c1 = points[indices[3 * anchor_face + 2]]
+        rotation = triangle_frame(a1, b1, c1) * wp.transpose(triangle_frame(a0, b0, c0))
+        before = (a0 + b0 + c0) / 3.0
+        after = (a1 + b1 + c1) / 3.0
+    t = after - rotation * before
+    motion.rigid[0] = wp.mat44(rotation[0, 0], rotation[0, 1], rotation[0, 2], t[0],
+                               rotation[1, 0], rotation[1, 1], rotation[1, 2], t[1],
+                               rotation[2, 0], rotation[2, 1], rotation[2, 2], t[2],
+                               0.0, 0.0, 0.0, 1.0)
+    motion.center[0] = after
     motion.moved[0] = 0.0
 
 
