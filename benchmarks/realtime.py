@@ -48,9 +48,7 @@ def build(device, hair=None, cloth=True, detail=True):
 
 def time_scene(scene, device, frames):
     def frame():
-        scene.advance(1.0 / FPS)
-        if scene.cloth_detail is not None:
-            scene.update_detail()
+        scene.advance(1.0 / FPS, detail=True)  # the detail surface is updated beside the hair
 
     scene.advance(0.25)  # start mid-stride, with the hair and the dress moving
     return time_frames(frame, device, frames=frames)

@@ -5,6 +5,8 @@ mesh and the sphere-tree centres to pose k with kernels only, so a frame's subst
 work (the prerequisite for capturing a frame in a CUDA graph).
 """
 
+import copy
+
 import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
@@ -53,15 +55,35 @@ class Collider:
         self.sphere_skip = arr(self.tree.skip, wp.int32)
         self.sphere_is_leaf = arr(self.tree.is_leaf, wp.int32)
         self.sphere_parent = arr(_parents(self.tree.skip), wp.int32)
-        # what the collision kernels take: the mesh and the sphere tree (arrays refitted in place)
-        self.shape = collision.ColliderShape()
-        self.shape.mesh = self.mesh.id
-        self.shape.centers, self.shape.radii = self.sphere_centers, self.sphere_radii
-        self.shape.skip, self.shape.is_leaf = self.sphere_skip, self.sphere_is_leaf
         self.sphere_skin_indices = arr(skin_indices[nearest], wp.vec4i)
         self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
+        self.shape = self._shape()
         self.bone_matrices = None
         self._pose_buffers = {}
+        self._adjacency = None
+
+    def _shape(self):
+        """What the collision kernels take: the mesh and the sphere tree (arrays refitted in place)."""
+        shape = collision.ColliderShape()
+        shape.mesh = self.mesh.id
+        shape.centers, shape.radii = self.sphere_centers, self.sphere_radii
+        shape.skip, shape.is_leaf = self.sphere_skip, self.sphere_is_leaf
+        return shape
+
+    def twin(self):
+        """The same collider with a pose of its own: it shares the rest shape, skinning, sphere-tree
+        layout and adjacency, and owns its posed points, BVH and sphere centres. Two solvers that
+        step side by side (sim.scene) each pose their own twin, so neither sees the other's substeps."""
+        twin = copy.copy(self)
+        twin.points, twin.prev_points = wp.clone(self.points), wp.clone(self.prev_points)
+        twin.mesh = wp.Mesh(points=twin.points, indices=self.indices)
+        twin.sphere_centers, twin.prev_sphere_centers = wp.clone(self.sphere_centers), wp.clone(self.prev_sphere_centers)
+        twin.sphere_radii = wp.clone(self.sphere_radii)  # inner radii are refitted in place
+        twin.shape = twin._shape()
+        twin.bone_matrices = twin._pose_points = None
+        twin._pose_buffers = {}
+        twin._adjacency = self.adjacency()
+        return twin
 
     def set_point_poses(self, points):
         """points: (K, V, 3) vertex positions for K upcoming poses (a point cache, e.g. from USD)."""
@@ -120,7 +142,7 @@ class Collider:
     def adjacency(self):
         """CSR vertex->vertex and vertex->face adjacency and per-vertex concave flags, built once
         (the cloth's nearest-vertex walk runs on them)."""
-        if getattr(self, "_adjacency", None) is None:
+        if self._adjacency is None:
             self._adjacency = _Adjacency(self.rest_points_np, self.faces_np, self.device)
         return self._adjacency
 

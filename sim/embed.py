@@ -119,7 +119,7 @@ class Simulation:
             raise InputError(self.source, "collider_points",
                              f"expected {len(self._motion.frames[0])} positions, got {len(points)}")
         self._motion.append(points)
-        self.scene.advance(1.0 / self.fps)
+        self.scene.advance(1.0 / self.fps, detail=True)
         self.frame += 1
         bad = self.scene.solver.report_unhealthy if self.scene.model is not None else None
         if bad is not None:
@@ -142,7 +142,7 @@ class Simulation:
     def detail_points(self):
         """The detail surface over the garment (positions (D, 3), triangles (T, 3)) in host
         coordinates, or None unless settings ask for cloth.detail.level > 0."""
-        detail = self.scene.update_detail()
+        detail = self.scene.detail_surface()
         if detail is None:
             return None
         return self.frame_space.from_engine(detail[0].numpy()), self.scene.cloth_detail.triangles_np

@@ -13,10 +13,12 @@ On a CUDA device a frame is one CUDA graph. On the CPU Warp records a frame's op
 replays them in a loop in C++, without Python's cost per launch; a mesh refit is the one operation
 it does not record there, so a CPU frame is split into recorded pieces with the refits between
 them (refit_mesh). Work on disjoint data can be split into branches (run_parallel) that a CPU
-frame replays on several threads at once. With graphs disabled `run` calls the frame's function
+frame replays on several threads at once, and whole frames of different solvers can be replayed
+side by side (run_side_by_side). With graphs disabled `run` calls the frame's function
 directly, so every path shares one definition of the frame.
 """
 
+import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 
@@ -24,6 +26,14 @@ import warp as wp
 
 _cpu_frame = None  # the CPU frame being captured, which refit_mesh and run_parallel split
 _pool = None  # worker threads replaying the branches of parallel steps
+
+
+def _replay_pool():
+    """The worker threads that replay branches and side-by-side tasks (started as needed)."""
+    global _pool
+    if _pool is None:
+        _pool = ThreadPoolExecutor(max_workers=16, thread_name_prefix="cfx-replay")
+    return _pool
 
 
 def run_parallel(branches):
@@ -37,6 +47,25 @@ def run_parallel(branches):
         return
     for branch in branches:
         branch()
+
+
+def run_side_by_side(tasks):
+    """Run `tasks`, functions that each replay captured frames on data no other task touches (the
+    hair and the cloth, each against its own twin of the collider), at the same time on the CPU's
+    cores, and return when all are done. A replay releases Python's lock, so a task on a worker
+    thread runs beside the first one on this thread; an exception in any task is raised here."""
+    if len(tasks) < 2:
+        for task in tasks:
+            task()
+        return
+    others = [_replay_pool().submit(task) for task in tasks[1:]]
+    try:
+        tasks[0]()
+    finally:
+        errors = [other.exception() for other in others]
+    for error in errors:
+        if error is not None:
+            raise error
 
 
 def refit_mesh(mesh):
@@ -102,7 +131,6 @@ class _CpuFrame:
         wp.capture_begin(device=self.device, force_module_load=False)
 
     def launch(self):
-        global _pool
         kept = []
         for step in self.steps:
             if callable(step):
@@ -110,9 +138,7 @@ class _CpuFrame:
                 kept.append(step)
                 continue
             if isinstance(step, tuple):
-                if _pool is None:  # threads start as needed, one per extra branch
-                    _pool = ThreadPoolExecutor(max_workers=8, thread_name_prefix="cfx-replay")
-                others = [_pool.submit(wp.capture_launch, graph) for graph in step[1:]]
+                others = [_replay_pool().submit(wp.capture_launch, graph) for graph in step[1:]]
                 wp.capture_launch(step[0])
                 for other in others:
                     other.result()
@@ -142,6 +168,7 @@ class FrameGraphs:
         self.enabled = bool(enabled)
         self._graphs = {}
         self._seen = set()
+        self._counting = threading.Lock()  # side-by-side tasks replay from two threads
         self.replays = 0  # frames launched from a graph (reported by benchmarks and tests)
 
     def run(self, key, frame, refs=None):
@@ -154,7 +181,8 @@ class FrameGraphs:
             graph, after = entry
             graph.launch()
             put(after)
-            self.replays += 1
+            with self._counting:
+                self.replays += 1
             return
         if key not in self._seen:
             self._seen.add(key)
@@ -173,6 +201,11 @@ class FrameGraphs:
         self._graphs[key] = (graph, get())
         graph.launch()  # a capture only records: this runs the frame
         self.replays += 1
+
+    def captured(self, key):
+        """Whether run(key, ...) would replay a captured frame: only replays may run side by side
+        (captures on one device are serial)."""
+        return self.enabled and key in self._graphs
 
     def forget(self, name):
         """Forget one solver's captured frames (keys starting with `name`), after its model or

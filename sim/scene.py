@@ -19,7 +19,7 @@ from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
 from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
-from .graphs import AsyncReadback, FrameGraphs, run_parallel
+from .graphs import AsyncReadback, FrameGraphs, run_parallel, run_side_by_side
 from .errors import InputError
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
@@ -356,7 +356,7 @@ class Scene:
                              "a collider animated by points needs collision = \"mesh\"")
         self.collider = Collider(self.collider_name, self.head.vertices, self.head.faces, self.head.skin_indices,
                                  self.head.skin_weights, self.head.num_bones, device, leaves)
-        self._pose(np.array([0.0]))
+        self._pose(self.collider, np.array([0.0]))
         self.collider.apply_pose(0)
         self.collider.reset_motion()
 
@@ -378,7 +378,10 @@ class Scene:
                     self.guides = GuideTargets(self.model, frames, fps)
                 except ValueError as err:
                     raise InputError(config.source, "hair.guides", str(err)) from None
-        self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = None
+        self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = self.cloth_collider = None
+        self.side_by_side = True  # False steps the cloth after the hair (the same result, slower on the CPU)
+        self._frames = 0  # frames simulated, so the detail surface is updated once per frame
+        self._detail_frame = -1
         if config.cloth.enabled:
             garment = assets.garment if assets is not None else _load_garment(config, self.head)
             try:
@@ -386,6 +389,9 @@ class Scene:
             except ValueError as err:
                 raise InputError(config.source, "cloth.garment", str(err)) from None
             self.cloth_model.bind_to_mesh(self.collider.posed_points(), self.head.faces)
+            # the cloth poses a twin of the collider of its own, so its frames and the hair's touch no
+            # common data and may run side by side (advance)
+            self.cloth_collider = self.collider.twin() if self.model is not None else self.collider
             self.cloth_solver = ClothSolver(self.cloth_model)
             self.cloth_state, self._cloth_scratch = self.cloth_model.state(), self.cloth_model.state()
             self.cloth_substeps = self.cloth_model.substeps_for(1.0 / config.timing.fps)
@@ -429,7 +435,7 @@ class Scene:
         if self.cloth_model is not None:
             arrays["cloth"] = self.cloth_state.x
             arrays["cloth_bad"], arrays["cloth_first"] = self.cloth_solver.count_unhealthy(self.cloth_state)
-            detail = self.update_detail()
+            detail = self.detail_surface()
             if detail is not None:
                 arrays["cloth_detail"], arrays["cloth_detail_normals"] = detail
         if self.face_rig is not None:
@@ -437,12 +443,12 @@ class Scene:
             arrays["face"], arrays["face_rest"] = self.face_rig.queue_frame(self.collider, weights)
         return arrays, weights
 
-    def _pose(self, times):
-        """Pose the collider for each of `times` (uploaded once; apply_pose(k) picks one)."""
+    def _pose(self, collider, times):
+        """Pose `collider` for each of `times` (uploaded once; apply_pose(k) picks one)."""
         if isinstance(self._motion, PointCacheMotion):
-            self.collider.set_point_poses(self._motion.points(times))
+            collider.set_point_poses(self._motion.points(times))
         else:
-            self.collider.set_poses(self._motion.bone_matrices(times))
+            collider.set_poses(self._motion.bone_matrices(times))
 
     def _groom(self):
         cfg, head = self.config, self.head
@@ -478,44 +484,71 @@ class Scene:
         n = np.einsum("nk,nkj->nj", bary, normals[self.head.faces[face]])
         return closest, n / np.linalg.norm(n, axis=1, keepdims=True)
 
-    def advance(self, duration, animate=True):
+    def advance(self, duration, animate=True, detail=False):
         """Simulate `duration` seconds; with animate=False the collider holds its pose (preroll).
-        Hair and cloth each take their own substeps across the frame against the same collider; on a
-        CUDA device each solver's frame is one graph launch (sim.graphs)."""
+        Hair and cloth each take their own substeps across the frame, each against its own twin of the
+        collider posed the same way; on a CUDA device each solver's frame is one graph launch, on the
+        CPU their replayed frames run side by side on the cores (sim.graphs). detail=True also updates
+        the cloth's detail surface after the last frame, on the cloth's side (detail_surface())."""
         fps = self.config.timing.fps
         frame_dt = 1.0 / fps
-        for _ in range(int(round(duration * fps))):
+        frames = int(round(duration * fps))
+        for index in range(frames):
             t0 = self.time
+            self._frames += 1
+            tasks = []
             if self.model is not None:
                 self.solver.set_clock(t0)
                 # a comb adds a launch per substep: its frames are other graphs
                 held = getattr(self.solver.comb, "serial", 0)
-                self._advance_solver(("hair", held), t0, frame_dt, self.config.solver.substeps, animate,
-                                     self._step_hair, self._hair_refs, bvh=self.config.solver.collision == "mesh")
+                tasks.append(self._solver_frame(("hair", held), self.collider, t0, frame_dt,
+                                                self.config.solver.substeps, animate, self._step_hair,
+                                                self._hair_refs, bvh=self.config.solver.collision == "mesh"))
             if self.cloth_model is not None:
-                self._advance_solver("cloth", t0, frame_dt, self.cloth_substeps, animate, self._step_cloth,
-                                     self._cloth_refs)
+                tasks.append(self._solver_frame("cloth", self.cloth_collider, t0, frame_dt, self.cloth_substeps,
+                                                animate, self._step_cloth, self._cloth_refs))
+            # only replays run side by side: a capture records every launch on the device
+            together = (self.side_by_side and len(tasks) > 1 and not wp.get_device(self.device).is_cuda
+                        and all(self.graphs.captured(key) for key, _ in tasks))
+            if detail and index == frames - 1 and self.cloth_detail is not None:
+                run_cloth = tasks[-1][1]
+
+                def cloth_then_detail():
+                    run_cloth()
+                    if not together or self.graphs.captured(self._detail_key()):
+                        self._update_detail()
+
+                tasks[-1] = (tasks[-1][0], cloth_then_detail)
+            if together:
+                run_side_by_side([task for _, task in tasks])
+            else:
+                for _, task in tasks:
+                    task()
+            if detail and index == frames - 1 and self.cloth_detail is not None and self._detail_frame != self._frames:
+                self._update_detail()  # its first frames are run and captured here, not beside the hair
             if animate:
                 self.time = t0 + frame_dt
 
-    def _advance_solver(self, name, t0, frame_dt, substeps, animate, step, refs, bvh=True):
-        """One solver's frame. bvh=False: the solver makes no mesh queries, so the collider's BVH
-        is refitted only to the frame's last pose (which everything after the frame may query)."""
+    def _solver_frame(self, name, collider, t0, frame_dt, substeps, animate, step, refs, bvh=True):
+        """One solver's frame against `collider`: its poses are uploaded now, and the returned
+        (graph key, task) runs the frame. bvh=False: the solver makes no mesh queries, so the BVH is
+        refitted only to the frame's last pose (which everything after the frame may query)."""
         dt = frame_dt / substeps
         times = t0 + dt * np.arange(0, substeps + 1) if animate else np.full(substeps + 1, t0)
-        self._pose(times)  # the frame's poses, uploaded into the buffer the graph reads
+        self._pose(collider, times)  # the frame's poses, uploaded into the buffer the graph reads
 
         def frame():
-            # start from the frame's first pose: another solver may have left the collider at the
-            # frame's end, and surface velocities (cloth friction) come from consecutive poses; nothing
-            # queries this pose, so its BVH is not refitted
-            self.collider.apply_pose(0, refit=False)
-            self.collider.reset_motion()
+            # start from the frame's first pose: the collider was left at the last frame's end, or
+            # at another time by a reset, and surface velocities (cloth friction) come from
+            # consecutive poses; nothing queries this pose, so its BVH is not refitted
+            collider.apply_pose(0, refit=False)
+            collider.reset_motion()
             for k in range(1, substeps + 1):
-                self.collider.apply_pose(k, refit=bvh or k == substeps)
+                collider.apply_pose(k, refit=bvh or k == substeps)
                 step(dt, float(times[k]))
 
-        self.graphs.run((name, animate, id(refs[0]()[0])), frame, refs)
+        key = (name, animate, id(refs[0]()[0]))
+        return key, partial(self.graphs.run, key, frame, refs)
 
     @property
     def _hair_refs(self):
@@ -537,23 +570,41 @@ class Scene:
         self.state, self._scratch = self._scratch, self.state
 
     def _step_cloth(self, dt, t):
-        self.cloth_solver.step(self.cloth_state, self._cloth_scratch, self.collider, dt)
+        self.cloth_solver.step(self.cloth_state, self._cloth_scratch, self.cloth_collider, dt)
         self.cloth_state, self._cloth_scratch = self._cloth_scratch, self.cloth_state
 
     def update_detail(self):
-        """This frame's detail surface over the garment (positions, normals), or None."""
-        detail = self.cloth_detail
-        if detail is None:
+        """Update the detail surface over the garment from the cloth's state and return it
+        (positions, normals), or None without one. Each update carries the last one's wrinkle
+        heights a frame further: call it once per frame, or use detail_surface()."""
+        if self.cloth_detail is None:
             return None
+        self._update_detail()
+        return self.cloth_detail.positions, self.cloth_detail.normals
+
+    def detail_surface(self):
+        """This frame's detail surface (positions, normals), or None: updated only if this frame has
+        not updated it yet (advance(detail=True) does so beside the hair)."""
+        if self.cloth_detail is None:
+            return None
+        if self._detail_frame != self._frames:
+            self._update_detail()
+        return self.cloth_detail.positions, self.cloth_detail.normals
+
+    def _detail_key(self):
+        return "detail", id(self.cloth_state), id(self.cloth_detail.height)
+
+    def _update_detail(self):
+        detail = self.cloth_detail
 
         def put(value):
             detail.height, detail.height_tmp = value
 
-        self.graphs.run(("detail", id(self.cloth_state), id(detail.height)),
-                        lambda: detail.update(self.cloth_model, self.cloth_state, self.collider,
+        self.graphs.run(self._detail_key(),
+                        lambda: detail.update(self.cloth_model, self.cloth_state, self.cloth_collider,
                                               1.0 / self.config.timing.fps),
                         ((lambda: (detail.height, detail.height_tmp)), put))
-        return detail.positions, detail.normals
+        self._detail_frame = self._frames
 
     def measure(self):
         """Per-frame quality numbers for hair (stretch, root drift, penetration) and cloth (edge
@@ -576,25 +627,25 @@ class Scene:
             out.update(self.cloth_stats())
         if self.cloth_detail is not None:
             x = self.cloth_detail.positions.numpy()
-            out.update(detail_inside_2mm=float(np.mean(self.collider.signed_distance(x, max_dist=0.05) < -0.002)),
+            out.update(detail_inside_2mm=float(np.mean(self.cloth_collider.signed_distance(x, max_dist=0.05) < -0.002)),
                        detail_queries=self.cloth_detail.query_fraction())
         return out
 
     def cloth_stats(self):
         from warp_kernels import cloth as cloth_kernels
 
-        cm, st = self.cloth_model, self.cloth_state
+        cm, st, body = self.cloth_model, self.cloth_state, self.cloth_collider
         x = st.x.numpy().astype(np.float64)
         edges = cm.spring_pairs_np[cm.spring_kind_np == 0]
         rest = cm.spring_rest_np[cm.spring_kind_np == 0]
         strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
-        sdf = self.collider.signed_distance(x, max_dist=0.05)
+        sdf = body.signed_distance(x, max_dist=0.05)
         brute = wp.zeros(cm.num_particles, dtype=wp.int32, device=self.device)
-        wp.launch(cloth_kernels.nearest_vertex_brute_force, cm.num_particles, [st.x, self.collider.points, brute],
+        wp.launch(cloth_kernels.nearest_vertex_brute_force, cm.num_particles, [st.x, body.points, brute],
                   device=self.device)
         walk, truth = st.nearest.numpy(), brute.numpy()
         free = cm.inv_mass_np > 0
-        pts = self.collider.points.numpy()
+        pts = body.points.numpy()
         # ties (two vertices at the same distance) count as agreement; particles beyond the solver's
         # re-seed radius neither touch nor follow the body, so their cache is not kept exact
         near = np.linalg.norm(x - pts[truth], axis=1)
@@ -799,7 +850,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
             if i > 0:
                 if config.haircut:  # a comb in the hair moves to where the timeline has it at this frame
                     comb_before_frame(scene, config.haircut, frame)
-                scene.advance(1.0 / t.fps)
+                scene.advance(1.0 / t.fps, detail=True)
             if config.haircut:
                 run_events(scene, config.haircut, frame)
             arrays, weights = scene.queue_outputs(frame)

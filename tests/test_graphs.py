@@ -57,6 +57,61 @@ def test_graph_frames_equal_eager_frames(make, device):
     assert moved > 0.0
 
 
+def test_hair_and_cloth_frames_side_by_side_equal_one_after_the_other(monkeypatch):
+    """On the CPU the hair's and the cloth's replayed frames run at the same time, each posing its
+    own twin of the body, with the detail surface updated on the cloth's side: hair, garment and
+    detail surface equal stepping one solver after the other bit for bit, and both twins end each
+    frame in the same pose."""
+    import sim.scene as scene_module
+
+    calls = []
+    side_by_side = scene_module.run_side_by_side
+    monkeypatch.setattr(scene_module, "run_side_by_side", lambda tasks: (calls.append(len(tasks)), side_by_side(tasks)))
+    config = demo_scene({"scene": {"device": "cpu", "fps": 30.0, "frames": 1, "preroll": 0.0, "stats": False},
+                         "hair": {"count": 60, "vertices": 10}, "face": {"enabled": False},
+                         "solver": {"substeps": 3, "collision": "sphere_tree"}, "cloth.detail": {"level": 2}})
+    frames = 7
+    results = []
+    for together in (False, True):
+        calls.clear()
+        scene = Scene(config)
+        scene.side_by_side = together
+        assert scene.cloth_collider is not scene.collider and scene.cloth_collider.points.ptr != scene.collider.points.ptr
+        detail = []
+        for _ in range(frames):
+            scene.advance(1.0 / 30.0, detail=True)
+            detail.append(scene.detail_surface()[0].numpy().copy())
+            np.testing.assert_array_equal(scene.cloth_collider.points.numpy(), scene.collider.points.numpy())
+        # each solver's frames run eagerly, then are captured; after that both replay at once (the
+        # hair's odd substeps alternate between two graphs)
+        assert calls == ([2] * (frames - 4) if together else [])
+        results.append((scene.state.x.numpy(), scene.cloth_state.x.numpy(), np.stack(detail)))
+    for serial, together in zip(*results):
+        np.testing.assert_array_equal(serial, together)
+    assert np.abs(results[0][2][-1] - results[0][2][0]).max() > 1e-3  # the body walked the dress along
+
+
+def test_detail_surface_is_updated_once_per_frame():
+    """Each update of the detail surface carries its wrinkle heights a frame further, so asking for
+    this frame's surface twice, or after advance(detail=True) made it, does not update it again."""
+    def scene():
+        return Scene(demo_scene({"scene": {"device": "cpu", "frames": 1, "preroll": 0.0, "stats": False},
+                                 "hair": {"enabled": False}, "face": {"enabled": False},
+                                 "cloth.detail": {"level": 3}}))
+
+    once, asked = scene(), scene()
+    for _ in range(3):
+        once.advance(1.0 / 24.0)
+        once.update_detail()
+        asked.advance(1.0 / 24.0, detail=True)
+        first = asked.detail_surface()[0].numpy().copy()
+        np.testing.assert_array_equal(asked.detail_surface()[0].numpy(), first)
+    np.testing.assert_array_equal(asked.cloth_detail.height.numpy(), once.cloth_detail.height.numpy())
+    assert once.cloth_detail.height.numpy().max() > 0.0
+    once.update_detail()  # an explicit update does carry the heights again
+    assert not np.array_equal(asked.cloth_detail.height.numpy(), once.cloth_detail.height.numpy())
+
+
 def test_hair_in_strand_ranges_side_by_side_equals_one_range():
     """A CPU frame steps the solver's strand ranges as branches replayed on threads at once: three
     ranges (more than this machine may have cores) give the one-range strands bit for bit, and the
