@@ -169,6 +169,65 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     np.testing.assert_allclose(state.x.numpy(), pts @ R.T + M[:3, 3], atol=1e-5)
 
 
+def _chain(masses, params):
+    """A straight chain along x with its first particle fixed: moved along the chain its springs are
+    exactly linear and the bound on its stiffest mode is attained (the chain Laplacian itself)."""
+    n = len(masses)
+    pts = np.stack([0.02 * np.arange(n), np.zeros(n), np.zeros(n)], 1)
+    edges = np.stack([np.arange(n - 1), np.arange(1, n)], 1)
+    return ClothModel(pts, np.zeros((0, 3)), edges, [], [], [0], params, masses=masses)
+
+
+def _growth(model, dt, steps):
+    """How much a small random motion along the chain (1e-4 m/s) grows over `steps` RK4 steps of dt:
+    its largest speed afterwards over its largest speed before."""
+    rng = np.random.default_rng(5)
+    state = model.state()
+    v = np.zeros((model.num_particles, 3), np.float32)
+    v[1:, 0] = rng.uniform(-1e-4, 1e-4, model.num_particles - 1)
+    state.v.assign(v)
+    state, _ = run(model, steps * dt, dt, state=state)
+    speed = np.abs(state.v.numpy()).max()
+    return float(speed / np.abs(v).max()) if np.isfinite(speed) else np.inf
+
+
+@pytest.mark.parametrize("mode", ["springs", "dashpots"])
+def test_stability_bound_is_the_rk4_limit_of_the_stiffest_mode(mode):
+    """The step bound comes from the largest eigenvalue of the mass-weighted spring Laplacian over the
+    free particles. On a straight chain that eigenvalue is the stiffest mode's own, so RK4 at the
+    bound (10% inside the limit: 2 sqrt(2) on the imaginary axis, 2.785 on the real one) keeps a small
+    motion bounded, as does 2% inside the limit, while 5% past it the motion grows by orders of magnitude within 100 steps; Gershgorin's row sums,
+    the bound before, sit well inside it."""
+    masses = np.random.default_rng(1).uniform(0.5e-3, 2e-3, 24)
+    quiet = dict(gravity=(0.0, 0.0, 0.0), damping=0.0, air_drag=0.0)
+    if mode == "springs":
+        params = ClothParams(stretch_stiffness=100.0, compress_stiffness=100.0, spring_damping=0.0, **quiet)
+        limit = 2.0 * np.sqrt(2.0)
+    else:
+        params = ClothParams(stretch_stiffness=1e-9, compress_stiffness=1e-9, spring_damping=0.05, **quiet)
+        limit = 2.785
+    model = _chain(masses, params)
+    # the step at which the stiffest mode sits exactly on the edge of RK4's stability region
+    edge = model.stable_dt / 0.9 * (1.0 if mode == "springs" else limit / 2.78)
+    assert _growth(model, model.stable_dt, 400) < 10.0  # energy is conserved (springs) or decays
+    assert _growth(model, 0.98 * edge, 400) < 10.0
+    assert _growth(model, 1.05 * edge, 100) > 1e4
+    # a float64 reference of the eigenvalue, and Gershgorin's looser bound on it
+    n = len(masses)
+    lap = np.zeros((n, n))
+    for i in range(n - 1):
+        lap[i, i] += 1.0
+        lap[i + 1, i + 1] += 1.0
+        lap[i, i + 1] = lap[i + 1, i] = -1.0
+    weight = params.stretch_stiffness if mode == "springs" else params.spring_damping
+    free = lap[1:, 1:] * weight / np.sqrt(np.outer(masses[1:], masses[1:]))
+    top = np.linalg.eigvalsh(free)[-1]
+    expected = 0.9 * (2.0 * np.sqrt(2.0) / np.sqrt(top) if mode == "springs" else 2.78 / top)
+    assert model.stable_dt == pytest.approx(expected, rel=1e-6)
+    gershgorin = np.abs(free).sum(axis=1).max()
+    assert (top / gershgorin) < 0.8
+
+
 def test_stability_bound_picks_substeps_that_stay_stable():
     pts, tris, edges, shear, bend = grid(12, 0.5, 0.0)
     params = ClothParams(stretch_stiffness=400.0)
