@@ -15,7 +15,7 @@ from .errors import SimulationError
 
 SHAPE_MATCHING = {"simplified": 0, "full": 1, "none": -1}
 COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
-# radius [m] of the length pass's queries for particles known to lie no deeper than this inside: a
+# radius [m] of the length pass's mesh queries for particles known to lie no deeper than this inside: a
 # mesh query's cost grows fast with its radius (1k strands on the CPU, full+mesh: 216 -> 186 ms/frame
 # against querying collision_search = 2 cm; 5 mm re-queries far particles too often to gain more)
 PROBE = 0.01
@@ -140,6 +140,9 @@ class HairSolver:
         self._rotations_exact = True
         # contact bounds of the length pass (see strands.follow_the_leader): NO_BOUND = unknown, a full query
         self.clearance = wp.full(model.num_particles, strands.NO_BOUND, dtype=float, device=device)
+        # the sphere tree's leaves near each particle, and a bound on the distance to all others
+        self.near_leaves = wp.full(model.num_particles, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=device)
+        self.beyond = wp.full(model.num_particles, strands.NO_BOUND, dtype=float, device=device)
         self.contact_bounds = True  # False queries every particle every substep (same result, slower)
         # how the collider moved near each range in the substep (strands.contact_motion)
         self._motion = {r: _contact_motion(device) for r in [*self.parts, self.whole]}
@@ -217,11 +220,14 @@ class HairSolver:
                       [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
                        c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), r.reach,
                        p.collision_search, motion], device=dev)
+        # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
+        probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.follow_the_leader, r.strands,
                   [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), min(PROBE, p.collision_search), motion, r.reach,
-                   self.clearance, p.ftl_damping, dt, state_out.v, r.first_strand], device=dev)
+                   int(self.contact_bounds), probe, motion, r.reach,
+                   self.clearance, self.near_leaves, self.beyond, p.ftl_damping, dt, state_out.v, r.first_strand],
+                  device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
@@ -240,6 +246,7 @@ class HairSolver:
         captured again (sim.graphs.FrameGraphs.clear)."""
         self._rotations_exact = True
         self.clearance.fill_(strands.NO_BOUND)
+        self.beyond.fill_(strands.NO_BOUND)
 
     def count_unhealthy(self, state):
         """Launch the count of non-finite or too fast particles without waiting: (count, first

@@ -176,6 +176,74 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
     assert depth.max() < 1e-4
 
 
+def _listed_queries():
+    """Kernels around collision.sphere_tree_nearest and collide_point_listed, for the test below."""
+    import warp as wp
+
+    from warp_kernels import collision
+
+    @wp.kernel
+    def nearest(points: wp.array(dtype=wp.vec3), shape: collision.ColliderShape, search: float,
+                leaves: wp.array(dtype=wp.vec4i), first: wp.array(dtype=float), fifth: wp.array(dtype=float)):
+        i = wp.tid()
+        listed, d1, d5 = collision.sphere_tree_nearest(points[i], shape, search)
+        leaves[i] = listed
+        first[i] = d1
+        fifth[i] = d5
+
+    @wp.kernel
+    def listed(points: wp.array(dtype=wp.vec3), origins: wp.array(dtype=wp.vec3), leaves: wp.array(dtype=wp.vec4i),
+               beyond: wp.array(dtype=float), shape: collision.ColliderShape, margin: float, search: float,
+               out: wp.array(dtype=wp.vec3), tree: wp.array(dtype=wp.vec3), kept: wp.array(dtype=int)):
+        i = wp.tid()
+        pushed, _d, _leaves, origin, _beyond = collision.collide_point_listed(points[i], shape, margin, search,
+                                                                               leaves[i], origins[i], beyond[i])
+        out[i] = pushed
+        tree[i] = collision.collide_point(points[i], collision.COLLIDE_SPHERE_TREE, shape, margin, search)
+        kept[i] = int(origin == origins[i])
+
+    return nearest, listed
+
+
+def test_listed_leaves_are_the_nearest_and_resolve_points_as_the_tree_does(head, head_collider):
+    """sphere_tree_nearest lists the four leaves nearest a point and the fifth one's distance (a float64
+    reference over all leaves); a point about 2 mm from where its list was made, resolved through
+    the list, lands exactly where the tree's own sweeps put it, and the list is kept for most points."""
+    import warp as wp
+
+    nearest, listed = _listed_queries()
+    c = head_collider
+    rng = np.random.default_rng(8)
+    surface, _ = trimesh.sample.sample_surface(trimesh.Trimesh(head.vertices, head.faces, process=False), 500, seed=4)
+    origins = (surface + rng.normal(0.0, 0.004, surface.shape)).astype(np.float32)
+    search, margin = 0.02, 0.0015
+    n = len(origins)
+    leaves, first, fifth = wp.zeros(n, dtype=wp.vec4i), wp.zeros(n, dtype=float), wp.zeros(n, dtype=float)
+    wp.launch(nearest, n, [wp.array(origins, dtype=wp.vec3), c.shape, search, leaves, first, fifth])
+    centers, radii = c.sphere_centers.numpy().astype(np.float64), c.sphere_radii.numpy().astype(np.float64)
+    leaf = np.flatnonzero(c.tree.is_leaf == 1)
+    dist = np.linalg.norm(origins[:, None].astype(np.float64) - centers[leaf][None], axis=2) - radii[leaf][None]
+    order = np.argsort(dist, axis=1)
+    ranked = np.take_along_axis(dist, order, axis=1)
+    got = leaves.numpy()
+    for i in range(n):
+        within = ranked[i, :4] < search
+        expected = np.sort(leaf[order[i, :4]][within])
+        np.testing.assert_array_equal(got[i][:len(expected)], expected)
+        assert np.all(got[i][len(expected):] == -1)
+    np.testing.assert_allclose(first.numpy(), np.minimum(ranked[:, 0], search), atol=2e-6)
+    np.testing.assert_allclose(fifth.numpy(), np.minimum(ranked[:, 4], search), atol=2e-6)
+    assert np.mean(ranked[:, 0] < margin) > 0.2  # many points are pushed, some out of two leaves or more
+
+    moved = (origins + rng.normal(0.0, 0.001, origins.shape)).astype(np.float32)
+    out, tree, kept = wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=int)
+    wp.launch(listed, n, [wp.array(moved, dtype=wp.vec3), wp.array(origins, dtype=wp.vec3), leaves, fifth, c.shape,
+                          margin, search, out, tree, kept])
+    np.testing.assert_array_equal(out.numpy(), tree.numpy())
+    assert np.mean(np.any(tree.numpy() != moved, axis=1)) > 0.3  # many points were pushed
+    assert 0.55 < kept.numpy().mean() < 1.0  # most lists served; the others were refilled from the tree
+
+
 def test_visibility_from_an_eye_matches_the_sphere_it_sees():
     """Points 2 mm above a sphere of radius R = 0.1 seen from D = 1 m away: a point is seen while its
     sight line clears the ball, i.e. up to the angle from the eye direction where that line is

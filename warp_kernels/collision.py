@@ -174,6 +174,137 @@ def sphere_tree_clearance(p: wp.vec3, shape: ColliderShape, search: float):
 
 
 @wp.func
+def sphere_tree_nearest(p: wp.vec3, shape: ColliderShape, search: float):
+    """The four leaf spheres nearest p, and the distances of the nearest and of the fifth nearest.
+
+    Branch and bound on the fifth-best distance so far; distances are |p - centre| - radius, capped
+    at search. The nearest distance is the one sphere_tree_clearance returns.
+
+    Inputs:
+      p (vec3, m): the point
+      shape (ColliderShape): the collider; only its sphere tree is read
+      search (float, m): the cap; nodes farther than this are not entered
+    Returns:
+      vec4i: the four nearest leaves' node indices in ascending order, -1 for missing ones (fewer
+          than four leaves within search)
+      float (m): the nearest leaf's distance, or search when that is larger
+      float (m): the fifth nearest leaf's distance, or search; every unlisted leaf is at least this far
+    """
+    centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
+    best = wp.vector(search, search, search, search, search)  # ascending
+    ids = wp.vector(-1, -1, -1, -1, -1)
+    n = centers.shape[0]
+    i = int(0)
+    while i < n:
+        d = wp.length(p - centers[i]) - radii[i]
+        if d < best[4]:
+            if is_leaf[i] != 0:
+                k = int(4)
+                while k > 0 and best[k - 1] > d:
+                    best[k] = best[k - 1]
+                    ids[k] = ids[k - 1]
+                    k -= 1
+                best[k] = d
+                ids[k] = i
+                i = skip[i]
+            else:
+                i = i + 1
+        else:
+            i = skip[i]
+    # ascending node order, the order in which a sweep of the tree meets them; missing ones last
+    listed = wp.vec4i(ids[0], ids[1], ids[2], ids[3])
+    for a in range(1, 4):
+        b = a
+        while b > 0 and (listed[b - 1] < 0 or (listed[b] >= 0 and listed[b] < listed[b - 1])):
+            t = listed[b]
+            listed[b] = listed[b - 1]
+            listed[b - 1] = t
+            b -= 1
+    return listed, best[0], best[4]
+
+
+@wp.func
+def listed_spheres_push_out(p: wp.vec3, shape: ColliderShape, margin: float, leaves: wp.vec4i, origin: wp.vec3,
+                            beyond: float):
+    """collide_point for the sphere tree (two sweeps) over the listed leaves only.
+
+    Unlisted leaves are at least beyond - |q - origin| from any point q; while that stays above
+    margin at every point the sweeps pass, the tree's sweeps would push out of the same leaves in
+    the same (ascending) order, so the result is theirs bit for bit.
+
+    Inputs:
+      p (vec3, m): the point
+      shape (ColliderShape): the collider; only its sphere tree is read
+      margin (float, m): distance kept outside the leaf spheres
+      leaves (vec4i): leaf node indices in ascending order, -1 for none (sphere_tree_nearest)
+      origin (vec3, m): where beyond holds
+      beyond (float, m): lower bound of the distance from origin to every unlisted leaf
+    Returns:
+      vec3 (m): the pushed point
+      bool: false when a point the sweeps passed came within margin of an unlisted leaf (the
+          result is then not the tree's)
+    """
+    for _sweep in range(2):
+        for k in range(4):
+            i = leaves[k]
+            if i >= 0:
+                d = p - shape.centers[i]
+                r = shape.radii[i] + margin
+                dist = wp.length(d)
+                if dist < r:
+                    if dist > 1.0e-9:
+                        p = shape.centers[i] + d * (r / dist)
+                    else:
+                        p = shape.centers[i] + wp.vec3(0.0, r, 0.0)
+                    if beyond - wp.length(p - origin) <= margin + 1.0e-5:
+                        return p, False
+    return p, True
+
+
+@wp.func
+def collide_point_listed(p: wp.vec3, shape: ColliderShape, margin: float, search: float, leaves: wp.vec4i,
+                         origin: wp.vec3, beyond: float):
+    """collide_point_bounded for the sphere tree, through a list of the leaves near the point.
+
+    While beyond - |p - origin| stays above margin only the listed leaves can push p, so only they
+    are tested (a few distance checks instead of a walk down the tree); otherwise, or when a push
+    leaves that zone, the tree is queried and the list refilled at p. The pushed point is the
+    tree's bit for bit; the distance is a lower bound of the tree's.
+
+    Inputs:
+      p (vec3, m): the point
+      shape (ColliderShape): the collider; only its sphere tree is read
+      margin (float, m): distance kept outside the leaf spheres
+      search (float, m): cap of the distances of a tree query
+      leaves (vec4i): the list (sphere_tree_nearest), ascending, -1 for none
+      origin (vec3, m): where beyond holds
+      beyond (float, m): lower bound of the distance from origin to every unlisted leaf
+    Returns:
+      vec3 (m): the resolved point
+      float (m): lower bound of p's distance from the collider, capped at search after a tree query
+      vec4i: the list after the call
+      vec3 (m): where the returned beyond holds
+      float (m): the returned list's beyond
+    """
+    beyond_here = beyond - wp.length(p - origin)
+    if beyond_here > margin + 1.0e-5:
+        distance = beyond_here
+        for k in range(4):
+            i = leaves[k]
+            if i >= 0:
+                distance = wp.min(distance, wp.length(p - shape.centers[i]) - shape.radii[i])
+        if distance > margin + 1.0e-6:
+            return p, distance, leaves, origin, beyond
+        pushed, kept = listed_spheres_push_out(p, shape, margin, leaves, origin, beyond)
+        if kept:
+            return pushed, distance, leaves, origin, beyond
+    listed, nearest, fifth = sphere_tree_nearest(p, shape, search)
+    if nearest > margin + 1.0e-6:
+        return p, nearest, listed, p, fifth
+    return collide_point(p, COLLIDE_SPHERE_TREE, shape, margin, search), nearest, listed, p, fifth
+
+
+@wp.func
 def collide_point(p: wp.vec3, mode: int, shape: ColliderShape, margin: float, search: float):
     """Resolve one point against the collider with the chosen representation.
 

@@ -23,7 +23,7 @@ import warp as wp
 # the lean launch path (no grid-stride loop) lowers per-thread overhead
 wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
 
-from .collision import ColliderShape, collide_point, collide_point_bounded
+from .collision import COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded, collide_point_listed
 from .skinning import bound_position, face_frame, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
@@ -537,6 +537,8 @@ def follow_the_leader(
     motion: ContactMotion,
     strand_reach: float,
     clearance: wp.array(dtype=float),
+    near_leaves: wp.array(dtype=wp.vec4i),
+    beyond: wp.array(dtype=float),
     ftl_damping: float,
     dt: float,
     v: wp.array(dtype=wp.vec3),
@@ -560,6 +562,11 @@ def follow_the_leader(
     particles already deeper than search inside the collider, which no query sees anyway until
     they are within margin of its surface. A caller that moves particles or the collider in any other
     way must set their bounds to NO_BOUND first.
+
+    Sphere tree with bounds: each particle also keeps the four leaf spheres nearest it and a lower
+    bound of its distance from every other leaf (lowered like the contact bound). While that bound
+    stays above margin a query tests only those four leaves (collide_point_listed), which is most of
+    the queries of hair lying on the body; the result is again the same as querying the tree.
 
     Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
@@ -586,6 +593,10 @@ def follow_the_leader(
       x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out
       clearance (float, per particle, m): contact bounds at x_prev in, at x out (NO_BOUND: unknown);
           written only when collide_mode != COLLIDE_NONE
+      near_leaves (vec4i, per particle): the leaf spheres listed for each particle (ascending node
+          indices, -1 for none); read and written only for the sphere tree with use_bounds != 0
+      beyond (float, per particle, m): lower bound of the distance to every unlisted leaf, at x_prev
+          in, at x out; ignored where clearance is NO_BOUND; sphere tree with use_bounds != 0 only
     Outputs:
       v (vec3, per particle, m/s): velocities at the end of the substep
     """
@@ -608,10 +619,18 @@ def follow_the_leader(
             p = parent + d * (length / dist)
             if collide_mode != 0:
                 bound = float(NO_BOUND)
+                listed = use_bounds != 0 and collide_mode == COLLIDE_SPHERE_TREE
+                leaves = wp.vec4i(-1, -1, -1, -1)
+                unlisted = float(NO_BOUND)
                 if use_bounds != 0:
                     if wp.length(p - motion.center[0]) <= strand_reach:
                         carried = wp.transform_point(motion.rigid[0], x_prev[i])
-                        bound = clearance[i] - wp.length(p - carried) - motion.moved[0]
+                        lowered = wp.length(p - carried) + motion.moved[0]
+                        bound = clearance[i] - lowered
+                        if listed and clearance[i] > 0.5 * NO_BOUND:
+                            leaves = near_leaves[i]
+                            unlisted = beyond[i] - lowered
+                origin = p
                 if use_bounds == 0 or bound <= margin + 1.0e-5:
                     # a particle known to be no deeper than probe inside needs only a probe-sized
                     # query: one within probe finds what a search-sized one finds, and one that finds
@@ -624,7 +643,12 @@ def follow_the_leader(
                     queried = p
                     for _round in range(2):
                         queried = p
-                        pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, reach)
+                        pushed = p
+                        if listed:
+                            pushed, bound, leaves, origin, unlisted = collide_point_listed(
+                                p, shape, margin, reach, leaves, origin, unlisted)
+                        else:
+                            pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, reach)
                         reach = search
                         if pushed == p:
                             break
@@ -635,6 +659,9 @@ def follow_the_leader(
                             p = parent + d * (length / dist)
                     bound = bound - wp.length(p - queried)
                 clearance[i] = bound
+                if listed:
+                    near_leaves[i] = leaves
+                    beyond[i] = unlisted - wp.length(p - origin)
             correction = p - predicted
             x[i] = p
         if i > start:
