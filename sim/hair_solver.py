@@ -133,7 +133,7 @@ class HairSolver:
                                  model.reach(0, model.num_strands))
         if parts is None:
             parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
-        self.parts = split_strands(model, self.windows, parts)
+        self.set_parts(parts)
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
@@ -144,8 +144,6 @@ class HairSolver:
         self.near_leaves = wp.full(model.num_particles, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=device)
         self.beyond = wp.full(model.num_particles, strands.NO_BOUND, dtype=float, device=device)
         self.contact_bounds = True  # False queries every particle every substep (same result, slower)
-        # how the collider moved near each range in the substep (strands.contact_motion)
-        self._motion = {r: _contact_motion(device) for r in [*self.parts, self.whole]}
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
@@ -157,6 +155,13 @@ class HairSolver:
         self.clock = wp.zeros(1, dtype=float, device=device)
         self._clock_time = 0.0
         self.comb = None  # a sim.comb.CombGrip holding strands, or None
+
+    def set_parts(self, count):
+        """Step the strands as `count` StrandRanges (self.parts) from now on: the same strands, a
+        different share of the CPU's cores. Frames captured with the old ranges must be forgotten."""
+        self.parts = split_strands(self.model, self.windows, count)
+        # how the collider moved near each range in the substep (strands.contact_motion)
+        self._motion = {r: _contact_motion(self.model.device) for r in [*self.parts, self.whole]}
 
     def set_clock(self, time):
         """Set the device clock to `time` [s] (e.g. a frame's start, before launching its graph)."""
