@@ -511,12 +511,13 @@ class Scene:
             # only replays run side by side: a capture records every launch on the device
             together = (self.side_by_side and len(tasks) > 1 and not wp.get_device(self.device).is_cuda
                         and all(self.graphs.captured(key) for key, _ in tasks))
-            if detail and index == frames - 1 and self.cloth_detail is not None:
+            last_detail = detail and index == frames - 1 and self.cloth_detail is not None
+            if together and last_detail:
                 run_cloth = tasks[-1][1]
 
-                def cloth_then_detail():
+                def cloth_then_detail():  # the detail on the cloth's side once its frame is captured too
                     run_cloth()
-                    if not together or self.graphs.captured(self._detail_key()):
+                    if self.graphs.captured(self._detail_key()):
                         self._update_detail()
 
                 tasks[-1] = (tasks[-1][0], cloth_then_detail)
@@ -527,8 +528,8 @@ class Scene:
             else:
                 for _, task in tasks:
                     task()
-            if detail and index == frames - 1 and self.cloth_detail is not None and self._detail_frame != self._frames:
-                self._update_detail()  # its first frames are run and captured here, not beside the hair
+            if last_detail and self._detail_frame != self._frames:
+                self._update_detail()
             if animate:
                 self.time = t0 + frame_dt
 

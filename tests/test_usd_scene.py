@@ -238,6 +238,31 @@ def test_embedding_in_centimetres_y_up_falls_the_same_distance():
     np.testing.assert_allclose(centimetres.cloth_points(), metres.cloth_points() * 100.0, rtol=1e-4, atol=1e-3)
 
 
+def test_embedding_detail_surface_is_one_per_frame():
+    """The host may ask for the detail surface as often as it likes: each frame's surface is made once
+    (by step, beside the hair and cloth), so asking again returns it unchanged, while another update
+    would carry the wrinkle heights a frame further. Its corner vertices sit on the garment."""
+    v, faces = _sphere()
+    gv, quads, _ = _cape()
+    sim = Simulation(v, faces, garment_vertices=gv, garment_face_counts=np.full(len(quads), 4),
+                     garment_face_indices=quads.ravel(),
+                     settings={"scene": {"preroll": 0.0}, "cloth": {"detail": {"level": 2}}})
+    for _ in range(3):
+        sim.step(v)
+    points, triangles = sim.detail_points()
+    heights = sim.scene.cloth_detail.height.numpy().copy()
+    again, _ = sim.detail_points()
+    np.testing.assert_array_equal(again, points)
+    np.testing.assert_array_equal(sim.scene.cloth_detail.height.numpy(), heights)
+    assert triangles.max() == len(points) - 1
+    # the coarse vertices are detail vertices too (PN corners, lifted by at most the heights)
+    cloth = sim.cloth_points()
+    nearest = np.min(np.linalg.norm(cloth[:, None] - points[None], axis=2), axis=1)
+    assert nearest.max() <= np.abs(heights).max() + 1e-5
+    sim.scene.update_detail()
+    assert heights.any() and not np.array_equal(sim.scene.cloth_detail.height.numpy(), heights)
+
+
 @pytest.mark.parametrize("extra, key, reason", [
     ([("/root/Hair", "cfx:solver:substepz", Sdf.ValueTypeNames.Int, 3)], "/root/Hair.cfx:solver:substepz",
      "unknown key"),
