@@ -5,6 +5,7 @@ examples/scenes/*.toml. The same is reachable from Python: build a SceneConfig (
 run_scene(config, "out.usdc").
 """
 
+import math
 import os
 import sys
 import time
@@ -444,12 +445,35 @@ class Scene:
             arrays["face"], arrays["face_rest"] = self.face_rig.queue_frame(self.collider, weights)
         return arrays, weights
 
-    def _pose(self, collider, times):
-        """Pose `collider` for each of `times` (uploaded once; apply_pose(k) picks one)."""
+    def _pose(self, collider, times, poses=None):
+        """Pose `collider` for each of `times` (uploaded once; apply_pose(k) picks one). poses: the
+        motion already evaluated at `times` (_motion_poses), else it is evaluated here."""
+        if poses is None:
+            poses = self._motion_poses(times)
         if isinstance(self._motion, PointCacheMotion):
-            collider.set_point_poses(self._motion.points(times))
+            collider.set_point_poses(poses)
         else:
-            collider.set_poses(self._motion.bone_matrices(times))
+            collider.set_poses(poses)
+
+    def _motion_poses(self, times):
+        """The body's motion at `times`: per-time vertex positions of a point cache, else bone matrices."""
+        if isinstance(self._motion, PointCacheMotion):
+            return self._motion.points(times)
+        return self._motion.bone_matrices(times)
+
+    def _substep_poses(self, t0, frame_dt, substep_counts, animate):
+        """{substeps: (times, poses)} for a frame from t0 split into each of `substep_counts`: the
+        motion is evaluated once at every distinct time (hair at 4 and cloth at 12 substeps share
+        the hair's 5 times), since evaluating it costs more than a solver's whole substep."""
+        if not substep_counts:
+            return {}
+        times = {n: (t0 + (frame_dt / n) * np.arange(0, n + 1) if animate else np.full(n + 1, t0))
+                 for n in set(substep_counts)}
+        common = math.lcm(*times)
+        keys = {n: np.arange(0, n + 1) * (common // n) for n in times}  # substep k of n is k/n of the frame
+        distinct, first = np.unique(np.concatenate(list(keys.values())), return_index=True)
+        poses = self._motion_poses(np.concatenate(list(times.values()))[first])
+        return {n: (times[n], poses[np.searchsorted(distinct, keys[n])]) for n in times}
 
     def _groom(self):
         cfg, head = self.config, self.head
@@ -494,20 +518,23 @@ class Scene:
         fps = self.config.timing.fps
         frame_dt = 1.0 / fps
         frames = int(round(duration * fps))
+        counts = ([self.config.solver.substeps] if self.model is not None else []) + \
+                 ([self.cloth_substeps] if self.cloth_model is not None else [])
         for index in range(frames):
             t0 = self.time
             self._frames += 1
+            poses = self._substep_poses(t0, frame_dt, counts, animate)
             tasks = []
             if self.model is not None:
                 self.solver.set_clock(t0)
                 # a comb adds a launch per substep: its frames are other graphs
                 held = getattr(self.solver.comb, "serial", 0)
-                tasks.append(self._solver_frame(("hair", held), self.collider, t0, frame_dt,
-                                                self.config.solver.substeps, animate, self._step_hair,
-                                                self._hair_refs, bvh=self.config.solver.collision == "mesh"))
+                tasks.append(self._solver_frame(("hair", held), self.collider, poses[self.config.solver.substeps],
+                                                frame_dt, animate, self._step_hair, self._hair_refs,
+                                                bvh=self.config.solver.collision == "mesh"))
             if self.cloth_model is not None:
-                tasks.append(self._solver_frame("cloth", self.cloth_collider, t0, frame_dt, self.cloth_substeps,
-                                                animate, self._step_cloth, self._cloth_refs))
+                tasks.append(self._solver_frame("cloth", self.cloth_collider, poses[self.cloth_substeps],
+                                                frame_dt, animate, self._step_cloth, self._cloth_refs))
             # only replays run side by side: a capture records every launch on the device
             together = (self.side_by_side and len(tasks) > 1 and not wp.get_device(self.device).is_cuda
                         and all(self.graphs.captured(key) for key, _ in tasks))
@@ -552,13 +579,15 @@ class Scene:
             self.solver.set_parts(cores - 1)
             self.graphs.forget("hair")
 
-    def _solver_frame(self, name, collider, t0, frame_dt, substeps, animate, step, refs, bvh=True):
-        """One solver's frame against `collider`: its poses are uploaded now, and the returned
-        (graph key, task) runs the frame. bvh=False: the solver makes no mesh queries, so the BVH is
-        refitted only to the frame's last pose (which everything after the frame may query)."""
+    def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True):
+        """One solver's frame against `collider`, substep_poses = (times, poses) at the start and the
+        end of each substep: the poses are uploaded now, and the returned (graph key, task) runs the
+        frame. bvh=False: the solver makes no mesh queries, so the BVH is refitted only to the frame's
+        last pose (which everything after the frame may query)."""
+        times, poses = substep_poses
+        substeps = len(times) - 1
         dt = frame_dt / substeps
-        times = t0 + dt * np.arange(0, substeps + 1) if animate else np.full(substeps + 1, t0)
-        self._pose(collider, times)  # the frame's poses, uploaded into the buffer the graph reads
+        self._pose(collider, times, poses)  # the frame's poses, uploaded into the buffer the graph reads
 
         def frame():
             # start from the frame's first pose: the collider was left at the last frame's end, or

@@ -283,3 +283,77 @@ def test_invalid_meshes_are_rejected_with_the_reason():
         DetailTopology([[0, 1, 2]], 4, 6)
     with pytest.raises(ValueError, match="must lie in"):
         DetailTopology([[0, 1, 3]], 3, 6)
+
+
+def _carried(points, i, first, last):
+    """Eq. 5 along a line of points, in float64: the force at sample i blended between the ends by
+    the share of the transmission (eq. 4) up to i, counting half of i's own."""
+    c = []
+    for k in range(1, len(points) - 1):
+        d0, d1 = points[k] - points[k - 1], points[k + 1] - points[k]
+        l0, l1 = np.linalg.norm(d0), np.linalg.norm(d1)
+        c.append(1.0 if min(l0, l1) < 1e-12 else max(d0 @ d1 / (l0 * l1), 0.01))
+    c = np.array(c)
+    upto = c[: i - 1].sum() + 0.5 * c[i - 1]
+    t = upto / c.sum() if c.sum() > 1e-12 else 0.5
+    return first + t * (last - first)
+
+
+@pytest.mark.parametrize("n", [2, 3, 6])
+def test_carried_forces_match_a_float64_reference_of_eqs_4_5_on_a_crumpled_surface(n):
+    """carry_forces against a per-sample float64 reading of eqs. 4-5 on a crumpled grid: corners
+    take their particle's force, edge samples blend along the edge, interior samples average the
+    blends along their two grid lines, whose ends lie on the edges."""
+    from sim.detail import ClothDetail, DetailParams
+
+    pts, tris = grid(3, 2)
+    edges = undirected_edge_counts(tris)[0]
+    model = ClothModel(pts, tris, edges, [], [], [0])
+    detail = ClothDetail(model, DetailParams(level=n))
+    top = detail.surface.topology
+    assert top.tessellation == n
+    rng = np.random.default_rng(n)
+    positions = rng.normal(0.0, 1.0, (top.num_vertices, 3))  # folds of every angle, some past 90 degrees
+    coarse = rng.normal(0.0, 1.0, (len(pts), 3))
+    force = wp.zeros(top.num_vertices, dtype=wp.vec3)
+    wp.launch(kernels.carry_forces, len(tris),
+              [detail.face_grid, detail.owner_face, n, wp.array(positions.astype(np.float32), dtype=wp.vec3),
+               detail.corner_vertex, wp.array(coarse.astype(np.float32), dtype=wp.vec3), force])
+    x = positions.astype(np.float32).astype(np.float64)
+    f = coarse.astype(np.float32).astype(np.float64)
+    expected = np.full((top.num_vertices, 3), np.nan)
+    for face, corners in enumerate(top.coarse_triangles):
+        at = lambda a, b: top.lattice[face, top.lattice_index[a, b]]  # noqa: E731
+        f0, f1, f2 = f[corners]
+
+        def edge(points, i, first, last):
+            return _carried(x[[at(a, b) for a, b in points]], i, first, last)
+
+        e01 = [(k, 0) for k in range(n + 1)]
+        e02 = [(0, k) for k in range(n + 1)]
+        e12 = [(n - k, k) for k in range(n + 1)]
+        for a in range(n + 1):
+            for b in range(n + 1 - a):
+                v = at(a, b)
+                if top.owner_face[v] != face:
+                    continue
+                if (a, b) == (0, 0):
+                    value = f0
+                elif a == n:
+                    value = f1
+                elif b == n:
+                    value = f2
+                elif b == 0:
+                    value = edge(e01, a, f0, f1)
+                elif a == 0:
+                    value = edge(e02, b, f0, f2)
+                elif a + b == n:
+                    value = edge(e12, b, f1, f2)
+                else:
+                    along_a = edge([(a, k) for k in range(n - a + 1)], b, edge(e01, a, f0, f1), edge(e12, n - a, f1, f2))
+                    along_b = edge([(k, b) for k in range(n - b + 1)], a, edge(e02, b, f0, f2), edge(e12, b, f1, f2))
+                    value = 0.5 * (along_a + along_b)
+                assert np.isnan(expected[v, 0])  # every sample has one owner
+                expected[v] = value
+    assert not np.isnan(expected).any()
+    np.testing.assert_allclose(force.numpy(), expected, rtol=0, atol=2e-5 * np.abs(f).max())

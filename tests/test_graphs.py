@@ -97,6 +97,30 @@ def test_hair_and_cloth_frames_side_by_side_equal_one_after_the_other(monkeypatc
     assert np.abs(results[0][2][-1] - results[0][2][0]).max() > 1e-3  # the body walked the dress along
 
 
+def test_one_motion_evaluation_poses_every_solver_at_its_own_substep_times(monkeypatch):
+    """A frame evaluates the body's motion once, at the union of the solvers' substep times (hair
+    at 4 and cloth at 12 substeps share the hair's 5 times), and each solver gets the poses of its
+    own times, as if the motion were evaluated for it alone."""
+    scene = Scene(demo_scene({"scene": {"device": "cpu", "fps": 60.0, "frames": 1, "preroll": 0.0, "stats": False},
+                              "hair": {"count": 20, "vertices": 8}, "face": {"enabled": False},
+                              "solver": {"substeps": 4}, "cloth.detail": {"level": 0}}))
+    evaluated = []
+    motion_poses = scene._motion_poses
+    monkeypatch.setattr(scene, "_motion_poses", lambda times: (evaluated.append(len(times)), motion_poses(times))[1])
+    t0, frame_dt = 0.3, 1.0 / 60.0
+    poses = scene._substep_poses(t0, frame_dt, [4, 12], animate=True)
+    assert evaluated == [13]  # 5 + 13 times, 5 of them shared
+    for n in (4, 12):
+        times, got = poses[n]
+        np.testing.assert_allclose(times, t0 + frame_dt * np.arange(n + 1) / n, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got, motion_poses(times), rtol=0, atol=1e-6)
+    np.testing.assert_array_equal(poses[4][1], poses[12][1][::3])
+    assert np.abs(poses[12][1][-1] - poses[12][1][0]).max() > 1e-3  # the body moves within the frame
+    held = scene._substep_poses(t0, frame_dt, [4, 12], animate=False)
+    np.testing.assert_allclose(held[12][1], np.broadcast_to(motion_poses(np.array([t0])), held[12][1].shape), atol=1e-6)
+    assert scene._substep_poses(t0, frame_dt, [], animate=True) == {}
+
+
 def test_detail_surface_is_updated_once_per_frame():
     """Each update of the detail surface carries its wrinkle heights a frame further, so asking for
     this frame's surface twice, or after advance(detail=True) made it, does not update it again."""

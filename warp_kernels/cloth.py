@@ -18,9 +18,9 @@ Step order (composed by sim.cloth.ClothSolver), the body posed for the end of th
 
 import warp as wp
 
-# no gradients are taken through these kernels: skipping the backward passes halves compile time;
-# the lean launch path (no grid-stride loop) lowers per-thread overhead
-wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+from ._options import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 from .skinning import bound_position, face_frame, face_point
 

@@ -14,9 +14,9 @@ or after a leaf jump to skip[i]. Leaves are spheres inside the body; inner nodes
 
 import warp as wp
 
-# no gradients are taken through these kernels: skipping the backward passes halves compile time;
-# the lean launch path (no grid-stride loop) lowers per-thread overhead
-wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+from ._options import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 COLLIDE_NONE = wp.constant(0)
 COLLIDE_SPHERE_TREE = wp.constant(1)

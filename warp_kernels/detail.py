@@ -34,9 +34,9 @@ A frame (composed by sim.detail.ClothDetail) runs, after the three PN launches:
 
 import warp as wp
 
-# no gradients are taken through these kernels: skipping the backward passes halves compile time;
-# the lean launch path (no grid-stride loop) lowers per-thread overhead
-wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+from ._options import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func
@@ -572,6 +572,53 @@ def carried_force(face: int, n: int, a0: int, b0: int, da: int, db: int, count: 
     return f_first + t * (f_last - f_first)
 
 
+@wp.func
+def carry_along_line(face: int, n: int, a0: int, b0: int, da: int, db: int, count: int,
+                     face_grid: wp.array(dtype=wp.int32), owner_face: wp.array(dtype=wp.int32),
+                     positions: wp.array(dtype=wp.vec3), f_first: wp.vec3, f_last: wp.vec3, blend: int,
+                     force: wp.array(dtype=wp.vec3)):
+    """carried_force at every inner sample of one grid line, in two passes along it (the total, then
+    the running share) instead of one pass per sample; the sums run in the same order, so each force
+    is carried_force's bit for bit. Only samples this face owns are written.
+
+    Inputs:
+      face (int, index): the coarse face
+      n (int): tessellation level
+      a0 (int): start of the line, weight of corner 1 in grid steps
+      b0 (int): start of the line, weight of corner 2 in grid steps
+      da (int): step of a per sample
+      db (int): step of b per sample
+      count (int): samples on the line, the two ends included
+      face_grid (int32, (n + 1)(n + 2) / 2 per coarse triangle): detail vertex of each grid point
+      owner_face (int32, per detail vertex): coarse triangle that owns each detail vertex
+      positions (vec3, per detail vertex, m): detail positions the transmission is measured on
+      f_first (vec3, N): force at sample 0
+      f_last (vec3, N): force at sample count - 1
+      blend (int, flag): 0 writes each force, 1 averages it with the force already written there
+    Outputs:
+      force (vec3, per detail vertex, N): the inner samples' forces (read first where blend != 0)
+    """
+    total = float(0.0)
+    for k in range(1, count - 1):
+        total += transmission(positions[line_point(face, n, a0, b0, da, db, k - 1, face_grid)],
+                              positions[line_point(face, n, a0, b0, da, db, k, face_grid)],
+                              positions[line_point(face, n, a0, b0, da, db, k + 1, face_grid)])
+    upto = float(0.0)
+    for k in range(1, count - 1):
+        v = line_point(face, n, a0, b0, da, db, k, face_grid)
+        c = transmission(positions[line_point(face, n, a0, b0, da, db, k - 1, face_grid)], positions[v],
+                         positions[line_point(face, n, a0, b0, da, db, k + 1, face_grid)])
+        t = float(0.5)
+        if total > 1.0e-12:
+            t = (upto + 0.5 * c) / total
+        upto += c
+        if owner_face[v] == face:
+            value = f_first + t * (f_last - f_first)
+            if blend != 0:
+                value = 0.5 * (force[v] + value)
+            force[v] = value
+
+
 @wp.kernel
 def carry_forces(
     face_grid: wp.array(dtype=wp.int32),
@@ -586,7 +633,8 @@ def carry_forces(
 
     Corners take their coarse particle's force, edge samples blend the edge's ends, interior samples
     average the blends along the grid's two line directions between edge samples. Shared samples are
-    written by their owner face only, so each is written once.
+    written by their owner face only, so each is written once. Each line is walked twice
+    (carry_along_line), O(n^2) per face where a walk per sample would be O(n^3).
 
     Launch: one thread per coarse triangle (dim = num_coarse_triangles).
     Inputs:
@@ -605,35 +653,24 @@ def carry_forces(
     f0 = coarse_force[corner_vertex[3 * f]]
     f1 = coarse_force[corner_vertex[3 * f + 1]]
     f2 = coarse_force[corner_vertex[3 * f + 2]]
-    for a in range(n + 1):
-        for b in range(n + 1 - a):
-            v = face_grid[f * slots + grid_slot(a, b, n)]
-            if owner_face[v] != f:
-                continue
-            value = wp.vec3(0.0)
-            if a == 0 and b == 0:
-                value = f0
-            elif a == n:
-                value = f1
-            elif b == n:
-                value = f2
-            elif b == 0:  # edge corner 0 -> corner 1
-                value = carried_force(f, n, 0, 0, 1, 0, n + 1, a, face_grid, positions, f0, f1)
-            elif a == 0:  # edge corner 0 -> corner 2
-                value = carried_force(f, n, 0, 0, 0, 1, n + 1, b, face_grid, positions, f0, f2)
-            elif a + b == n:  # edge corner 1 -> corner 2
-                value = carried_force(f, n, n, 0, -1, 1, n + 1, b, face_grid, positions, f1, f2)
-            else:
-                # line of constant a from (a, 0) to (a, n - a), and of constant b from (0, b) to (n - b, b);
-                # their ends lie on edges, whose forces follow from the same rule
-                ea0 = carried_force(f, n, 0, 0, 1, 0, n + 1, a, face_grid, positions, f0, f1)
-                ea1 = carried_force(f, n, n, 0, -1, 1, n + 1, n - a, face_grid, positions, f1, f2)
-                eb0 = carried_force(f, n, 0, 0, 0, 1, n + 1, b, face_grid, positions, f0, f2)
-                eb1 = carried_force(f, n, n, 0, -1, 1, n + 1, b, face_grid, positions, f1, f2)
-                along_a = carried_force(f, n, a, 0, 0, 1, n - a + 1, b, face_grid, positions, ea0, ea1)
-                along_b = carried_force(f, n, 0, b, 1, 0, n - b + 1, a, face_grid, positions, eb0, eb1)
-                value = 0.5 * (along_a + along_b)
-            force[v] = value
+    for corner in range(3):
+        v = face_grid[f * slots + grid_slot(n * wp.where(corner == 1, 1, 0), n * wp.where(corner == 2, 1, 0), n)]
+        if owner_face[v] == f:
+            force[v] = wp.where(corner == 0, f0, wp.where(corner == 1, f1, f2))
+    carry_along_line(f, n, 0, 0, 1, 0, n + 1, face_grid, owner_face, positions, f0, f1, 0, force)  # corner 0 -> 1
+    carry_along_line(f, n, 0, 0, 0, 1, n + 1, face_grid, owner_face, positions, f0, f2, 0, force)  # corner 0 -> 2
+    carry_along_line(f, n, n, 0, -1, 1, n + 1, face_grid, owner_face, positions, f1, f2, 0, force)  # corner 1 -> 2
+    # interior samples: the line of constant a from (a, 0) to (a, n - a), then the line of constant b
+    # from (0, b) to (n - b, b) averaged in; the lines' ends lie on edges, whose forces follow from
+    # the same rule
+    for a in range(1, n - 1):
+        ea0 = carried_force(f, n, 0, 0, 1, 0, n + 1, a, face_grid, positions, f0, f1)
+        ea1 = carried_force(f, n, n, 0, -1, 1, n + 1, n - a, face_grid, positions, f1, f2)
+        carry_along_line(f, n, a, 0, 0, 1, n - a + 1, face_grid, owner_face, positions, ea0, ea1, 0, force)
+    for b in range(1, n - 1):
+        eb0 = carried_force(f, n, 0, 0, 0, 1, n + 1, b, face_grid, positions, f0, f2)
+        eb1 = carried_force(f, n, n, 0, -1, 1, n + 1, b, face_grid, positions, f1, f2)
+        carry_along_line(f, n, 0, b, 1, 0, n - b + 1, face_grid, owner_face, positions, eb0, eb1, 1, force)
 
 
 @wp.kernel

@@ -8,9 +8,9 @@ bound point rigidly and exactly.
 
 import warp as wp
 
-# no gradients are taken through these kernels: skipping the backward passes halves compile time;
-# the lean launch path (no grid-stride loop) lowers per-thread overhead
-wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+from ._options import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func

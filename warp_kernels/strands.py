@@ -19,9 +19,9 @@ because on a GPU the bytes moved, not the arithmetic, set the cost.
 
 import warp as wp
 
-# no gradients are taken through these kernels: skipping the backward passes halves compile time;
-# the lean launch path (no grid-stride loop) lowers per-thread overhead
-wp.set_module_options({"enable_backward": False, "default_grid_stride": False})
+from ._options import MODULE_OPTIONS
+
+wp.set_module_options(MODULE_OPTIONS)
 
 from .collision import COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded, collide_point_listed
 from .skinning import bound_position, face_frame, triangle_frame
