@@ -357,7 +357,7 @@ class Scene:
                              "a collider animated by points needs collision = \"mesh\"")
         self.collider = Collider(self.collider_name, self.head.vertices, self.head.faces, self.head.skin_indices,
                                  self.head.skin_weights, self.head.num_bones, device, leaves)
-        self._pose(self.collider, np.array([0.0]))
+        self._pose(self.collider, self._motion_poses(np.array([0.0])))
         self.collider.apply_pose(0)
         self.collider.reset_motion()
 
@@ -445,11 +445,8 @@ class Scene:
             arrays["face"], arrays["face_rest"] = self.face_rig.queue_frame(self.collider, weights)
         return arrays, weights
 
-    def _pose(self, collider, times, poses=None):
-        """Pose `collider` for each of `times` (uploaded once; apply_pose(k) picks one). poses: the
-        motion already evaluated at `times` (_motion_poses), else it is evaluated here."""
-        if poses is None:
-            poses = self._motion_poses(times)
+    def _pose(self, collider, poses):
+        """Upload `poses` (_motion_poses at some times) into `collider`; apply_pose(k) picks one."""
         if isinstance(self._motion, PointCacheMotion):
             collider.set_point_poses(poses)
         else:
@@ -587,7 +584,7 @@ class Scene:
         times, poses = substep_poses
         substeps = len(times) - 1
         dt = frame_dt / substeps
-        self._pose(collider, times, poses)  # the frame's poses, uploaded into the buffer the graph reads
+        self._pose(collider, poses)  # the frame's poses, uploaded into the buffer the graph reads
 
         def frame():
             # start from the frame's first pose: the collider was left at the last frame's end, or

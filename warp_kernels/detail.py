@@ -653,10 +653,15 @@ def carry_forces(
     f0 = coarse_force[corner_vertex[3 * f]]
     f1 = coarse_force[corner_vertex[3 * f + 1]]
     f2 = coarse_force[corner_vertex[3 * f + 2]]
-    for corner in range(3):
-        v = face_grid[f * slots + grid_slot(n * wp.where(corner == 1, 1, 0), n * wp.where(corner == 2, 1, 0), n)]
-        if owner_face[v] == f:
-            force[v] = wp.where(corner == 0, f0, wp.where(corner == 1, f1, f2))
+    v0 = face_grid[f * slots + grid_slot(0, 0, n)]
+    v1 = face_grid[f * slots + grid_slot(n, 0, n)]
+    v2 = face_grid[f * slots + grid_slot(0, n, n)]
+    if owner_face[v0] == f:
+        force[v0] = f0
+    if owner_face[v1] == f:
+        force[v1] = f1
+    if owner_face[v2] == f:
+        force[v2] = f2
     carry_along_line(f, n, 0, 0, 1, 0, n + 1, face_grid, owner_face, positions, f0, f1, 0, force)  # corner 0 -> 1
     carry_along_line(f, n, 0, 0, 0, 1, n + 1, face_grid, owner_face, positions, f0, f2, 0, force)  # corner 0 -> 2
     carry_along_line(f, n, n, 0, -1, 1, n + 1, face_grid, owner_face, positions, f1, f2, 0, force)  # corner 1 -> 2
