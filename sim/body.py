@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.interpolate import PchipInterpolator
 
+from .collision_proxy import neighbour_average
 from .head import _scalp_faces, _smoothstep, procedural_head
 from .sphere_tree import signed_distance, warp_mesh
 
@@ -336,22 +337,11 @@ def _extract(parts, h, relax_iterations):
     if mesh.volume < 0:
         mesh.invert()
     v = np.asarray(mesh.vertices, np.float64)
-    avg = _neighbour_average(mesh)
+    avg = neighbour_average(mesh.edges_unique, len(mesh.vertices))
     for _ in range(relax_iterations):
         v = _project(parts, 0.5 * v + 0.5 * (avg @ v), steps=1)
     v = _project(parts, v, steps=2)
     return trimesh.Trimesh(v, mesh.faces, process=False)
-
-
-def _neighbour_average(mesh):
-    """Sparse (V, V) matrix averaging each vertex's edge neighbours."""
-    import scipy.sparse
-
-    e = mesh.edges_unique
-    n = len(mesh.vertices)
-    A = scipy.sparse.coo_matrix((np.ones(2 * len(e)), (np.r_[e[:, 0], e[:, 1]], np.r_[e[:, 1], e[:, 0]])),
-                                shape=(n, n)).tocsr()
-    return scipy.sparse.diags(1.0 / np.asarray(A.sum(1)).ravel()) @ A
 
 
 def _skin_weights(mesh, parts, sk, falloff=0.012, smooth_iterations=8):
@@ -381,7 +371,7 @@ def _skin_weights(mesh, parts, sk, falloff=0.012, smooth_iterations=8):
     W /= W.sum(1, keepdims=True)
 
     # uniform Laplacian smoothing of the weights removes creases where the nearest part changes
-    A = _neighbour_average(mesh)
+    A = neighbour_average(mesh.edges_unique, len(mesh.vertices))
     for _ in range(smooth_iterations):
         W = 0.5 * W + 0.5 * (A @ W)
 

@@ -33,6 +33,7 @@ class ClothParams:
     gravity: tuple = (0.0, -9.81, 0.0)  # m/s^2
     friction: float = 0.4  # Coulomb coefficient at body contact
     collision_margin: float = 0.008  # m, kept outside the body; covers the body bulging between particles
+    body_proxy: float = 0.0  # m: collide with the body remeshed this coarse (a collision proxy); 0 = the body mesh
     walk_steps: int = 16  # most steps of the nearest-vertex walk before falling back to the BVH
     teleport: float = 0.05  # m, a particle that moved this far in one step restarts from the BVH
     walk_trust_distance: float = 0.015  # m, farther from the body the walk is re-seeded from the BVH ...
@@ -50,7 +51,7 @@ class ClothParams:
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be positive")
         for name in ("compress_stiffness", "shear_stiffness", "bend_stiffness", "spring_damping", "damping",
-                     "air_drag", "friction", "collision_margin", "strain_limit"):
+                     "air_drag", "friction", "collision_margin", "body_proxy", "strain_limit"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"{name} must be zero or positive")
         if self.substeps < 0:

@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from warp_kernels import collision, skinning
 
+from .collision_proxy import blend_skin_weights, coarse_remesh
 from .graphs import refit_mesh
 from .sphere_tree import build_sphere_tree, empty_sphere_tree, signed_distance
 
@@ -61,6 +62,7 @@ class Collider:
         self.bone_matrices = None
         self._pose_buffers = {}
         self._adjacency = None
+        self._embedding = None  # a proxy's (corners, barycentric, source vertex count): see proxy()
 
     def _shape(self):
         """What the collision kernels take: the mesh and the sphere tree (arrays refitted in place)."""
@@ -85,9 +87,32 @@ class Collider:
         twin._adjacency = self.adjacency()
         return twin
 
+    def proxy(self, spacing):
+        """A coarser collider over the same surface (sim.collision_proxy), with its own pose: its
+        vertices are about `spacing` [m] apart on this collider's rest surface, each at fixed
+        barycentric weights of one of its triangles. It takes this collider's poses: the same bone
+        matrices (set_poses; skin weights blended from the triangle's corners) or this collider's
+        point poses (set_point_poses maps them by the weights). Mesh queries only: no sphere tree."""
+        faces, source_face, bary = coarse_remesh(self.rest_points_np, self.faces_np, spacing, self.device)
+        corners = self.faces_np[source_face]
+        rest = np.einsum("nk,nkj->nj", bary, self.rest_points_np[corners].astype(np.float64))
+        indices, weights = blend_skin_weights(corners, bary, self.skin_indices_np, self.skin_weights_np,
+                                              self.num_bones)
+        proxy = Collider(f"{self.name} proxy", rest, faces, indices, weights, self.num_bones, self.device,
+                         sphere_leaves=0)
+        proxy._embedding = (corners, bary.astype(np.float32), len(self.rest_points_np))
+        return proxy
+
     def set_point_poses(self, points):
-        """points: (K, V, 3) vertex positions for K upcoming poses (a point cache, e.g. from USD)."""
-        pts = np.ascontiguousarray(np.asarray(points, np.float32).reshape(-1, 3))
+        """points: (K, V, 3) vertex positions for K upcoming poses (a point cache, e.g. from USD); a
+        proxy takes the poses of the collider it was made from."""
+        pts = np.asarray(points, np.float32)
+        if self._embedding is not None:
+            corners, bary, count = self._embedding
+            if pts.size % (3 * count):
+                raise ValueError(f"{self.name}: point poses must have {count} points each")
+            pts = np.einsum("nk,pnkj->pnj", bary, pts.reshape(-1, count, 3)[:, corners])
+        pts = np.ascontiguousarray(pts.reshape(-1, 3))
         if len(pts) % len(self.rest_points_np):
             raise ValueError(f"{self.name}: point poses must have {len(self.rest_points_np)} points each")
         self._pose_points = self._pose_buffer(pts, wp.vec3)

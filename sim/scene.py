@@ -379,7 +379,8 @@ class Scene:
                     self.guides = GuideTargets(self.model, frames, fps)
                 except ValueError as err:
                     raise InputError(config.source, "hair.guides", str(err)) from None
-        self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = self.cloth_collider = None
+        self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = None
+        self.cloth_collider = self.cloth_body = None
         self.side_by_side = True  # False steps the cloth after the hair (the same result, slower on the CPU)
         self._balanced = False  # the cores not yet shared between hair and cloth (_balance)
         self._frames = 0  # frames simulated, so the detail surface is updated once per frame
@@ -390,10 +391,20 @@ class Scene:
                 self.cloth_model = ClothModel.from_garment(garment, config.cloth_solver, device)
             except ValueError as err:
                 raise InputError(config.source, "cloth.garment", str(err)) from None
-            self.cloth_model.bind_to_mesh(self.collider.posed_points(), self.head.faces)
-            # the cloth poses a twin of the collider of its own, so its frames and the hair's touch no
-            # common data and may run side by side (advance)
-            self.cloth_collider = self.collider.twin() if self.model is not None else self.collider
+            # the cloth poses a collider of its own (a twin, or a coarser proxy), so its frames and the
+            # hair's touch no common data and may run side by side (advance); cloth_body is the body
+            # itself posed at the cloth's frame ends, which the detail surface lifts out of
+            self.cloth_body = self.collider.twin() if self.model is not None else self.collider
+            self.cloth_collider = self.cloth_body
+            if config.cloth_solver.body_proxy > 0.0:
+                try:
+                    self.cloth_collider = self.collider.proxy(config.cloth_solver.body_proxy)
+                except ValueError as err:
+                    raise InputError(config.source, "cloth.solver.body_proxy", str(err)) from None
+                self._pose(self.cloth_collider, self._motion_poses(np.array([0.0])))
+                self.cloth_collider.apply_pose(0)
+                self.cloth_collider.reset_motion()
+            self.cloth_model.bind_to_mesh(self.cloth_collider.posed_points(), self.cloth_collider.faces_np)
             self.cloth_solver = ClothSolver(self.cloth_model)
             self.cloth_state, self._cloth_scratch = self.cloth_model.state(), self.cloth_model.state()
             self.cloth_substeps = self.cloth_model.substeps_for(1.0 / config.timing.fps)
@@ -530,8 +541,9 @@ class Scene:
                                                 frame_dt, animate, self._step_hair, self._hair_refs,
                                                 bvh=self.config.solver.collision == "mesh"))
             if self.cloth_model is not None:
+                body = self.cloth_body if self.cloth_body is not self.cloth_collider else None
                 tasks.append(self._solver_frame("cloth", self.cloth_collider, poses[self.cloth_substeps],
-                                                frame_dt, animate, self._step_cloth, self._cloth_refs))
+                                                frame_dt, animate, self._step_cloth, self._cloth_refs, end_pose=body))
             # only replays run side by side: a capture records every launch on the device
             together = (self.side_by_side and len(tasks) > 1 and not wp.get_device(self.device).is_cuda
                         and all(self.graphs.captured(key) for key, _ in tasks))
@@ -576,15 +588,18 @@ class Scene:
             self.solver.set_parts(cores - 1)
             self.graphs.forget("hair")
 
-    def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True):
+    def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True, end_pose=None):
         """One solver's frame against `collider`, substep_poses = (times, poses) at the start and the
         end of each substep: the poses are uploaded now, and the returned (graph key, task) runs the
         frame. bvh=False: the solver makes no mesh queries, so the BVH is refitted only to the frame's
-        last pose (which everything after the frame may query)."""
+        last pose (which everything after the frame may query). end_pose: another collider the frame
+        poses once, at its end (the body beside a cloth's collision proxy)."""
         times, poses = substep_poses
         substeps = len(times) - 1
         dt = frame_dt / substeps
         self._pose(collider, poses)  # the frame's poses, uploaded into the buffer the graph reads
+        if end_pose is not None:
+            self._pose(end_pose, poses[-1:])
 
         def frame():
             # start from the frame's first pose: the collider was left at the last frame's end, or
@@ -595,6 +610,8 @@ class Scene:
             for k in range(1, substeps + 1):
                 collider.apply_pose(k, refit=bvh or k == substeps)
                 step(dt, float(times[k]))
+            if end_pose is not None:
+                end_pose.apply_pose(0)
 
         key = (name, animate, id(refs[0]()[0]))
         return key, partial(self.graphs.run, key, frame, refs)
@@ -650,7 +667,7 @@ class Scene:
             detail.height, detail.height_tmp = value
 
         self.graphs.run(self._detail_key(),
-                        lambda: detail.update(self.cloth_model, self.cloth_state, self.cloth_collider,
+                        lambda: detail.update(self.cloth_model, self.cloth_state, self.cloth_body,
                                               1.0 / self.config.timing.fps),
                         ((lambda: (detail.height, detail.height_tmp)), put))
         self._detail_frame = self._frames
@@ -676,7 +693,7 @@ class Scene:
             out.update(self.cloth_stats())
         if self.cloth_detail is not None:
             x = self.cloth_detail.positions.numpy()
-            out.update(detail_inside_2mm=float(np.mean(self.cloth_collider.signed_distance(x, max_dist=0.05) < -0.002)),
+            out.update(detail_inside_2mm=float(np.mean(self.cloth_body.signed_distance(x, max_dist=0.05) < -0.002)),
                        detail_queries=self.cloth_detail.query_fraction())
         return out
 
@@ -688,7 +705,9 @@ class Scene:
         edges = cm.spring_pairs_np[cm.spring_kind_np == 0]
         rest = cm.spring_rest_np[cm.spring_kind_np == 0]
         strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
-        sdf = body.signed_distance(x, max_dist=0.05)
+        # penetration of the body itself, also when the cloth collides with a proxy of it; the walk
+        # below runs on the mesh the cloth collides with
+        sdf = self.cloth_body.signed_distance(x, max_dist=0.05)
         brute = wp.zeros(cm.num_particles, dtype=wp.int32, device=self.device)
         wp.launch(cloth_kernels.nearest_vertex_brute_force, cm.num_particles, [st.x, body.points, brute],
                   device=self.device)

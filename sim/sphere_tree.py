@@ -30,17 +30,21 @@ class SphereTree:
         return self.centers[mask], self.radii[mask]
 
 
-def warp_mesh(vertices, faces, device="cpu"):
+def warp_mesh(vertices, faces, device="cpu", winding=False):
+    """A wp.Mesh of NumPy arrays; winding=True also supports winding-number signs (signed_distance)."""
     return wp.Mesh(points=wp.array(np.asarray(vertices, np.float32), dtype=wp.vec3, device=device),
-                   indices=wp.array(np.asarray(faces, np.int32).reshape(-1), dtype=wp.int32, device=device))
+                   indices=wp.array(np.asarray(faces, np.int32).reshape(-1), dtype=wp.int32, device=device),
+                   support_winding_number=winding)
 
 
-def signed_distance(points, mesh, device="cpu", max_dist=1.0e6):
-    """Signed distance of points to a closed wp.Mesh (negative inside) and closest surface points."""
+def signed_distance(points, mesh, device="cpu", max_dist=1.0e6, winding=False):
+    """Signed distance of points to a closed wp.Mesh (negative inside) and closest surface points.
+    winding=True signs by the winding number (collision.mesh_signed_distance; the mesh must support it)."""
     pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=device)
     dist = wp.zeros(len(pts), dtype=float, device=device)
     closest = wp.zeros(len(pts), dtype=wp.vec3, device=device)
-    wp.launch(collision.mesh_signed_distance, len(pts), [pts, mesh.id, float(max_dist), dist, closest], device=device)
+    wp.launch(collision.mesh_signed_distance, len(pts), [pts, mesh.id, float(max_dist), int(winding), dist, closest],
+              device=device)
     return dist.numpy(), closest.numpy()
 
 

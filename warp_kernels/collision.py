@@ -413,23 +413,33 @@ def mesh_signed_distance(
     points: wp.array(dtype=wp.vec3),
     mesh: wp.uint64,
     max_dist: float,
+    winding: int,
     distance: wp.array(dtype=float),
     closest: wp.array(dtype=wp.vec3),
 ):
     """Signed distance of every point to a closed mesh (negative inside) and its closest surface point.
 
+    The sign comes from the closest face's pseudo-normal, or with winding != 0 from the generalized
+    winding number: slower, but right also where the closest point is ambiguous (the centre of a
+    sphere, deep inside a limb), where the normal's sign can flip.
+
     Launch: one thread per point (dim = len(points)).
     Inputs:
       points (vec3, per point, m): query points
-      mesh (uint64): wp.Mesh id of a closed, outward-wound mesh
+      mesh (uint64): wp.Mesh id of a closed, outward-wound mesh (built with support_winding_number
+          when winding != 0)
       max_dist (float, m): query radius
+      winding (int, flag): non-zero signs by the winding number
     Outputs:
       distance (float, per point, m): signed distance; max_dist where no surface is within reach
       closest (vec3, per point, m): closest surface point; the point itself where none is within reach
     """
     i = wp.tid()
     p = points[i]
-    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if winding != 0:
+        q = wp.mesh_query_point_sign_winding_number(mesh, p, max_dist)
+    else:
+        q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
     if q.result:
         cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
         closest[i] = cp
