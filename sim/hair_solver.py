@@ -55,6 +55,7 @@ def _contact_motion(device):
     motion.moved = wp.zeros(1, dtype=float, device=device)
     motion.rigid = wp.array([np.eye(4)], dtype=wp.mat44, device=device)
     motion.center = wp.zeros(1, dtype=wp.vec3, device=device)
+    motion.cells = wp.zeros(strands.MOTION_GRID**3, dtype=float, device=device)
     return motion
 
 
@@ -221,10 +222,11 @@ class HairSolver:
         if mode != 0 and self.contact_bounds:
             adjacency = c.adjacency()
             wp.launch(strands.anchor_frame, 1, [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
-            wp.launch(strands.contact_motion, len(c.points) + len(c.sphere_centers),
+            mesh = mode == COLLISION["mesh"]  # the sphere tree's strands see only its leaves
+            wp.launch(strands.contact_motion, (len(c.points) if mesh else 0) + len(c.sphere_centers),
                       [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
-                       c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), r.reach,
-                       p.collision_search, motion], device=dev)
+                       c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
+                       r.reach, p.collision_search, motion], device=dev)
         # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.follow_the_leader, r.strands,

@@ -8,6 +8,7 @@ from sim.hair_solver import HairParams, HairSolver
 from sim.hairstyle import HairstyleParams, grow_hairstyle, sample_scalp
 from sim.head import HeadAnimation
 from sim.strands import StrandBuilder
+from warp_kernels import strands as strand_kernels
 
 
 def test_procedural_head_is_a_closed_outward_mesh(head):
@@ -334,6 +335,24 @@ def test_contact_motion_follows_the_anchor_and_counts_only_the_collider_near_the
             relative = np.linalg.norm(after - (before @ turn[:3, :3].T + turn[:3, 3]), axis=1)
             expected = relative[near].max()
             assert abs(moved - expected) < 2e-6
+            # and per cell of the grid around the anchor: a vertex raises the cells within search +
+            # its longest edge of it
+            grid = strand_kernels.MOTION_GRID
+            half = reach + search
+            size = 2.0 * half / grid
+            cells = np.zeros((grid,) * 3)
+            for q, m, e in zip(after[near], relative[near], edge[near]):
+                lo, hi = q - search - e, q + search + e
+                if m <= 0.0 or np.any(hi < center - half) or np.any(lo > center + half):
+                    continue
+                a, b = (np.clip(np.floor((x - center + half) / size).astype(int), 0, grid - 1) for x in (lo, hi))
+                block = cells[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1]
+                np.maximum(block, m, out=block)
+            got = solver._motion[solver.whole].cells.numpy().reshape(cells.shape)
+            np.testing.assert_allclose(got, cells, atol=2e-6)
+            assert got.max() == pytest.approx(moved, abs=2e-6)
+            if k == 3:  # the hand beside the hair raises only the cells near it
+                assert 0.0 < np.mean(got > 0.0) < 0.5
             if k == 1:  # the hand moved 30 cm but far away; the head turned rigidly
                 assert near[len(head_v):].sum() == 0 and moved < 1e-5
                 assert np.linalg.norm(after - before, axis=1)[: len(head_v)].max() > 1e-3
@@ -342,3 +361,33 @@ def test_contact_motion_follows_the_anchor_and_counts_only_the_collider_near_the
         results.append(s0.x.numpy())
     np.testing.assert_array_equal(results[0], results[1])
     assert np.abs(results[0] - model.rest_positions_np).max() > 0.02  # the hand pushed the hair aside
+
+
+@pytest.mark.slow
+def test_hair_on_a_walking_body_skips_queries_by_the_motion_near_it_and_steps_the_same_strands():
+    """Long hair on the walking body colliding with its sphere tree: the shoulders move under the
+    ends while the crown rides the head, so the motion grid charges the cells near the shoulders
+    only. The strands equal querying every particle bit for bit, with fewer tree queries than one
+    maximum over the whole collider would allow."""
+    from sim.scene import Scene, demo_scene
+
+    config = demo_scene({"scene": {"device": "cpu", "fps": 60.0, "preroll": 0.0, "stats": False},
+                         "face": {"enabled": False}, "cloth": {"enabled": False},
+                         "hair": {"count": 150, "vertices": 16},
+                         "solver": {"substeps": 4, "collision": "sphere_tree"}})
+    results, spread = [], []
+    for use in (True, False):
+        scene = Scene(config)
+        scene.solver.contact_bounds = use
+        scene.advance(0.25)  # into the stride
+        for _ in range(15):
+            scene.advance(1.0 / 60.0)
+            for part in scene.solver.parts if use else []:  # each range of strands measures its own
+                cells = scene.solver._motion[part].cells.numpy()
+                moved, _, _ = scene.solver.contact_motion(part)
+                assert cells.max() == pytest.approx(moved, abs=1e-7)
+                spread.append((np.mean(cells > 0.0), np.mean(cells < 0.5 * moved)))
+        results.append(scene.state.x.numpy())
+    np.testing.assert_array_equal(results[0], results[1])
+    charged, below_half = np.mean(spread, axis=0)
+    assert 0.0 < charged < 0.5 and below_half > 0.5  # most of the grid is charged less than the maximum

@@ -57,11 +57,12 @@ def test_graph_frames_equal_eager_frames(make, device):
     assert moved > 0.0
 
 
-def test_hair_and_cloth_frames_side_by_side_equal_one_after_the_other(monkeypatch):
+@pytest.mark.parametrize("proxy", [0.0, 0.04])
+def test_hair_and_cloth_frames_side_by_side_equal_one_after_the_other(monkeypatch, proxy):
     """On the CPU the hair's and the cloth's replayed frames run at the same time, each posing its
-    own twin of the body, with the detail surface updated on the cloth's side: hair, garment and
-    detail surface equal stepping one solver after the other bit for bit, and both twins end each
-    frame in the same pose."""
+    own twin of the body (or the cloth a collision proxy, and a twin at the frame's end), with the
+    detail surface updated on the cloth's side: hair, garment and detail surface equal stepping one
+    solver after the other bit for bit, and both twins end each frame in the same pose."""
     import sim.scene as scene_module
 
     calls = []
@@ -70,7 +71,8 @@ def test_hair_and_cloth_frames_side_by_side_equal_one_after_the_other(monkeypatc
     monkeypatch.setattr(scene_module, "cpu_cores", lambda: 2)  # as on CI: the light hair gets one core
     config = demo_scene({"scene": {"device": "cpu", "fps": 30.0, "frames": 1, "preroll": 0.0, "stats": False},
                          "hair": {"count": 60, "vertices": 10}, "face": {"enabled": False},
-                         "solver": {"substeps": 3, "collision": "sphere_tree"}, "cloth.detail": {"level": 2}})
+                         "solver": {"substeps": 3, "collision": "sphere_tree"}, "cloth.detail": {"level": 2},
+                         "cloth.solver": {"body_proxy": proxy}})
     frames = 12
     results = []
     for together in (False, True):
@@ -78,12 +80,13 @@ def test_hair_and_cloth_frames_side_by_side_equal_one_after_the_other(monkeypatc
         scene = Scene(config)
         scene.side_by_side = together
         scene.solver.set_parts(2)  # one range per core, as the solver starts on two cores
-        assert scene.cloth_collider is not scene.collider and scene.cloth_collider.points.ptr != scene.collider.points.ptr
+        assert scene.cloth_body is not scene.collider and scene.cloth_body.points.ptr != scene.collider.points.ptr
+        assert (scene.cloth_collider is scene.cloth_body) == (proxy == 0.0)
         detail = []
         for _ in range(frames):
             scene.advance(1.0 / 30.0, detail=True)
             detail.append(scene.detail_surface()[0].numpy().copy())
-            np.testing.assert_array_equal(scene.cloth_collider.points.numpy(), scene.collider.points.numpy())
+            np.testing.assert_array_equal(scene.cloth_body.points.numpy(), scene.collider.points.numpy())
         # each solver's frames run eagerly, then are captured; the first replays run one after the
         # other, timed, which gives the cloth a core of its own (the hair, far lighter here, is then
         # captured again as one range); after that both replay at once

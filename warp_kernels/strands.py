@@ -30,6 +30,7 @@ SHAPE_SIMPLIFIED = wp.constant(0)
 TAUT = wp.constant(0.995)  # hold_in_comb: a root-to-comb chain this close to straight is laid straight
 SHAPE_FULL = wp.constant(1)
 NO_BOUND = wp.constant(-1.0e30)  # a contact bound that says nothing: the next query looks as far as it can
+MOTION_GRID = wp.constant(16)  # cells per axis of ContactMotion.cells
 
 
 @wp.kernel
@@ -394,11 +395,48 @@ class ContactMotion:
           without an anchor); distances seen in the frame it carries change only by relative motion
       center (vec3, 1 element, m): the anchor triangle's centroid after the substep; every particle
           within reach of it is covered by moved
+      cells (float, per cell of a MOTION_GRID^3 grid, m): the same largest displacement for each
+          cell of a grid around center spanning reach + search each way (motion_cell): only the
+          collider within search of a cell counts for it, so hair on the crown is not charged for
+          the shoulders
     """
 
     moved: wp.array(dtype=float)
     rigid: wp.array(dtype=wp.mat44)
     center: wp.array(dtype=wp.vec3)
+    cells: wp.array(dtype=float)
+
+
+@wp.func
+def motion_cell(p: wp.vec3, center: wp.vec3, half: float):
+    """The cell of ContactMotion.cells holding p, clamped to the grid.
+
+    Inputs:
+      p (vec3, m): a point
+      center (vec3, m): the grid's centre (ContactMotion.center)
+      half (float, m): the grid's half width, reach + search
+    Returns:
+      vec3i: the cell's coordinates, each in [0, MOTION_GRID)
+    """
+    u = (p - center + wp.vec3(half)) * (float(MOTION_GRID) / (2.0 * half))
+    top = MOTION_GRID - 1
+    return wp.vec3i(wp.clamp(int(wp.floor(u[0])), 0, top), wp.clamp(int(wp.floor(u[1])), 0, top),
+                    wp.clamp(int(wp.floor(u[2])), 0, top))
+
+
+@wp.func
+def motion_near(motion: ContactMotion, p: wp.vec3, half: float):
+    """How far the collider moved near p (a point within reach of the centre) in the last substep.
+
+    Inputs:
+      motion (ContactMotion): as contact_motion left it
+      p (vec3, m): the point
+      half (float, m): the grid's half width, reach + search
+    Returns:
+      float (m): the largest displacement counted for p's cell
+    """
+    c = motion_cell(p, motion.center[0], half)
+    return motion.cells[(c[0] * MOTION_GRID + c[1]) * MOTION_GRID + c[2]]
 
 
 @wp.kernel
@@ -422,7 +460,7 @@ def anchor_frame(
           centred at the origin)
     Outputs:
       motion (ContactMotion): rigid (x -> R x + t: R the frame's turn, t taking the old centroid to
-          the new one) and center written, moved zeroed
+          the new one) and center written, moved and cells zeroed
     """
     rotation = wp.identity(3, dtype=float)
     before = wp.vec3(0.0)
@@ -444,6 +482,8 @@ def anchor_frame(
                                0.0, 0.0, 0.0, 1.0)
     motion.center[0] = after
     motion.moved[0] = 0.0
+    for k in range(MOTION_GRID * MOTION_GRID * MOTION_GRID):
+        motion.cells[k] = 0.0
 
 
 @wp.kernel
@@ -457,6 +497,7 @@ def contact_motion(
     neighbor_start: wp.array(dtype=wp.int32),
     neighbors: wp.array(dtype=wp.int32),
     local: int,
+    vertices: int,
     reach: float,
     search: float,
     motion: ContactMotion,
@@ -470,9 +511,16 @@ def contact_motion(
     within reach + search of the anchor's new centre has every corner within reach + search of it
     plus that corner's longest edge in the new pose, and one entirely farther is more than search
     from any particle within reach, beyond any bound follow_the_leader keeps. So the arms and legs
-    of a walking body, which move fast, do not shrink the bounds of the hair.
+    of a walking body, which move fast, do not shrink the bounds of the hair. Strands that collide
+    with the sphere tree only need its leaves counted (vertices = 0), not the mesh.
 
-    Launch: one thread per vertex and sphere-tree node (dim = len(points) + len(centers)).
+    The same displacements are also kept per cell of a grid around the anchor (motion.cells): a
+    vertex or leaf raises only the cells within search of its triangles or sphere, since a particle
+    in any other cell is farther than search from them and no bound follow_the_leader keeps exceeds
+    search. A particle on the crown is then not charged for the shoulders moving under the ends.
+
+    Launch: one thread per vertex and sphere-tree node (dim = len(points) + len(centers)), or per
+    node only when vertices == 0 (dim = len(centers)).
     Inputs:
       points_before (vec3, per vertex, m): mesh vertices in the previous pose
       points (vec3, per vertex, m): and in the new one
@@ -483,14 +531,18 @@ def contact_motion(
       neighbor_start (int32, vertices + 1): CSR offsets of each vertex's edge neighbours
       neighbors (int32, per vertex-neighbour pair): the neighbours (sim.Collider.adjacency)
       local (int, flag): 0 counts every vertex and leaf (no anchor triangle)
+      vertices (int, flag): 0 counts the sphere tree's leaves only, not the mesh vertices
       reach (float, m): every particle of the strands lies within this of the anchor's centroid
       search (float, m): the largest contact bound follow_the_leader keeps (its query radius)
     In/out:
-      motion (ContactMotion): rigid and center read; moved raised to the largest displacement
+      motion (ContactMotion): rigid and center read; moved raised to the largest displacement, and
+          each cell to the largest near it
     """
     i = wp.tid()
     rigid = motion.rigid[0]
     n = points.shape[0]
+    if vertices == 0:
+        i += n
     q = wp.vec3(0.0)
     q_before = wp.vec3(0.0)
     if i < n:
@@ -502,22 +554,36 @@ def contact_motion(
         q = centers[i - n]
         q_before = centers_before[i - n]
     moved = wp.length(q - wp.transform_point(rigid, q_before))
-    if moved <= motion.moved[0]:
-        return  # cannot raise the maximum (a stale read only costs this shortcut)
-    if local != 0:
-        gap = wp.length(q - motion.center[0]) - reach - search
-        if i < n:
-            edge = float(0.0)
-            k = neighbor_start[i]
-            while gap - edge > 0.0 and k < neighbor_start[i + 1]:
-                edge = wp.max(edge, wp.length(points[neighbors[k]] - q))
-                k += 1
-            gap = gap - edge
-        else:
-            gap = gap - radii[i - n]
-        if gap > 0.0:
-            return
+    if moved <= 0.0:
+        return  # moved with the anchor: raises neither the maximum nor a cell
+    center = motion.center[0]
+    gap = wp.length(q - center) - reach - search
+    # every point of a vertex's triangles lies within its longest edge of it, every point of a leaf
+    # within its radius
+    extent = float(0.0)
+    if i < n:
+        for k in range(neighbor_start[i], neighbor_start[i + 1]):
+            extent = wp.max(extent, wp.length(points[neighbors[k]] - q))
+    else:
+        extent = radii[i - n]
+    if local != 0 and gap - extent > 0.0:
+        return
     wp.atomic_max(motion.moved, 0, moved)
+    # the cells within search of the vertex's triangles or the leaf: a particle in any other cell is
+    # more than search from them, beyond every bound follow_the_leader keeps
+    half = reach + search
+    pad = wp.vec3(search + extent)
+    lo = q - pad
+    hi = q + pad
+    for a in range(3):
+        if hi[a] < center[a] - half or lo[a] > center[a] + half:
+            return
+    c0 = motion_cell(lo, center, half)
+    c1 = motion_cell(hi, center, half)
+    for a in range(c0[0], c1[0] + 1):
+        for b in range(c0[1], c1[1] + 1):
+            for c in range(c0[2], c1[2] + 1):
+                wp.atomic_max(motion.cells, (a * MOTION_GRID + b) * MOTION_GRID + c, moved)
 
 
 @wp.kernel
@@ -553,9 +619,9 @@ def follow_the_leader(
     next particle in a register rather than stored.
 
     Contact bounds (use_bounds != 0): each particle keeps a lower bound of its distance from the
-    collider, set by its last query and lowered every substep by how far it and the collider moved,
-    both seen in the frame that follows the anchor triangle (contact_motion): the particle's move is
-    measured from x_prev carried by motion.rigid. While that bound stays above margin no query could
+    collider, set by its last query and lowered every substep by how far it and the collider near it
+    moved, both seen in the frame that follows the anchor triangle (contact_motion, motion_near): the
+    particle's move is measured from x_prev carried by motion.rigid. While that bound stays above margin no query could
     push the particle, so none is made: most hair is centimetres from the head, and the queries of
     this serial loop are its cost. A particle farther than strand_reach from motion.center gets a full
     query. The result is the same as querying every particle, except for
@@ -625,7 +691,7 @@ def follow_the_leader(
                 if use_bounds != 0:
                     if wp.length(p - motion.center[0]) <= strand_reach:
                         carried = wp.transform_point(motion.rigid[0], x_prev[i])
-                        lowered = wp.length(p - carried) + motion.moved[0]
+                        lowered = wp.length(p - carried) + motion_near(motion, p, strand_reach + search)
                         bound = clearance[i] - lowered
                         if listed and clearance[i] > 0.5 * NO_BOUND:
                             leaves = near_leaves[i]
