@@ -18,6 +18,7 @@ side by side (run_side_by_side). With graphs disabled `run` calls the frame's fu
 directly, so every path shares one definition of the frame.
 """
 
+import os
 import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -26,6 +27,7 @@ import warp as wp
 
 _cpu_frame = None  # the CPU frame being captured, which refit_mesh and run_parallel split
 _pool = None  # worker threads replaying the branches of parallel steps
+_sharing = None  # the _SharedCores of the frames running side by side, if any
 
 
 def _replay_pool():
@@ -53,19 +55,104 @@ def run_side_by_side(tasks):
     """Run `tasks`, functions that each replay captured frames on data no other task touches (the
     hair and the cloth, each against its own twin of the collider), at the same time on the CPU's
     cores, and return when all are done. A replay releases Python's lock, so a task on a worker
-    thread runs beside the first one on this thread; an exception in any task is raised here."""
+    thread runs beside the first one on this thread; an exception in any task is raised here.
+
+    The tasks share the cores (_SharedCores): each task's thread runs the branches of its own
+    parallel steps, spare cores help with them, and a thread whose task is done helps the others
+    until all are, so no more threads run than there are cores and none idles while work is left."""
+    global _sharing
     if len(tasks) < 2:
         for task in tasks:
             task()
         return
-    others = [_replay_pool().submit(task) for task in tasks[1:]]
+    sharing = _sharing = _SharedCores(len(tasks))
+
+    def run(task):
+        try:
+            task()
+        finally:
+            sharing.help_until_done()
+
+    others = [_replay_pool().submit(run, task) for task in tasks[1:]]
     try:
-        tasks[0]()
+        run(tasks[0])
     finally:
         errors = [other.exception() for other in others]
+        _sharing = None
     for error in errors:
         if error is not None:
             raise error
+
+
+def cpu_cores():
+    """Cores this process may run on."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+class _SharedCores:
+    """The branches of parallel steps of frames that run side by side, claimed one at a time.
+
+    The thread of the frame that reaches a parallel step offers its branches and replays them one
+    by one; spare cores (beyond one per frame) claim some from the start, and a thread
+    whose own frame is done claims them as it finds them. A step ends when its every branch has.
+    """
+
+    def __init__(self, tasks):
+        self.ready = threading.Condition()
+        self.threads = tasks  # one per frame, busy until all are done (running it, then helping)
+        self.running = tasks  # frames not yet done
+        self.offers = []  # [branches left, branches not finished, first error] per offered step
+
+    def run_branches(self, graphs):
+        offer = [list(graphs), len(graphs), None]
+        with self.ready:
+            self.offers.append(offer)
+            self.ready.notify_all()
+        spare = min(len(graphs) - 1, max(0, cpu_cores() - self.threads))
+        helpers = [_replay_pool().submit(self._claim_from, offer) for _ in range(spare)]
+        self._claim_from(offer)
+        with self.ready:
+            while offer[1] > 0:
+                self.ready.wait()
+            self.offers.remove(offer)
+        for helper in helpers:
+            helper.result()
+        if offer[2] is not None:
+            raise offer[2]
+
+    def _claim_from(self, offer):
+        while True:
+            with self.ready:
+                if not offer[0]:
+                    return
+                graph = offer[0].pop(0)
+            self._replay(offer, graph)
+
+    def _replay(self, offer, graph):
+        try:
+            wp.capture_launch(graph)
+        except Exception as error:  # raised by the thread that offered the step
+            offer[2] = error
+        finally:
+            with self.ready:
+                offer[1] -= 1
+                self.ready.notify_all()
+
+    def help_until_done(self):
+        with self.ready:
+            self.running -= 1
+            self.ready.notify_all()
+            while self.running > 0:
+                offer = next((o for o in self.offers if o[0]), None)
+                if offer is None:
+                    self.ready.wait()
+                    continue
+                graph = offer[0].pop(0)
+                self.ready.release()
+                try:
+                    self._replay(offer, graph)
+                finally:
+                    self.ready.acquire()
 
 
 def refit_mesh(mesh):
@@ -138,10 +225,14 @@ class _CpuFrame:
                 kept.append(step)
                 continue
             if isinstance(step, tuple):
-                others = [_replay_pool().submit(wp.capture_launch, graph) for graph in step[1:]]
-                wp.capture_launch(step[0])
-                for other in others:
-                    other.result()
+                sharing = _sharing
+                if sharing is not None:  # beside other frames: they share the cores
+                    sharing.run_branches(step)
+                else:
+                    others = [_replay_pool().submit(wp.capture_launch, graph) for graph in step[1:]]
+                    wp.capture_launch(step[0])
+                    for other in others:
+                        other.result()
                 kept.append(step)
                 continue
             try:

@@ -4,7 +4,6 @@ follow-the-leader inextensibility and head collision, one fixed sequence of laun
 
 from dataclasses import asdict, dataclass
 
-import os
 
 import numpy as np
 import warp as wp
@@ -12,6 +11,7 @@ import warp as wp
 from warp_kernels import collision, strands
 
 from .errors import SimulationError
+from .graphs import cpu_cores
 
 SHAPE_MATCHING = {"simplified": 0, "full": 1, "none": -1}
 COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
@@ -57,11 +57,6 @@ def _contact_motion(device):
     motion.center = wp.zeros(1, dtype=wp.vec3, device=device)
     motion.cells = wp.zeros(strands.MOTION_GRID**3, dtype=float, device=device)
     return motion
-
-
-def cpu_cores():
-    """Cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 @dataclass(frozen=True)

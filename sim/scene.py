@@ -24,7 +24,7 @@ from .graphs import AsyncReadback, FrameGraphs, run_parallel, run_side_by_side
 from .errors import InputError
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
-from .hair_solver import MAX_PARTS, HairParams, HairSolver, cpu_cores
+from .hair_solver import HairParams, HairSolver
 from .comb import before_frame as comb_before_frame
 from .haircut import parse_timeline, run_events
 from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp, scalp_area
@@ -382,7 +382,6 @@ class Scene:
         self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = None
         self.cloth_collider = self.cloth_body = None
         self.side_by_side = True  # False steps the cloth after the hair (the same result, slower on the CPU)
-        self._balanced = False  # the cores not yet shared between hair and cloth (_balance)
         self._frames = 0  # frames simulated, so the detail surface is updated once per frame
         self._detail_frame = -1
         if config.cloth.enabled:
@@ -557,9 +556,7 @@ class Scene:
                         self._update_detail()
 
                 tasks[-1] = (tasks[-1][0], cloth_then_detail)
-            if together and not self._balanced:
-                self._balance(tasks)  # this frame runs one solver after the other, timed
-            elif together:
+            if together:
                 run_side_by_side([task for _, task in tasks])
             else:
                 for _, task in tasks:
@@ -568,25 +565,6 @@ class Scene:
                 self._update_detail()
             if animate:
                 self.time = t0 + frame_dt
-
-    def _balance(self, tasks):
-        """Run the hair's and the cloth's first replayed frames one after the other, timed, and share
-        the cores between them: the cloth's frame runs on one thread, so when the hair's work per
-        remaining core is no more than 1.5x the cloth's, the hair gets the other cores to itself
-        rather than competing with the cloth on all of them (1k strands of the simplified variant and
-        the dress on two cores: 36 -> 28 ms per frame). The strands are the same either way."""
-        seconds = []
-        for _, task in tasks:
-            start = time.perf_counter()
-            task()
-            seconds.append(time.perf_counter() - start)
-        self._balanced = True
-        hair, cloth = seconds
-        cores = min(cpu_cores(), MAX_PARTS)
-        parts = len(self.solver.parts)
-        if cores > 1 and parts >= cores and hair * parts / (cores - 1) <= 1.5 * cloth:
-            self.solver.set_parts(cores - 1)
-            self.graphs.forget("hair")
 
     def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True, end_pose=None):
         """One solver's frame against `collider`, substep_poses = (times, poses) at the start and the
