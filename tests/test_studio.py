@@ -96,9 +96,21 @@ def test_comb_lifts_hair_in_a_session_and_releases(scene_file):
 
 
 def _free_display():
+    """A display number no live X server holds: a lock left by a server that was killed names a
+    process that is gone, and the next server removes such a lock and its socket itself."""
     for n in range(90, 120):
-        if not os.path.exists(f"/tmp/.X11-unix/X{n}") and not os.path.exists(f"/tmp/.X{n}-lock"):
+        lock = f"/tmp/.X{n}-lock"
+        if not os.path.exists(lock):
+            if not os.path.exists(f"/tmp/.X11-unix/X{n}"):
+                return f":{n}"
+            continue
+        try:
+            pid = int(open(lock).read().strip())
+            os.kill(pid, 0)
+        except ProcessLookupError:
             return f":{n}"
+        except (ValueError, OSError):
+            continue
     pytest.skip("no free X display number")
 
 
@@ -139,7 +151,11 @@ def test_studio_window_cuts_hair_with_the_mouse(scene_file, tmp_path):
     finally:
         if studio is not None and studio.poll() is None:
             studio.kill()
-        xvfb.kill()
+        xvfb.terminate()  # not kill: on SIGTERM the server removes its lock and socket
+        try:
+            xvfb.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            xvfb.kill()
     import tomllib
 
     events = tomllib.loads(script.read_text())["haircut"]
