@@ -4,7 +4,6 @@ follow-the-leader inextensibility and head collision, one fixed sequence of laun
 
 from dataclasses import asdict, dataclass
 
-
 import numpy as np
 import warp as wp
 

@@ -122,7 +122,10 @@ def _ball_frames(frames=12, radius=0.3):
     return ball, np.stack([ball.vertices + [s, 0.0, 0.0] for s in shift])
 
 
-def test_scene_with_a_usd_body_point_cache_and_a_garment_file(tmp_path):
+@pytest.mark.parametrize("proxy", ["", "[cloth.solver]\nbody_proxy = 0.05\n"], ids=["body", "proxy"])
+def test_scene_with_a_usd_body_point_cache_and_a_garment_file(tmp_path, proxy):
+    """A USD point cache drives the body, and a collision proxy of it as well: the sheet stays out
+    of the moving ball itself either way."""
     ball, frames = _ball_frames()
     stage = Usd.Stage.CreateNew(str(tmp_path / "body.usda"))
     stage.SetTimeCodesPerSecond(24)
@@ -135,7 +138,7 @@ def test_scene_with_a_usd_body_point_cache_and_a_garment_file(tmp_path):
     _sheet_obj(tmp_path / "sheet.obj")
     scene = tmp_path / "scene.toml"
     scene.write_text('[scene]\nframes = 12\npreroll = 0.0\n[body]\nmesh = "body.usda"\nprim = "/Body"\n'
-                     '[hair]\nenabled = false\n[cloth]\ngarment = "sheet.obj"\n')
+                     '[hair]\nenabled = false\n[cloth]\ngarment = "sheet.obj"\n' + proxy)
     out = str(tmp_path / "out.usdc")
     assert main(["run", str(scene), "-o", out, "-q"]) == 0
     reader = CacheReader(out)
