@@ -63,6 +63,7 @@ class Collider:
         self._pose_buffers = {}
         self._adjacency = None
         self._embedding = None  # a proxy's (corners, barycentric, source vertex count): see proxy()
+        self.bvh_stale = False  # the BVH lags the points: the next host query refits it first (fresh_mesh)
 
     def _shape(self):
         """What the collision kernels take: the mesh and the sphere tree (arrays refitted in place)."""
@@ -85,6 +86,7 @@ class Collider:
         twin.bone_matrices = twin._pose_points = None
         twin._pose_buffers = {}
         twin._adjacency = self.adjacency()
+        twin.bvh_stale = False
         return twin
 
     def proxy(self, spacing):
@@ -140,9 +142,11 @@ class Collider:
         stays in prev_points and prev_sphere_centers (surface velocities, hair contact bounds).
         refit=False leaves the BVH at an earlier pose, which saves most of the cost: for steps that
         read only the points and the sphere tree (hair colliding with the sphere tree), never for
-        mesh queries."""
+        mesh queries; the caller marks it stale (bvh_stale) once the frame is done, and the host
+        queries below refit it first."""
         wp.copy(self.prev_points, self.points)
         wp.copy(self.prev_sphere_centers, self.sphere_centers)
+        self.bvh_stale = not refit
         if self._pose_points is not None:
             n = len(self.rest_points_np)
             wp.copy(self.points, self._pose_points, 0, k * n, n)
@@ -175,12 +179,20 @@ class Collider:
         """Make the current pose also the previous one (after a jump, so surfaces have no velocity)."""
         wp.copy(self.prev_points, self.points)
 
+    def fresh_mesh(self):
+        """The posed mesh with its BVH refitted to the current points (a refit only if stale)."""
+        if self.bvh_stale:
+            self.mesh.refit()
+            self.bvh_stale = False
+        return self.mesh
+
     def push_out(self, points, margin, mode=collision.COLLIDE_MESH, search=0.05):
         """Project (N, 3) NumPy points out of the collider in its current pose; returns NumPy.
 
         Only penetrations shallower than `search` [m] are seen (grooming moves in small steps).
         """
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
+        self.fresh_mesh()
         wp.launch(collision.push_points_out, len(pts),
                   [pts, int(mode), self.shape, float(margin), float(search)], device=self.device)
         return pts.numpy()
@@ -190,14 +202,15 @@ class Collider:
 
         Points farther than max_dist from the surface report +max_dist.
         """
-        return signed_distance(points, self.mesh, self.device, max_dist)[0]
+        return signed_distance(points, self.fresh_mesh(), self.device, max_dist)[0]
 
     def closest_points(self, points):
         """Closest surface points of the posed mesh, their faces and barycentric weights."""
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
         face = wp.zeros(len(pts), dtype=wp.int32, device=self.device)
         bary = wp.zeros(len(pts), dtype=wp.vec3, device=self.device)
-        wp.launch(collision.mesh_closest_face, len(pts), [pts, self.mesh.id, 1.0e6, face, bary], device=self.device)
+        wp.launch(collision.mesh_closest_face, len(pts), [pts, self.fresh_mesh().id, 1.0e6, face, bary],
+                  device=self.device)
         face, bary = face.numpy(), bary.numpy().astype(np.float64)
         tri = self.points.numpy()[self.faces_np[face]].astype(np.float64)
         return np.einsum("nk,nkj->nj", bary, tri), face, bary
@@ -208,7 +221,7 @@ class Collider:
         pts = wp.array(np.asarray(points, np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)
         visible = wp.zeros(len(pts), dtype=wp.int32, device=self.device)
         wp.launch(collision.visible_from_eye, len(pts),
-                  [pts, self.mesh.id, wp.vec3(*np.asarray(eye, np.float32)), float(tolerance), visible],
+                  [pts, self.fresh_mesh().id, wp.vec3(*np.asarray(eye, np.float32)), float(tolerance), visible],
                   device=self.device)
         return visible.numpy().astype(bool)
 
@@ -217,7 +230,7 @@ class Collider:
         arr = lambda a: wp.array(np.asarray(a, np.float32).reshape(-1, 3), dtype=wp.vec3, device=self.device)  # noqa: E731
         o, d = arr(origins), arr(directions)
         t = wp.zeros(len(o), dtype=float, device=self.device)
-        wp.launch(collision.first_ray_hits, len(o), [o, d, self.mesh.id, float(max_t), t], device=self.device)
+        wp.launch(collision.first_ray_hits, len(o), [o, d, self.fresh_mesh().id, float(max_t), t], device=self.device)
         return t.numpy()
 
     def sphere_tree_depth(self, points):

@@ -129,6 +129,9 @@ class HairSolver:
         if parts is None:
             parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
         self.set_parts(parts)
+        # a CPU thread per strand computes each shape window once (shape_match_strands); a GPU keeps
+        # one thread per particle
+        self.per_strand = not wp.get_device(device).is_cuda
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
@@ -142,6 +145,9 @@ class HairSolver:
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
+        # each strand's root position and frame in the substep's pose (strands.root_frames)
+        self.root_origin = wp.zeros(model.num_strands, dtype=wp.vec3, device=device)
+        self.root_frame = wp.zeros(model.num_strands, dtype=wp.mat33, device=device)
         self._waxed = bool(model.wax_np.any())  # waxed strands hold their shape even without a root hold
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=device)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=device)
@@ -183,13 +189,17 @@ class HairSolver:
         bound = m.bind_particle is not None and collider is not None
         c = collider
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
+        if bound and hold > 0.0:
+            wp.launch(strands.root_frames, r.strands,
+                      [c.points, c.indices, m.bind_triangle, m.bind_barycentric, m.bind_local, m.root_binding,
+                       self.root_origin, self.root_frame, r.first_strand], device=dev)
         wp.launch(strands.predict_positions, r.particles,
                   [state_in.x, state_in.v, m.inv_mass, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag,
                    p.damping, p.wind_turbulence, p.wind_turbulence_scale, p.wind_turbulence_rate, self.clock,
                    offset, dt, int(bound), c.points if bound else None, c.indices if bound else None,
                    m.particle_binding if bound else None, m.bind_triangle if bound else None,
                    m.bind_barycentric if bound else None, m.bind_local if bound else None, m.particle_strand,
-                   m.root_binding if bound else None, m.root_local if bound else None, self.hold, hold,
+                   self.root_origin, self.root_frame, m.root_local if bound else None, self.hold, hold,
                    predicted, state_out.v, r.first_particle], device=dev)
         if guides is not None and p.guide_stiffness > 0.0:
             wp.launch(strands.follow_guides, r.particles,
@@ -205,9 +215,15 @@ class HairSolver:
                           [src, win.first, win.size, win.rest, exact, p.rotation_iterations, self.rotations,
                            self.centroids, r.first_window], device=dev)
                 exact = 0
-            wp.launch(strands.shape_match_step, r.particles,
-                      [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets, self.rotations,
-                       self.centroids, variant, p.shape_stiffness, dst, r.first_particle], device=dev)
+            if self.per_strand:
+                wp.launch(strands.shape_match_strands, r.strands,
+                          [src, m.inv_mass, m.strand_start, win.at, win.size, win.rest, win.offsets, self.rotations,
+                           self.centroids, variant, p.shape_stiffness, dst, r.first_strand], device=dev)
+            else:
+                wp.launch(strands.shape_match_step, r.particles,
+                          [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets,
+                           self.rotations, self.centroids, variant, p.shape_stiffness, dst, r.first_particle],
+                          device=dev)
             src, dst = dst, src
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright

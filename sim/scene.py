@@ -569,8 +569,9 @@ class Scene:
     def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True, end_pose=None):
         """One solver's frame against `collider`, substep_poses = (times, poses) at the start and the
         end of each substep: the poses are uploaded now, and the returned (graph key, task) runs the
-        frame. bvh=False: the solver makes no mesh queries, so the BVH is refitted only to the frame's
-        last pose (which everything after the frame may query). end_pose: another collider the frame
+        frame. bvh=False: the solver makes no mesh queries, so the BVH is not refitted at all, and the
+        collider is left marked stale: a host query after the frame refits it first
+        (Collider.fresh_mesh), most frames none does. end_pose: another collider the frame
         poses once, at its end (the body beside a cloth's collision proxy)."""
         times, poses = substep_poses
         substeps = len(times) - 1
@@ -586,13 +587,17 @@ class Scene:
             collider.apply_pose(0, refit=False)
             collider.reset_motion()
             for k in range(1, substeps + 1):
-                collider.apply_pose(k, refit=bvh or k == substeps)
+                collider.apply_pose(k, refit=bvh)
                 step(dt, float(times[k]))
             if end_pose is not None:
                 end_pose.apply_pose(0)
 
+        def run():
+            self.graphs.run(key, frame, refs)
+            collider.bvh_stale = not bvh
+
         key = (name, animate, id(refs[0]()[0]))
-        return key, partial(self.graphs.run, key, frame, refs)
+        return key, run
 
     @property
     def _hair_refs(self):

@@ -54,9 +54,10 @@ def groom(rng):
     return model, x.astype(np.float32)
 
 
-def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1, rotations=None, refine=True):
-    """One shape_match_step over positions x (after shape_match_rotations unless refine=False):
-    (moved positions, rotations)."""
+def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1, rotations=None, refine=True,
+                per_strand=False):
+    """One shape_match_step (shape_match_strands with per_strand) over positions x (after
+    shape_match_rotations unless refine=False): (moved positions, rotations)."""
     if rotations is None:
         rotations = wp.zeros(win.count, dtype=wp.quat)
     xs = wp.array(x, dtype=wp.vec3)
@@ -68,23 +69,44 @@ def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1,
     if refine:
         rotations = refined
     out = wp.zeros_like(xs)
-    wp.launch(kernels.shape_match_step, model.num_particles,
-              [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations,
-               centroids, variant, stiffness, out, 0])
+    if per_strand:
+        wp.launch(kernels.shape_match_strands, model.num_strands,
+                  [xs, model.inv_mass, model.strand_start, win.at, win.size, win.rest, win.offsets, rotations,
+                   centroids, variant, stiffness, out, 0])
+    else:
+        wp.launch(kernels.shape_match_step, model.num_particles,
+                  [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations,
+                   centroids, variant, stiffness, out, 0])
     return out.numpy(), rotations
 
 
+@pytest.mark.parametrize("per_strand", [False, True], ids=["per particle", "per strand"])
 @pytest.mark.parametrize("variant,size", [(0, 3), (1, 3), (1, 4), (1, 6), (0, 4)])
-def test_pass_matches_float64_reference(variant, size):
+def test_pass_matches_float64_reference(variant, size, per_strand):
     rng = np.random.default_rng(3)
     model, x = groom(rng)
     win = model.shape_windows(size)
     ref = reference_targets(x, win.first_np, size, win.rest_np, win.offsets_np, variant)
     scale = np.abs(ref).max()
-    moved, _ = launch_pass(x, model, win, variant, stiffness=0.4)
+    moved, _ = launch_pass(x, model, win, variant, stiffness=0.4, per_strand=per_strand)
     ref_moved = reference_apply(x, model.inv_mass_np, win.first_np, size, ref, 0.4)
     np.testing.assert_allclose(moved, ref_moved, rtol=1e-5, atol=1e-5 * scale)
     assert np.abs(moved - x).max() > 1e-4  # the pass did move the perturbed strands
+
+
+@pytest.mark.parametrize("variant,size", [(0, 3), (1, 4), (0, 5)])
+def test_one_thread_per_strand_gives_the_per_particle_pass(variant, size):
+    """shape_match_strands (the CPU's) sums the same goals in the same order as shape_match_step,
+    pinned particles, strand ends and a window whose ends coincide (no direction) included."""
+    rng = np.random.default_rng(11)
+    model, x = groom(rng)
+    x = x.copy()
+    x[14] = x[12]  # the wavy strand's window from particle 12 folds back onto its start
+    win = model.shape_windows(size)
+    per_particle, _ = launch_pass(x, model, win, variant, stiffness=0.7)
+    per_strand, _ = launch_pass(x, model, win, variant, stiffness=0.7, per_strand=True)
+    np.testing.assert_allclose(per_strand, per_particle, rtol=0, atol=2e-7)
+    np.testing.assert_array_equal(per_strand[model.inv_mass_np == 0], x[model.inv_mass_np == 0])
 
 
 def test_full_variant_goals_are_a_rigid_motion_of_the_rest_window():

@@ -101,10 +101,13 @@ def test_rigid_head_motion_moves_roots_exactly(head, head_collider):
         np.array([[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = R, [0.05, -0.02, 0.1]
+    solver = HairSolver(model, HairParams())
+    s0, s1 = model.state(), model.state()
+    solver.step(s0, s1, head_collider, 1.0 / 240.0)  # at rest: the root frames of the groom
+    rest_origin, rest_frame = solver.root_origin.numpy().copy(), solver.root_frame.numpy().copy()  # numpy() is a view
     head_collider.set_poses(np.stack([M, M])[None])  # both bones: the whole bust moves rigidly
     head_collider.apply_pose(0)
     try:
-        solver = HairSolver(model, HairParams())
         s0, s1 = model.state(), model.state()
         solver.step(s0, s1, head_collider, 1.0 / 240.0)
         x = s1.x.numpy()
@@ -114,6 +117,10 @@ def test_rigid_head_motion_moves_roots_exactly(head, head_collider):
     pinned = model.bind_particle.numpy()
     expected = model.rest_positions_np[pinned] @ R.T + M[:3, 3]
     np.testing.assert_allclose(x[pinned], expected, atol=1e-5)
+    # the root hold's per-strand frames (strands.root_frames) turn and move with the head
+    np.testing.assert_allclose(solver.root_origin.numpy(), rest_origin @ R.T + M[:3, 3], atol=1e-5)
+    np.testing.assert_allclose(solver.root_frame.numpy(), R[None] @ rest_frame, atol=1e-5)
+    np.testing.assert_allclose(solver.root_origin.numpy(), x[model.strand_start_np[:-1]], atol=1e-5)
 
 
 def _droop_near_root(head, collider, root_stiffness):

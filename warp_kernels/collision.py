@@ -301,6 +301,10 @@ def collide_point_listed(p: wp.vec3, shape: ColliderShape, margin: float, search
     listed, nearest, fifth = sphere_tree_nearest(p, shape, search)
     if nearest > margin + 1.0e-6:
         return p, nearest, listed, p, fifth
+    # the fresh list usually serves the push too, without the tree's two sweeps
+    pushed, kept = listed_spheres_push_out(p, shape, margin, listed, p, fifth)
+    if kept:
+        return pushed, nearest, listed, p, fifth
     return collide_point(p, COLLIDE_SPHERE_TREE, shape, margin, search), nearest, listed, p, fifth
 
 

@@ -56,7 +56,8 @@ def predict_positions(
     bind_barycentric: wp.array(dtype=wp.vec3),
     bind_local: wp.array(dtype=wp.vec3),
     particle_strand: wp.array(dtype=wp.int32),
-    root_binding: wp.array(dtype=wp.int32),
+    root_origin: wp.array(dtype=wp.vec3),
+    root_frame: wp.array(dtype=wp.mat33),
     root_local: wp.array(dtype=wp.vec3),
     hold: wp.array(dtype=float),
     hold_stiffness: float,
@@ -100,7 +101,8 @@ def predict_positions(
       bind_barycentric (vec3, per binding): weights of that triangle's corners
       bind_local (vec3, per binding, m): offset in that triangle's frame
       particle_strand (int32, per particle): strand of each particle
-      root_binding (int32, per strand): binding of the strand's root particle
+      root_origin (vec3, per strand, m): the root's bound position for this pose (root_frames)
+      root_frame (mat33, per strand): the root triangle's frame for this pose (root_frames)
       root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
       hold (float, per particle): root-hold weight, 1 at the root falling to 0 along the strand
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
@@ -138,12 +140,45 @@ def predict_positions(
         w = hold[i] * hold_stiffness
         if w > 0.0:
             s = particle_strand[i]
-            rb = root_binding[s]
-            root = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
-            target = root + face_frame(mesh_points, mesh_indices, bind_triangle[rb]) * root_local[i]
+            target = root_origin[s] + root_frame[s] * root_local[i]
             p = p + w * (target - p)
     x_out[i] = p
     v_out[i] = vel
+
+
+@wp.kernel
+def root_frames(
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+    root_binding: wp.array(dtype=wp.int32),
+    root_origin: wp.array(dtype=wp.vec3),
+    root_frame: wp.array(dtype=wp.mat33),
+    first: int,
+):
+    """Where each strand's root sits on the posed mesh and its triangle's frame, once per strand: the
+    root hold of predict_positions carries every held particle by them, which would otherwise
+    rebuild the same frame for each of them.
+
+    Launch: one thread per strand of a range of strands (dim = strands in the range).
+    Inputs:
+      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
+      mesh_indices (int32, 3 per collider triangle): collider triangles
+      bind_triangle (int32, per binding): collider triangle of each binding
+      bind_barycentric (vec3, per binding): weights of that triangle's corners
+      bind_local (vec3, per binding, m): offset in that triangle's frame
+      root_binding (int32, per strand): binding of the strand's root particle
+      first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
+    Outputs:
+      root_origin (vec3, per strand, m): the root's bound position (skinning.bound_position)
+      root_frame (mat33, per strand): its triangle's frame (skinning.face_frame)
+    """
+    s = wp.tid() + first
+    rb = root_binding[s]
+    root_origin[s] = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
+    root_frame[s] = face_frame(mesh_points, mesh_indices, bind_triangle[rb])
 
 
 @wp.func
@@ -285,6 +320,25 @@ def shape_match_rotations(
 
 
 @wp.func
+def window_direction(x: wp.array(dtype=wp.vec3), first: int, size: int):
+    """Unit first-to-last direction of a window, the axis of the simplified variant's goals.
+
+    Inputs:
+      x (vec3, per particle, m): current positions
+      first (int, index): first particle of the window
+      size (int): particles per window
+    Returns:
+      vec3: the unit direction (zero when degenerate)
+      bool: false when the first and last particles coincide, so there is no direction
+    """
+    e = x[first + size - 1] - x[first]
+    length = wp.length(e)
+    if length < 1.0e-12:
+        return wp.vec3(0.0), False
+    return e / length, True
+
+
+@wp.func
 def window_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, rest: wp.array(dtype=wp.vec3),
                 offsets: wp.array(dtype=float), rotations: wp.array(dtype=wp.quat),
                 centroids: wp.array(dtype=wp.vec3), variant: int, w: int):
@@ -312,11 +366,10 @@ def window_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, rest:
       vec3 (m): the goal; the particle's own position for a degenerate simplified window
     """
     if variant == SHAPE_SIMPLIFIED:
-        e = x[first + size - 1] - x[first]
-        length = wp.length(e)
-        if length < 1.0e-12:
+        u, straight = window_direction(x, first, size)
+        if not straight:
             return x[first + k]
-        return window_centroid(x, first, size) + offsets[w * size + k] * (e / length)
+        return window_centroid(x, first, size) + offsets[w * size + k] * u
     return centroids[w] + wp.quat_rotate(rotations[w], rest[w * size + k])
 
 
@@ -381,6 +434,82 @@ def shape_match_step(
     if count > 0.0:
         p = p + stiffness * (goal / count - p)
     x_out[i] = p
+
+
+@wp.kernel
+def shape_match_strands(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    strand_start: wp.array(dtype=wp.int32),
+    window_at: wp.array(dtype=wp.int32),
+    window_size: int,
+    window_rest: wp.array(dtype=wp.vec3),
+    window_offsets: wp.array(dtype=float),
+    rotations: wp.array(dtype=wp.quat),
+    centroids: wp.array(dtype=wp.vec3),
+    variant: int,
+    stiffness: float,
+    x_out: wp.array(dtype=wp.vec3),
+    first: int,
+):
+    """shape_match_step one strand per thread, for the CPU: the same pass, the same goals.
+
+    A CPU thread walks its strand's windows once, so each window's centroid and axis are computed
+    once instead of once per particle in it (window_size times); the strand stays in cache. The
+    windows are visited from the last to the first, so each particle sums its goals in the order
+    shape_match_step does. On a GPU one thread per strand would leave most lanes idle and read
+    memory uncoalesced, so shape_match_step serves there.
+
+    Launch: one thread per strand of a range of whole strands (dim = strands in the range).
+    Inputs:
+      x (vec3, per particle, m): positions before this pass
+      inv_mass (float, per particle): 0 marks pinned particles, which are copied through
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+      window_at (int32, per particle): window starting at each particle, -1 when none
+      window_size (int): particles per window
+      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
+      window_offsets (float, window_size per window, m): rest offsets along the rest first-to-last
+          direction (simplified)
+      rotations (quat, per window): from shape_match_rotations (full variant only)
+      centroids (vec3, per window, m): from shape_match_rotations (full variant only)
+      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
+      stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+      first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
+    Outputs:
+      x_out (vec3, per particle, m): positions after this pass; must not alias x
+    """
+    s = wp.tid() + first
+    start = strand_start[s]
+    end = strand_start[s + 1]
+    for i in range(start, end):
+        x_out[i] = wp.vec3(0.0)  # the sum of the particle's goals, until the last loop
+    for back in range(end - start):
+        j = end - 1 - back
+        w = window_at[j]
+        if w >= 0:
+            if variant == SHAPE_SIMPLIFIED:
+                u, straight = window_direction(x, j, window_size)
+                centroid = window_centroid(x, j, window_size)
+                for k in range(window_size):
+                    if straight:
+                        x_out[j + k] = x_out[j + k] + (centroid + window_offsets[w * window_size + k] * u)
+                    else:
+                        x_out[j + k] = x_out[j + k] + x[j + k]
+            else:
+                for k in range(window_size):
+                    x_out[j + k] = x_out[j + k] + (
+                        centroids[w] + wp.quat_rotate(rotations[w], window_rest[w * window_size + k]))
+    for i in range(start, end):
+        p = x[i]
+        if inv_mass[i] != 0.0:
+            count = float(0.0)
+            for k in range(window_size):
+                if i - k >= start:
+                    if window_at[i - k] >= 0:
+                        count += 1.0
+            if count > 0.0:
+                p = p + stiffness * (x_out[i] / count - p)
+        x_out[i] = p
 
 
 @wp.struct
