@@ -453,15 +453,16 @@ def surface_vertex_normals(
       normals (vec3, per detail vertex): unit shading normals
     """
     i = wp.tid()
-    n = wp.vec3(0.0)
-    for k in range(vf_start[i], vf_start[i + 1]):
-        f = vf_face[k]
-        a = positions[triangles[3 * f]]
-        n += wp.cross(positions[triangles[3 * f + 1]] - a, positions[triangles[3 * f + 2]] - a)
-    deform = pn_normals[i]
-    if wp.length(n) > 1.0e-20:
-        deform = wp.normalize(n)
     alpha = wp.clamp(height[i] / wp.max(h_normal, 1.0e-9), 0.0, 1.0)
+    deform = pn_normals[i]
+    if alpha > 0.0:  # flat samples (no height) keep the PN normal: their faces are not summed
+        n = wp.vec3(0.0)
+        for k in range(vf_start[i], vf_start[i + 1]):
+            f = vf_face[k]
+            a = positions[triangles[3 * f]]
+            n += wp.cross(positions[triangles[3 * f + 1]] - a, positions[triangles[3 * f + 2]] - a)
+        if wp.length(n) > 1.0e-20:
+            deform = wp.normalize(n)
     blended = alpha * deform + (1.0 - alpha) * pn_normals[i]
     if wp.length(blended) > 1.0e-12:
         normals[i] = wp.normalize(blended)
