@@ -495,10 +495,10 @@ def shape_match_strands(
                         x_out[j + k] = x_out[j + k] + (centroid + window_offsets[w * window_size + k] * u)
                     else:
                         x_out[j + k] = x_out[j + k] + x[j + k]
-            else:
+            else:  # the full variant's goals cost no more per slot than their window's rotation
                 for k in range(window_size):
-                    x_out[j + k] = x_out[j + k] + (
-                        centroids[w] + wp.quat_rotate(rotations[w], window_rest[w * window_size + k]))
+                    x_out[j + k] = x_out[j + k] + window_goal(x, j, window_size, k, window_rest, window_offsets,
+                                                              rotations, centroids, variant, w)
     for i in range(start, end):
         p = x[i]
         if inv_mass[i] != 0.0:
