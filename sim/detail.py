@@ -317,6 +317,7 @@ class ClothDetail:
         z = lambda count, t=float: wp.zeros(count, dtype=t, device=device)  # noqa: E731
         self.height, self.height_tmp, self.change = z(nv), z(nv), z(nv)
         self.vertical, self.near = z(nv), z(nv, wp.int32)
+        self.body_vertex, self.probe_point = arr(np.full(nv, -1, np.int32), wp.int32), z(nv, wp.vec3)
         self.force = z(nv, wp.vec3)
         self.positions, self.normals = z(nv, wp.vec3), z(nv, wp.vec3)
         self.coarse_force = z(cloth_model.num_particles, wp.vec3)
@@ -327,7 +328,7 @@ class ClothDetail:
         self.side = 1.0  # +1 when the garment's winding faces away from the body, -1 when it faces it
         self._side_known = False
         self.uncompressed = z(nt, wp.int32)
-        self.queries = z(1, wp.int32)
+        self.queries = z(2, wp.int32)  # samples tested, BVH queries among them
 
     def _polyline_lengths(self, coarse_points, grid, edge_face, edge_side, n):
         """Rest length of every coarse edge measured along its PN curve on the rest shape."""
@@ -361,10 +362,14 @@ class ClothDetail:
             nt = len(self.surface.topology.coarse_triangles)
             wp.launch(kernels.faces_touching_body, nt, [self.surface.triangles, cloth_state.contact, self.touching],
                       device=dev)
+            adj, walk = body.adjacency(), cloth_model.params
             for level in self.levels:
                 wp.launch(kernels.lift_out_of_body, len(level),
                           [base, pn_normals, level, self.owner_face, self.parent, self.touching, body.mesh.id,
-                           self.side, p.margin, p.band, self.height, self.near, self.queries], device=dev)
+                           body.points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face,
+                           adj.concave, walk.walk_steps, walk.teleport, walk.walk_trust_distance, self.side, p.margin,
+                           p.band, self.height, self.near, self.body_vertex, self.probe_point, self.queries],
+                          device=dev)
         wp.launch(kernels.displace_along_directions, nv, [base, pn_normals, self.side, self.height, self.positions],
                   device=dev)
         wp.launch(kernels.surface_vertex_normals, nv,
@@ -409,5 +414,11 @@ class ClothDetail:
         wp.copy(self.height, self.height_tmp)
 
     def query_fraction(self):
-        """Share of detail vertices the hierarchical penetration test queried in the last update."""
+        """Share of detail vertices the hierarchical penetration test tested in the last update."""
         return int(self.queries.numpy()[0]) / max(1, self.surface.topology.num_vertices)
+
+    def bvh_fraction(self):
+        """Share of the last update's tested detail vertices that the body's BVH decided (the rest
+        walked over its vertices)."""
+        tested, bvh = self.queries.numpy()
+        return int(bvh) / max(1, int(tested))

@@ -677,7 +677,8 @@ class Scene:
         if self.cloth_detail is not None:
             x = self.cloth_detail.positions.numpy()
             out.update(detail_inside_2mm=float(np.mean(self.cloth_body.signed_distance(x, max_dist=0.05) < -0.002)),
-                       detail_queries=self.cloth_detail.query_fraction())
+                       detail_queries=self.cloth_detail.query_fraction(),
+                       detail_bvh=self.cloth_detail.bvh_fraction())
         return out
 
     def cloth_stats(self):
@@ -843,7 +844,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     end_frame = t.start_frame + t.frames - 1
     worst, agreement = {}, []
     larger_is_worse = ("max_stretch", "root_distance_max", "inside_1mm", "cloth_stretch_p99", "cloth_stretch_max",
-                       "cloth_inside_2mm", "detail_inside_2mm", "detail_queries")
+                       "cloth_inside_2mm", "detail_inside_2mm", "detail_queries", "detail_bvh")
     bar = _progress(t.frames, progress)
     if stage is not None:
         opened = stage.cache_writer(out_path, settings=config.settings(), engine_version=__version__)

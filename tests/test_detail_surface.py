@@ -43,16 +43,21 @@ def test_wrinkles_rise_only_where_edges_are_compressed():
     assert np.all(height >= 0.0)
 
 
-def test_detail_surface_ends_outside_the_body_and_the_hierarchy_saves_queries():
+def _draped_over_ball(**params):
     body = sphere_body()
     pts, tris, edges, shear, bend = grid(16, 0.9, 0.35)
     # a thin coarse margin, so the smooth surface between particles does cut into the ball
-    model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams(collision_margin=0.002))
+    model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams(collision_margin=0.002, **params))
     solver = ClothSolver(model)
     s0, s1 = model.state(), model.state()
     for _ in range(int(1.0 / model.stable_dt)):
         solver.step(s0, s1, body, model.stable_dt)
         s0, s1 = s1, s0
+    return body, model, s0
+
+
+def test_detail_surface_ends_outside_the_body_and_the_hierarchy_saves_queries():
+    body, model, s0 = _draped_over_ball()
     detail = ClothDetail(model, DetailParams(), "cpu")
     positions, normals = detail.update(model, s0, body, 1.0 / 24.0)
     r = np.linalg.norm(positions.numpy(), axis=1)
@@ -62,6 +67,31 @@ def test_detail_surface_ends_outside_the_body_and_the_hierarchy_saves_queries():
     assert np.linalg.norm(base, axis=1).min() < 0.3
     assert detail.query_fraction() < 0.5  # most vertices were never tested
     np.testing.assert_allclose(np.linalg.norm(normals.numpy(), axis=1), 1.0, atol=1e-5)
+
+
+def test_lifting_walks_over_the_body_and_leaves_lifted_samples_at_the_margin():
+    # every walk trusted however far it ends, so only a missing start sends a test to the BVH
+    body, model, state = _draped_over_ball(walk_trust_distance=1.0)
+    params = DetailParams(wrinkles=False, height_carry=1.0)  # heights change only by lifting
+    detail = ClothDetail(model, params, "cpu")
+    for update in range(3):
+        before = detail.height.numpy().copy()
+        detail.update(model, state, body, 1.0 / 24.0)
+        sd = body.signed_distance(detail.positions.numpy().astype(np.float64), max_dist=0.05)
+        tested, bvh = detail.queries.numpy()
+        # the first update has no vertex to start the corners' walks from and asks the BVH; finer
+        # samples start from their parents', later updates from their own (the ball has no concave
+        # vertex), except samples the BVH found nothing for: farther than margin + band from the ball
+        unseeded = np.any(detail.probe_point.numpy() != 0.0, axis=1) & (detail.body_vertex.numpy() < 0)
+        assert 0 < bvh < 0.2 * tested if update == 0 else bvh == np.count_nonzero(unseeded)
+        assert np.all(sd[unseeded] > params.margin + params.band)
+        lifted = detail.height.numpy() > before + 1e-6
+        assert np.count_nonzero(lifted) > (500 if update == 0 else -1)
+        assert update == 0 or not np.any(lifted)  # one update lifts all the way out
+        # moved along the PN normal to `margin` outside the least-inside face plane around the
+        # nearest vertex: the closest-point distance is then the margin, to the ball's facet angles
+        np.testing.assert_allclose(sd[lifted], params.margin, atol=1e-4)
+        assert sd.min() > params.margin - 1e-4
 
 
 def test_normals_blend_from_pn_to_the_displaced_surface_with_height():

@@ -22,8 +22,8 @@ ROOT = Path(__file__).resolve().parent.parent
 DOC = ROOT / "docs" / "kernels.md"
 REGENERATE = "regenerate it: PYTHONPATH=. python -m warp_kernels.reference > docs/kernels.md"
 # what an array argument's shape field looks like: "per particle", "2 per spring", "num_particles + 1",
-# "1 element", "num_poses * num_bones"
-SHAPE = re.compile(r"(^|\s)per\s|\+ 1$|^1 element$|\s\*\s")
+# "1 element", "2 elements", "num_poses * num_bones"
+SHAPE = re.compile(r"(^|\s)per\s|\+ 1$|^\d+ elements?$|\s\*\s")
 LAUNCH = re.compile(r"^Launch: one thread per .+ \(dim = .+\)", re.MULTILINE)
 
 DEFINITIONS = [(module, name, kind, obj) for module in reference.MODULES

@@ -414,6 +414,58 @@ def walk_to_nearest_vertex(p: wp.vec3, start: int, points: wp.array(dtype=wp.vec
 
 
 @wp.func
+def least_inside_plane(p: wp.vec3, vtx: int, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
+                       vf_start: wp.array(dtype=wp.int32), vf_face: wp.array(dtype=wp.int32)):
+    """The plane, of the faces around body vertex vtx, that p lies farthest in front of.
+
+    Near a convex vertex its distance is p's signed distance from the surface (exact where the
+    closest point lies inside that face): p is inside when it is behind every plane.
+
+    Inputs:
+      p (vec3, m): query point
+      vtx (int, index): body vertex, usually the end of walk_to_nearest_vertex
+      points (vec3, per body vertex, m): posed body vertices
+      indices (int32, 3 per body triangle): body triangles, outward winding
+      vf_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> face adjacency
+      vf_face (int32, 3 per body triangle): faces incident to each vertex
+    Returns:
+      float (m): p's signed distance from that plane; -1e30 when vtx has no face
+      vec3: the plane's unit normal (zero when vtx has no face)
+    """
+    best = float(-1.0e30)
+    normal = wp.vec3(0.0, 0.0, 0.0)
+    for k in range(vf_start[vtx], vf_start[vtx + 1]):
+        f = vf_face[k]
+        a = points[indices[3 * f + 0]]
+        nf = wp.normalize(wp.cross(points[indices[3 * f + 1]] - a, points[indices[3 * f + 2]] - a))
+        sd = wp.dot(p - a, nf)
+        if sd > best:
+            best = sd
+            normal = nf
+    return best, normal
+
+
+@wp.func
+def closest_corner(p: wp.vec3, face: int, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32)):
+    """The corner of a body triangle nearest p: where a walk restarts after a BVH query.
+
+    Inputs:
+      p (vec3, m): query point
+      face (int, index): body triangle
+      points (vec3, per body vertex, m): posed body vertices
+      indices (int32, 3 per body triangle): body triangles
+    Returns:
+      int: the body vertex
+    """
+    best = indices[3 * face]
+    for c in range(1, 3):
+        corner = indices[3 * face + c]
+        if wp.length_sq(p - points[corner]) < wp.length_sq(p - points[best]):
+            best = corner
+    return best
+
+
+@wp.func
 def follow_record(
     xp: wp.vec3,
     vtx: int,
@@ -582,20 +634,10 @@ def body_collide(
     hit = bool(False)
     if trusted:
         # behind every incident face: the least-inside face decides the projection
-        inside = bool(True)
-        best = float(-1.0e30)
-        for k in range(vf_start[vtx], vf_start[vtx + 1]):
-            f = vf_face[k]
-            a = points[indices[3 * f + 0]]
-            nf = wp.normalize(wp.cross(points[indices[3 * f + 1]] - a, points[indices[3 * f + 2]] - a))
-            sd = wp.dot(xp - a, nf)
-            if sd >= margin:
-                inside = False
-            if sd > best:
-                best = sd
-                n = nf
-        if inside and vf_start[vtx + 1] > vf_start[vtx]:
+        best, nf = least_inside_plane(xp, vtx, points, indices, vf_start, vf_face)
+        if best < margin and vf_start[vtx + 1] > vf_start[vtx]:
             hit = True
+            n = nf
             depth = margin - best
     else:
         wp.atomic_add(fallbacks, 0, 1)
@@ -605,12 +647,8 @@ def body_collide(
             nf = wp.mesh_eval_face_normal(mesh, q.face)
             sd = q.sign * wp.length(xp - cp)
             # restart the cache at the closest corner of the closest face, then settle it locally
-            best_c = indices[3 * q.face]
-            for c in range(1, 3):
-                corner = indices[3 * q.face + c]
-                if wp.length_sq(xp - points[corner]) < wp.length_sq(xp - points[best_c]):
-                    best_c = corner
-            vtx = walk_to_nearest_vertex(xp, best_c, points, vv_start, vv_adj, max_steps)
+            vtx = walk_to_nearest_vertex(xp, closest_corner(xp, q.face, points, indices), points, vv_start, vv_adj,
+                                         max_steps)
             if vtx < 0:
                 vtx = -1 - vtx
             if sd < margin:

@@ -35,6 +35,7 @@ A frame (composed by sim.detail.ClothDetail) runs, after the three PN launches:
 import warp as wp
 
 from ._options import MODULE_OPTIONS
+from .cloth import closest_corner, least_inside_plane, walk_to_nearest_vertex
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -310,19 +311,39 @@ def lift_out_of_body(
     parent: wp.array(dtype=wp.int32),
     face_touching: wp.array(dtype=wp.int32),
     mesh: wp.uint64,
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    vv_start: wp.array(dtype=wp.int32),
+    vv_adj: wp.array(dtype=wp.int32),
+    vf_start: wp.array(dtype=wp.int32),
+    vf_face: wp.array(dtype=wp.int32),
+    concave: wp.array(dtype=wp.int32),
+    walk_steps: int,
+    teleport: float,
+    trust_distance: float,
     side: float,
     margin: float,
     band: float,
     height: wp.array(dtype=float),
     near: wp.array(dtype=wp.int32),
+    body_vertex: wp.array(dtype=wp.int32),
+    probe_point: wp.array(dtype=wp.vec3),
     queries: wp.array(dtype=wp.int32),
 ):
     """Oshita & Makinouchi §4.2 for one refinement level: raise heights so detail vertices leave the body.
 
-    A vertex is queried only if its coarse face has a vertex touching the body and (after level 0)
+    A vertex is tested only if its coarse face has a vertex touching the body and (after level 0)
     its parent sample was near the body; near marks samples within band of the surface so
-    their children are tested next. Most vertices are thus never queried. Each vertex moves along
+    their children are tested next. Most vertices are thus never tested. Each vertex moves along
     its control direction times side. Launch the levels from coarse to fine, each after the last.
+
+    A test is the coarse cloth's (body_collide, §3.3): a greedy walk over the body's vertices from
+    the vertex this sample found last time (or, new to the test, its parent's), then the planes of
+    the faces around the vertex it stops at: the least-inside plane gives the signed distance and
+    the direction to lift along. Where the walk is not to be trusted (no start, a jump farther than
+    teleport since the last test, a walk out of steps, a concave vertex, a vertex farther than
+    trust_distance) a BVH closest-point query decides instead and restarts the walk. A walk costs a
+    fraction of a query on a body of tens of thousands of triangles.
 
     Launch: one thread per detail vertex of this level (dim = len(vertices)).
     Inputs:
@@ -332,14 +353,26 @@ def lift_out_of_body(
       owner_face (int32, per detail vertex): coarse triangle of each detail vertex
       parent (int32, per detail vertex): nearest sample of a coarser level, -1 on level 0 (corners)
       face_touching (int32, per coarse triangle): faces_touching_body
-      mesh (uint64): wp.Mesh id of the posed body
+      mesh (uint64): wp.Mesh id of the posed body, its BVH refitted to this pose
+      points (vec3, per body vertex, m): the posed body (the mesh's points)
+      indices (int32, 3 per body triangle): body triangles, outward winding
+      vv_start (int32, num_body_vertices + 1): CSR offsets of the body's vertex -> vertex adjacency
+      vv_adj (int32, per adjacency entry): neighbouring vertices
+      vf_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> face adjacency
+      vf_face (int32, 3 per body triangle): faces incident to each vertex
+      concave (int32, per body vertex): 1 where the vertex is concave or a saddle (walk not trusted)
+      walk_steps (int): most steps of a walk before the BVH decides
+      teleport (float, m): a sample that moved farther since its last test starts from the BVH
+      trust_distance (float, m): a walk that stops farther from its vertex leaves it to the BVH
       side (float): +1 or -1, whichever makes side * direction point away from the body
       margin (float, m): distance kept outside the body
       band (float, m): distance from the body within which a sample's children are tested
     In/out:
       height (float, per detail vertex, m): heights along the control direction, raised where inside
       near (int32, per detail vertex): written for this level's vertices, read for their parents
-      queries (int32, 1 element): incremented per BVH query (a statistic)
+      body_vertex (int32, per detail vertex): body vertex each sample's last test ended at (-1 none)
+      probe_point (vec3, per detail vertex, m): where each sample was last tested
+      queries (int32, 2 elements): incremented per test (element 0) and per BVH query (element 1)
     """
     k = wp.tid()
     i = vertices[k]
@@ -355,11 +388,39 @@ def lift_out_of_body(
     wp.atomic_add(queries, 0, 1)
     n = direction[i] * side
     p = base[i] + height[i] * n
-    q = wp.mesh_query_point_sign_normal(mesh, p, margin + band)
-    if q.result:
-        cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-        nb = wp.mesh_eval_face_normal(mesh, q.face)
-        sd = q.sign * wp.length(p - cp)
+    reach = margin + band
+    vtx = body_vertex[i]
+    if vtx >= 0:
+        if wp.length(p - probe_point[i]) > teleport:
+            vtx = -1
+    if vtx < 0 and pa >= 0:
+        vtx = body_vertex[pa]
+    probe_point[i] = p
+    trusted = vtx >= 0
+    if trusted:
+        vtx = walk_to_nearest_vertex(p, vtx, points, vv_start, vv_adj, walk_steps)
+        if vtx < 0:
+            trusted = False
+            vtx = -1 - vtx
+        elif concave[vtx] != 0 or wp.length(p - points[vtx]) > trust_distance:
+            trusted = False
+    sd = float(0.0)
+    nb = wp.vec3(0.0, 0.0, 0.0)
+    found = bool(False)
+    if trusted:
+        sd, nb = least_inside_plane(p, vtx, points, indices, vf_start, vf_face)
+        found = wp.abs(sd) <= reach
+    else:
+        wp.atomic_add(queries, 1, 1)
+        q = wp.mesh_query_point_sign_normal(mesh, p, reach)
+        if q.result:
+            found = True
+            cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
+            nb = wp.mesh_eval_face_normal(mesh, q.face)
+            sd = q.sign * wp.length(p - cp)
+            vtx = closest_corner(p, q.face, points, indices)  # where the next test's walk starts
+    body_vertex[i] = vtx
+    if found:
         near[i] = 1
         if sd < margin:
             # move along the control direction until the point is `margin` outside the surface plane
