@@ -319,6 +319,8 @@ class ClothDetail:
         self.vertical, self.near = z(nv), z(nv, wp.int32)
         self.body_vertex, self.probe_point = arr(np.full(nv, -1, np.int32), wp.int32), z(nv, wp.vec3)
         self.force = z(nv, wp.vec3)
+        nt = len(top.coarse_triangles)
+        self.line_shares, self.edge_forces = z(nt * (n + 1)), z(3 * nt * (n + 1), wp.vec3)  # carry_forces' scratch
         self.positions, self.normals = z(nv, wp.vec3), z(nv, wp.vec3)
         self.coarse_force = z(cloth_model.num_particles, wp.vec3)
         self.coarse_deficit = z(cloth_model.num_particles)
@@ -393,7 +395,8 @@ class ClothDetail:
                   [st.x, st.v, cm.adj_start, cm.adj_spring, cm.spring_i, cm.spring_j, cm.spring_rest,
                    cm.spring_k_stretch, cm.spring_k_compress, self.coarse_force], device=dev)
         wp.launch(kernels.carry_forces, nt, [self.face_grid, self.owner_face, n, base, self.corner_vertex,
-                                             self.coarse_force, self.force], device=dev)
+                                             self.coarse_force, self.line_shares, self.edge_forces, self.force],
+                  device=dev)
         wp.launch(kernels.vertical_forces, nv, [base, self.nbr_start, self.nbr, self.force, self.vertical], device=dev)
         wp.launch(kernels.edge_length_deficit, self.num_edges, [self.face_grid, self.edge_face, self.edge_side, n, base,
                                                                 self.rest_edge, self.edge_deficit], device=dev)

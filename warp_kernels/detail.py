@@ -593,55 +593,15 @@ def line_point(face: int, n: int, a0: int, b0: int, da: int, db: int, k: int, fa
 
 
 @wp.func
-def carried_force(face: int, n: int, a0: int, b0: int, da: int, db: int, count: int, i: int,
-                  face_grid: wp.array(dtype=wp.int32), positions: wp.array(dtype=wp.vec3),
-                  f_first: wp.vec3, f_last: wp.vec3):
-    """Eq. 5 along one grid line: the force at sample i, blended between the line's end forces.
-
-    The blend factor is the share of transmission accumulated from sample 0 up to sample i,
-    counting half of sample i's own; a straight line blends linearly.
-
-    Inputs:
-      face (int, index): the coarse face
-      n (int): tessellation level
-      a0 (int): start of the line, weight of corner 1 in grid steps
-      b0 (int): start of the line, weight of corner 2 in grid steps
-      da (int): step of a per sample
-      db (int): step of b per sample
-      count (int): samples on the line
-      i (int, index): the sample, 0-based
-      face_grid (int32, (n + 1)(n + 2) / 2 per coarse triangle): detail vertex of each grid point
-      positions (vec3, per detail vertex, m): detail positions the transmission is measured on
-      f_first (vec3, N): force at sample 0
-      f_last (vec3, N): force at sample count - 1
-    Returns:
-      vec3 (N): force at sample i
-    """
-    total = float(0.0)
-    upto = float(0.0)
-    for k in range(1, count - 1):
-        c = transmission(positions[line_point(face, n, a0, b0, da, db, k - 1, face_grid)],
-                         positions[line_point(face, n, a0, b0, da, db, k, face_grid)],
-                         positions[line_point(face, n, a0, b0, da, db, k + 1, face_grid)])
-        total += c
-        if k < i:
-            upto += c
-        elif k == i:
-            upto += 0.5 * c
-    t = float(0.5)
-    if total > 1.0e-12:
-        t = upto / total
-    return f_first + t * (f_last - f_first)
-
-
-@wp.func
 def carry_along_line(face: int, n: int, a0: int, b0: int, da: int, db: int, count: int,
                      face_grid: wp.array(dtype=wp.int32), owner_face: wp.array(dtype=wp.int32),
                      positions: wp.array(dtype=wp.vec3), f_first: wp.vec3, f_last: wp.vec3, blend: int,
+                     shares: wp.array(dtype=float), kept: wp.array(dtype=wp.vec3), keep_at: int,
                      force: wp.array(dtype=wp.vec3)):
-    """carried_force at every inner sample of one grid line, in two passes along it (the total, then
-    the running share) instead of one pass per sample; the sums run in the same order, so each force
-    is carried_force's bit for bit. Only samples this face owns are written.
+    """Eq. 5 along one grid line: the force at every inner sample, blended between the line's end
+    forces by the share of transmission (eq. 4) accumulated from the first sample up to it, counting
+    half of its own; a straight line blends linearly. Two passes: the transmissions and their total,
+    then the running shares. Only samples this face owns are written to force.
 
     Inputs:
       face (int, index): the coarse face
@@ -657,25 +617,32 @@ def carry_along_line(face: int, n: int, a0: int, b0: int, da: int, db: int, coun
       f_first (vec3, N): force at sample 0
       f_last (vec3, N): force at sample count - 1
       blend (int, flag): 0 writes each force, 1 averages it with the force already written there
+      keep_at (int, index): where sample k's blended force goes in kept (keep_at + k); -1 keeps none
     Outputs:
+      shares (float, n + 1 per coarse triangle): this face's scratch: the line's transmissions
+      kept (vec3, per kept sample, N): every inner sample's blended force, owned or not (keep_at >= 0)
       force (vec3, per detail vertex, N): the inner samples' forces (read first where blend != 0)
     """
+    scratch = face * (n + 1)
     total = float(0.0)
     for k in range(1, count - 1):
-        total += transmission(positions[line_point(face, n, a0, b0, da, db, k - 1, face_grid)],
-                              positions[line_point(face, n, a0, b0, da, db, k, face_grid)],
-                              positions[line_point(face, n, a0, b0, da, db, k + 1, face_grid)])
+        c = transmission(positions[line_point(face, n, a0, b0, da, db, k - 1, face_grid)],
+                         positions[line_point(face, n, a0, b0, da, db, k, face_grid)],
+                         positions[line_point(face, n, a0, b0, da, db, k + 1, face_grid)])
+        shares[scratch + k] = c
+        total += c
     upto = float(0.0)
     for k in range(1, count - 1):
-        v = line_point(face, n, a0, b0, da, db, k, face_grid)
-        c = transmission(positions[line_point(face, n, a0, b0, da, db, k - 1, face_grid)], positions[v],
-                         positions[line_point(face, n, a0, b0, da, db, k + 1, face_grid)])
+        c = shares[scratch + k]
         t = float(0.5)
         if total > 1.0e-12:
             t = (upto + 0.5 * c) / total
         upto += c
+        value = f_first + t * (f_last - f_first)
+        if keep_at >= 0:
+            kept[keep_at + k] = value
+        v = line_point(face, n, a0, b0, da, db, k, face_grid)
         if owner_face[v] == face:
-            value = f_first + t * (f_last - f_first)
             if blend != 0:
                 value = 0.5 * (force[v] + value)
             force[v] = value
@@ -689,6 +656,8 @@ def carry_forces(
     positions: wp.array(dtype=wp.vec3),
     corner_vertex: wp.array(dtype=wp.int32),
     coarse_force: wp.array(dtype=wp.vec3),
+    shares: wp.array(dtype=float),
+    edge_forces: wp.array(dtype=wp.vec3),
     force: wp.array(dtype=wp.vec3),
 ):
     """Elastic force at every detail sample of one coarse face (eqs. 4-5).
@@ -696,7 +665,8 @@ def carry_forces(
     Corners take their coarse particle's force, edge samples blend the edge's ends, interior samples
     average the blends along the grid's two line directions between edge samples. Shared samples are
     written by their owner face only, so each is written once. Each line is walked twice
-    (carry_along_line), O(n^2) per face where a walk per sample would be O(n^3).
+    (carry_along_line), and the edges' blends, kept, are the interior lines' end forces: O(n^2) per
+    face.
 
     Launch: one thread per coarse triangle (dim = num_coarse_triangles).
     Inputs:
@@ -708,6 +678,8 @@ def carry_forces(
           triangles)
       coarse_force (vec3, per coarse vertex, N): elastic force on each particle (cloth.elastic_forces)
     Outputs:
+      shares (float, n + 1 per coarse triangle): scratch, each face's line transmissions
+      edge_forces (vec3, 3 (n + 1) per coarse triangle, N): scratch, each face's edge blends
       force (vec3, per detail vertex, N): force carried to each detail sample
     """
     f = wp.tid()
@@ -724,20 +696,24 @@ def carry_forces(
         force[v1] = f1
     if owner_face[v2] == f:
         force[v2] = f2
-    carry_along_line(f, n, 0, 0, 1, 0, n + 1, face_grid, owner_face, positions, f0, f1, 0, force)  # corner 0 -> 1
-    carry_along_line(f, n, 0, 0, 0, 1, n + 1, face_grid, owner_face, positions, f0, f2, 0, force)  # corner 0 -> 2
-    carry_along_line(f, n, n, 0, -1, 1, n + 1, face_grid, owner_face, positions, f1, f2, 0, force)  # corner 1 -> 2
+    e01 = 3 * f * (n + 1)  # the blends at sample k of the edges from corner 0 to 1, 0 to 2 and 1 to 2
+    e02 = e01 + n + 1
+    e12 = e02 + n + 1
+    carry_along_line(f, n, 0, 0, 1, 0, n + 1, face_grid, owner_face, positions, f0, f1, 0, shares, edge_forces, e01,
+                     force)
+    carry_along_line(f, n, 0, 0, 0, 1, n + 1, face_grid, owner_face, positions, f0, f2, 0, shares, edge_forces, e02,
+                     force)
+    carry_along_line(f, n, n, 0, -1, 1, n + 1, face_grid, owner_face, positions, f1, f2, 0, shares, edge_forces, e12,
+                     force)
     # interior samples: the line of constant a from (a, 0) to (a, n - a), then the line of constant b
     # from (0, b) to (n - b, b) averaged in; the lines' ends lie on edges, whose forces follow from
     # the same rule
     for a in range(1, n - 1):
-        ea0 = carried_force(f, n, 0, 0, 1, 0, n + 1, a, face_grid, positions, f0, f1)
-        ea1 = carried_force(f, n, n, 0, -1, 1, n + 1, n - a, face_grid, positions, f1, f2)
-        carry_along_line(f, n, a, 0, 0, 1, n - a + 1, face_grid, owner_face, positions, ea0, ea1, 0, force)
+        carry_along_line(f, n, a, 0, 0, 1, n - a + 1, face_grid, owner_face, positions, edge_forces[e01 + a],
+                         edge_forces[e12 + n - a], 0, shares, edge_forces, -1, force)
     for b in range(1, n - 1):
-        eb0 = carried_force(f, n, 0, 0, 0, 1, n + 1, b, face_grid, positions, f0, f2)
-        eb1 = carried_force(f, n, n, 0, -1, 1, n + 1, b, face_grid, positions, f1, f2)
-        carry_along_line(f, n, 0, b, 1, 0, n - b + 1, face_grid, owner_face, positions, eb0, eb1, 1, force)
+        carry_along_line(f, n, 0, b, 1, 0, n - b + 1, face_grid, owner_face, positions, edge_forces[e02 + b],
+                         edge_forces[e12 + b], 1, shares, edge_forces, -1, force)
 
 
 @wp.kernel
