@@ -137,13 +137,17 @@ class Collider:
             buffer.assign(values)
         return buffer
 
-    def apply_pose(self, k, refit=True):
+    def apply_pose(self, k, refit=True, listed=None):
         """Pose the mesh, its BVH and the sphere tree to pose k of the uploaded ones; the pose before
         stays in prev_points and prev_sphere_centers (surface velocities, hair contact bounds).
         refit=False leaves the BVH at an earlier pose, which saves most of the cost: for steps that
         read only the points and the sphere tree (hair colliding with the sphere tree), never for
         mesh queries; the caller marks it stale (bvh_stale) once the frame is done, and the host
-        queries below refit it first."""
+        queries below refit it first. listed (an int32 array of vertices, with refit=False): a
+        skinned pose moves only those, the rest keep an earlier pose, for steps that read only them
+        (a pose the host may read, such as a frame's last, must move all)."""
+        if listed is not None and refit:
+            raise ValueError("a pose of listed vertices leaves the others behind: its BVH cannot be refitted")
         wp.copy(self.prev_points, self.points)
         wp.copy(self.prev_sphere_centers, self.sphere_centers)
         self.bvh_stale = not refit
@@ -154,9 +158,14 @@ class Collider:
                 refit_mesh(self.mesh)
         else:  # the sphere tree follows skinned poses only
             offset = k * self.num_bones
-            wp.launch(skinning.skin_points, len(self.points),
-                      [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
-                       self.points], device=self.device)
+            if listed is not None:
+                wp.launch(skinning.skin_listed_points, len(listed),
+                          [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset, listed,
+                           self.points], device=self.device)
+            else:
+                wp.launch(skinning.skin_points, len(self.points),
+                          [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
+                           self.points], device=self.device)
             if refit:
                 refit_mesh(self.mesh)
             wp.launch(skinning.skin_points, len(self.sphere_centers),

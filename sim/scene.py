@@ -338,6 +338,7 @@ class Scene:
         self.device = device
         self.time = 0.0
         self._poses_ahead = None  # (frame_dt and substep counts, {frame start: poses}) evaluated ahead
+        self._root_vertices = None  # (hair model, its root triangles' collider vertices)
         self.graphs = FrameGraphs(device, config.timing.graphs)
         leaves = config.head.sphere_leaves if config.hair.enabled and config.solver.collision == "sphere_tree" else 0
         if assets is not None:
@@ -556,9 +557,10 @@ class Scene:
                 self.solver.set_clock(t0)
                 # a comb adds a launch per substep: its frames are other graphs
                 held = getattr(self.solver.comb, "serial", 0)
+                mesh = self.config.solver.collision == "mesh"
                 tasks.append(self._solver_frame(("hair", held), self.collider, poses[self.config.solver.substeps],
-                                                frame_dt, animate, self._step_hair, self._hair_refs,
-                                                bvh=self.config.solver.collision == "mesh"))
+                                                frame_dt, animate, self._step_hair, self._hair_refs, bvh=mesh,
+                                                listed=None if mesh else self._hair_root_vertices()))
             if self.cloth_model is not None:
                 body = self.cloth_body if self.cloth_body is not self.cloth_collider else None
                 tasks.append(self._solver_frame("cloth", self.cloth_collider, poses[self.cloth_substeps],
@@ -586,13 +588,16 @@ class Scene:
             if animate:
                 self.time = t0 + frame_dt
 
-    def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True, end_pose=None):
+    def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True, end_pose=None,
+                      listed=None):
         """One solver's frame against `collider`, substep_poses = (times, poses) at the start and the
         end of each substep: the poses are uploaded now, and the returned (graph key, task) runs the
         frame. bvh=False: the solver makes no mesh queries, so the BVH is not refitted at all, and the
         collider is left marked stale: a host query after the frame refits it first
-        (Collider.fresh_mesh), most frames none does. end_pose: another collider the frame
-        poses once, at its end (the body beside a cloth's collision proxy)."""
+        (Collider.fresh_mesh), most frames none does. listed (with bvh=False): the only collider
+        vertices the solver reads; every pose but the frame's last, which the host may read, moves
+        only those. end_pose: another collider the frame poses once, at its end (the body beside a
+        cloth's collision proxy)."""
         times, poses = substep_poses
         substeps = len(times) - 1
         dt = frame_dt / substeps
@@ -604,10 +609,10 @@ class Scene:
             # start from the frame's first pose: the collider was left at the last frame's end, or
             # at another time by a reset, and surface velocities (cloth friction) come from
             # consecutive poses; nothing queries this pose, so its BVH is not refitted
-            collider.apply_pose(0, refit=False)
+            collider.apply_pose(0, refit=False, listed=listed)
             collider.reset_motion()
             for k in range(1, substeps + 1):
-                collider.apply_pose(k, refit=bvh)
+                collider.apply_pose(k, refit=bvh, listed=listed if k < substeps else None)
                 step(dt, float(times[k]))
             if end_pose is not None:
                 end_pose.apply_pose(0)
@@ -618,6 +623,17 @@ class Scene:
 
         key = (name, animate, id(refs[0]()[0]))
         return key, run
+
+    def _hair_root_vertices(self):
+        """The collider vertices of the hair's root triangles, the only ones its sphere-tree substeps
+        read (root hold and binding, the contact bounds' anchor); kept per groom, as a frame's graph
+        reads the array."""
+        if self._root_vertices is None or self._root_vertices[0] is not self.model:
+            faces = self.collider.faces_np[self.model.root_triangle_np] if self.model.bind_particle is not None \
+                else np.zeros((0, 3), np.int32)
+            self._root_vertices = (self.model, wp.array(np.unique(faces).astype(np.int32), dtype=wp.int32,
+                                                        device=self.device))
+        return self._root_vertices[1]
 
     @property
     def _hair_refs(self):

@@ -90,6 +90,28 @@ def test_groomed_rest_shape_clears_the_head(head, head_collider):
             assert np.median(natural) > 0.25  # waves and curls add length to the centre line
 
 
+def test_a_pose_of_listed_vertices_moves_only_those_and_keeps_the_last_pose_before(head):
+    import warp as wp
+
+    from sim.collider import Collider
+
+    c = Collider("head", head.vertices, head.faces, head.skin_indices, head.skin_weights, head.num_bones, "cpu")
+    c.set_poses(HeadAnimation(ease_in=0.0).bone_matrices([0.2, 0.5]))
+    c.apply_pose(1)
+    turned = c.points.numpy().copy()
+    c.apply_pose(0)
+    before = c.points.numpy().copy()
+    listed = np.unique(head.faces[head.scalp_faces][:50])  # a patch of scalp, as hair roots would list
+    c.apply_pose(1, refit=False, listed=wp.array(listed.astype(np.int32), dtype=wp.int32, device="cpu"))
+    after, others = c.points.numpy(), np.setdiff1d(np.arange(len(head.vertices)), listed)
+    np.testing.assert_array_equal(after[listed], turned[listed])  # skinned as a full pose skins them
+    np.testing.assert_array_equal(after[others], before[others])
+    np.testing.assert_array_equal(c.prev_points.numpy(), before)
+    assert np.abs(turned - before)[listed].max() > 1e-3 and c.bvh_stale
+    with pytest.raises(ValueError, match="cannot be refitted"):
+        c.apply_pose(1, listed=wp.array(listed.astype(np.int32), dtype=wp.int32, device="cpu"))
+
+
 def test_refitted_sphere_tree_bounds_each_subtree_exactly(head):
     from sim.collider import Collider
 

@@ -275,8 +275,10 @@ def test_async_readback_on_the_cpu_copies_at_once():
 
 def test_sphere_tree_hair_frames_leave_the_bvh_to_the_first_query_and_step_the_same_hair(monkeypatch):
     """Hair colliding with the sphere tree makes no mesh queries, so its frames do not refit the
-    collider's BVH: the strands are bit-identical to refitting every substep, and the first host query
-    after the frames refits it once and answers as one built on the posed mesh."""
+    collider's BVH, and poses before a frame's last move only the root triangles' vertices: the
+    strands and the frame's final body are bit-identical to posing all of it and refitting every
+    substep, and the first host query after the frames refits it once and answers as one built on
+    the posed mesh."""
     refits = []
     refit = wp.Mesh.refit
     monkeypatch.setattr(wp.Mesh, "refit", lambda mesh: (refits.append(1), refit(mesh))[1])
@@ -288,12 +290,14 @@ def test_sphere_tree_hair_frames_leave_the_bvh_to_the_first_query_and_step_the_s
                                        "solver": {"substeps": 4, "collision": "sphere_tree"}}))
         if always:
             pose = scene.collider.apply_pose
-            scene.collider.apply_pose = lambda k, refit=True, pose=pose: pose(k, True)
+            scene.collider.apply_pose = lambda k, refit=True, listed=None, pose=pose: pose(k, True)
         refits.clear()
         for _ in range(3):
             scene.advance(1.0 / scene.config.timing.fps)
-        results.append((scene.state.x.numpy(), len(refits)))
-        if not always:  # the first query refits the BVH to the posed mesh, later ones do not
+        results.append((scene.state.x.numpy(), scene.collider.points.numpy(), len(refits)))
+        if not always:
+            listed = scene._hair_root_vertices().numpy()
+            assert 0 < len(listed) < len(scene.collider.points) / 10  # the first query refits the BVH to the posed mesh, later ones do not
             rng = np.random.default_rng(1)
             points = scene.collider.points.numpy()[rng.choice(len(scene.collider.points), 300)]
             points += rng.normal(scale=0.01, size=points.shape)
@@ -303,8 +307,9 @@ def test_sphere_tree_hair_frames_leave_the_bvh_to_the_first_query_and_step_the_s
             scene.collider.mesh.refit()
             np.testing.assert_array_equal(got, scene.collider.closest_points(points)[0])
             np.testing.assert_array_equal(again, got)
-    (lean, lean_refits), (full, full_refits) = results
+    (lean, lean_body, lean_refits), (full, full_body, full_refits) = results
     np.testing.assert_array_equal(lean, full)
+    np.testing.assert_array_equal(lean_body, full_body)
     assert (lean_refits, full_refits) == (0, 15)  # none against one per pose (the frame's first and 4 substeps)
 
 

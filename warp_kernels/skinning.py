@@ -63,6 +63,32 @@ def face_point(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32
     return w[0] * points[indices[3 * f + 0]] + w[1] * points[indices[3 * f + 1]] + w[2] * points[indices[3 * f + 2]]
 
 
+@wp.func
+def skinned_point(rest_points: wp.array(dtype=wp.vec3), skin_indices: wp.array(dtype=wp.vec4i),
+                  skin_weights: wp.array(dtype=wp.vec4), bone_matrices: wp.array(dtype=wp.mat44), bone_offset: int,
+                  i: int):
+    """Linear blend skinning of point i with up to four influences (see skin_points).
+
+    Inputs:
+      rest_points (vec3, per point, m): points in the bind pose
+      skin_indices (vec4i, per point): bone of each influence, within one pose
+      skin_weights (vec4, per point): weight of each influence; 0 skips it
+      bone_matrices (mat44, num_poses * num_bones, m): per pose and bone, bind pose to posed
+      bone_offset (int, index): first matrix of the pose to apply
+      i (int, index): the point
+    Returns:
+      vec3 (m): the skinned point
+    """
+    p = rest_points[i]
+    idx = skin_indices[i]
+    w = skin_weights[i]
+    out = wp.vec3(0.0)
+    for k in range(4):
+        if w[k] > 0.0:
+            out += w[k] * wp.transform_point(bone_matrices[bone_offset + idx[k]], p)
+    return out
+
+
 @wp.kernel
 def skin_points(
     rest_points: wp.array(dtype=wp.vec3),
@@ -90,14 +116,35 @@ def skin_points(
       points (vec3, per point, m): skinned points
     """
     i = wp.tid()
-    p = rest_points[i]
-    idx = skin_indices[i]
-    w = skin_weights[i]
-    out = wp.vec3(0.0)
-    for k in range(4):
-        if w[k] > 0.0:
-            out += w[k] * wp.transform_point(bone_matrices[bone_offset + idx[k]], p)
-    points[i] = out
+    points[i] = skinned_point(rest_points, skin_indices, skin_weights, bone_matrices, bone_offset, i)
+
+
+@wp.kernel
+def skin_listed_points(
+    rest_points: wp.array(dtype=wp.vec3),
+    skin_indices: wp.array(dtype=wp.vec4i),
+    skin_weights: wp.array(dtype=wp.vec4),
+    bone_matrices: wp.array(dtype=wp.mat44),
+    bone_offset: int,
+    listed: wp.array(dtype=wp.int32),
+    points: wp.array(dtype=wp.vec3),
+):
+    """skin_points for the listed points only; the others keep what they hold. For a solver that
+    reads a few of a body's points in most substeps (hair reads its root triangles).
+
+    Launch: one thread per listed point (dim = len(listed)).
+    Inputs:
+      rest_points (vec3, per point, m): points in the bind pose
+      skin_indices (vec4i, per point): bone of each influence, within one pose
+      skin_weights (vec4, per point): weight of each influence; 0 skips it
+      bone_matrices (mat44, num_poses * num_bones, m): per pose and bone, bind pose to posed
+      bone_offset (int, index): first matrix of the pose to apply, k * num_bones for pose k
+      listed (int32, per listed point): the points to skin
+    Outputs:
+      points (vec3, per point, m): the listed points skinned
+    """
+    i = listed[wp.tid()]
+    points[i] = skinned_point(rest_points, skin_indices, skin_weights, bone_matrices, bone_offset, i)
 
 
 @wp.func
