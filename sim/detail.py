@@ -320,7 +320,8 @@ class ClothDetail:
         self.body_vertex, self.probe_point = arr(np.full(nv, -1, np.int32), wp.int32), z(nv, wp.vec3)
         self.force = z(nv, wp.vec3)
         nt = len(top.coarse_triangles)
-        self.line_shares, self.edge_forces = z(nt * (n + 1)), z(3 * nt * (n + 1), wp.vec3)  # carry_forces' scratch
+        # carry_forces' scratch: each line's transmissions, and the edges' blends
+        self.line_shares, self.edge_forces = z(nt * max(3, n - 2) * (n + 1)), z(3 * nt * (n + 1), wp.vec3)
         self.positions, self.normals = z(nv, wp.vec3), z(nv, wp.vec3)
         self.coarse_force = z(cloth_model.num_particles, wp.vec3)
         self.coarse_deficit = z(cloth_model.num_particles)
@@ -386,6 +387,16 @@ class ClothDetail:
         closest = np.einsum("nk,nkj->nj", bary, body.points.numpy()[body.faces_np[face]])
         return 1.0 if np.sum(np.einsum("ij,ij->i", n, x - closest)) >= 0.0 else -1.0
 
+    def carry_forces(self, positions, coarse_force, force):
+        """Launch eqs. 4-5: the coarse particles' forces carried to every detail sample (force), along
+        the grid lines of the detail positions; the three stages of kernels.carry_forces."""
+        n, nt = self.tessellation, len(self.surface.topology.coarse_triangles)
+        for stage, lines in ((0, 3), (1, n - 2), (2, n - 2)):
+            if lines > 0:
+                wp.launch(kernels.carry_forces, (nt, lines),
+                          [self.face_grid, self.owner_face, n, positions, self.corner_vertex, coarse_force, stage,
+                           self.line_shares, self.edge_forces, force], device=self.device)
+
     def _wrinkles(self, cm, st, base, dt):
         from warp_kernels import cloth as cloth_kernels
 
@@ -394,9 +405,7 @@ class ClothDetail:
         wp.launch(cloth_kernels.elastic_forces, cm.num_particles,
                   [st.x, st.v, cm.adj_start, cm.adj_spring, cm.spring_i, cm.spring_j, cm.spring_rest,
                    cm.spring_k_stretch, cm.spring_k_compress, self.coarse_force], device=dev)
-        wp.launch(kernels.carry_forces, nt, [self.face_grid, self.owner_face, n, base, self.corner_vertex,
-                                             self.coarse_force, self.line_shares, self.edge_forces, self.force],
-                  device=dev)
+        self.carry_forces(base, self.coarse_force, self.force)
         wp.launch(kernels.vertical_forces, nv, [base, self.nbr_start, self.nbr, self.force, self.vertical], device=dev)
         wp.launch(kernels.edge_length_deficit, self.num_edges, [self.face_grid, self.edge_face, self.edge_side, n, base,
                                                                 self.rest_edge, self.edge_deficit], device=dev)

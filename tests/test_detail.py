@@ -316,10 +316,8 @@ def test_carried_forces_match_a_float64_reference_of_eqs_4_5_on_a_crumpled_surfa
     positions = rng.normal(0.0, 1.0, (top.num_vertices, 3))  # folds of every angle, some past 90 degrees
     coarse = rng.normal(0.0, 1.0, (len(pts), 3))
     force = wp.zeros(top.num_vertices, dtype=wp.vec3)
-    wp.launch(kernels.carry_forces, len(tris),
-              [detail.face_grid, detail.owner_face, n, wp.array(positions.astype(np.float32), dtype=wp.vec3),
-               detail.corner_vertex, wp.array(coarse.astype(np.float32), dtype=wp.vec3), detail.line_shares,
-               detail.edge_forces, force])
+    detail.carry_forces(wp.array(positions.astype(np.float32), dtype=wp.vec3),
+                        wp.array(coarse.astype(np.float32), dtype=wp.vec3), force)
     x = positions.astype(np.float32).astype(np.float64)
     f = coarse.astype(np.float32).astype(np.float64)
     expected = np.full((top.num_vertices, 3), np.nan)

@@ -596,7 +596,7 @@ def line_point(face: int, n: int, a0: int, b0: int, da: int, db: int, k: int, fa
 def carry_along_line(face: int, n: int, a0: int, b0: int, da: int, db: int, count: int,
                      face_grid: wp.array(dtype=wp.int32), owner_face: wp.array(dtype=wp.int32),
                      positions: wp.array(dtype=wp.vec3), f_first: wp.vec3, f_last: wp.vec3, blend: int,
-                     shares: wp.array(dtype=float), kept: wp.array(dtype=wp.vec3), keep_at: int,
+                     shares: wp.array(dtype=float), scratch: int, kept: wp.array(dtype=wp.vec3), keep_at: int,
                      force: wp.array(dtype=wp.vec3)):
     """Eq. 5 along one grid line: the force at every inner sample, blended between the line's end
     forces by the share of transmission (eq. 4) accumulated from the first sample up to it, counting
@@ -617,13 +617,13 @@ def carry_along_line(face: int, n: int, a0: int, b0: int, da: int, db: int, coun
       f_first (vec3, N): force at sample 0
       f_last (vec3, N): force at sample count - 1
       blend (int, flag): 0 writes each force, 1 averages it with the force already written there
+      scratch (int, index): this line's first slot in shares (n + 1 slots)
       keep_at (int, index): where sample k's blended force goes in kept (keep_at + k); -1 keeps none
     Outputs:
-      shares (float, n + 1 per coarse triangle): this face's scratch: the line's transmissions
+      shares (float, n + 1 per line): scratch: the line's transmissions
       kept (vec3, per kept sample, N): every inner sample's blended force, owned or not (keep_at >= 0)
       force (vec3, per detail vertex, N): the inner samples' forces (read first where blend != 0)
     """
-    scratch = face * (n + 1)
     total = float(0.0)
     for k in range(1, count - 1):
         c = transmission(positions[line_point(face, n, a0, b0, da, db, k - 1, face_grid)],
@@ -656,19 +656,23 @@ def carry_forces(
     positions: wp.array(dtype=wp.vec3),
     corner_vertex: wp.array(dtype=wp.int32),
     coarse_force: wp.array(dtype=wp.vec3),
+    stage: int,
     shares: wp.array(dtype=float),
     edge_forces: wp.array(dtype=wp.vec3),
     force: wp.array(dtype=wp.vec3),
 ):
-    """Elastic force at every detail sample of one coarse face (eqs. 4-5).
+    """Elastic force at every detail sample of the coarse faces (eqs. 4-5), one grid line per thread.
 
     Corners take their coarse particle's force, edge samples blend the edge's ends, interior samples
     average the blends along the grid's two line directions between edge samples. Shared samples are
     written by their owner face only, so each is written once. Each line is walked twice
-    (carry_along_line), and the edges' blends, kept, are the interior lines' end forces: O(n^2) per
-    face.
+    (carry_along_line); the edges' blends, kept, are the interior lines' end forces. Three stages,
+    each a launch: 0 the three edges (and the corners), 1 the lines of constant a, 2 the lines of
+    constant b averaged into them. A thread per line rather than per face: at high levels (n = 60
+    has 118 interior lines per face) one thread per face is a long serial chain on a GPU.
 
-    Launch: one thread per coarse triangle (dim = num_coarse_triangles).
+    Launch: one thread per grid line of every coarse triangle (dim = (num_coarse_triangles, 3) for
+    stage 0, (num_coarse_triangles, n - 2) for stages 1 and 2; none for n < 3).
     Inputs:
       face_grid (int32, (n + 1)(n + 2) / 2 per coarse triangle): detail vertex of each grid point
       owner_face (int32, per detail vertex): coarse triangle that owns each detail vertex
@@ -677,43 +681,51 @@ def carry_forces(
       corner_vertex (int32, 3 per coarse triangle): coarse vertex at each corner (the coarse
           triangles)
       coarse_force (vec3, per coarse vertex, N): elastic force on each particle (cloth.elastic_forces)
+      stage (int): 0 edges, 1 lines of constant a, 2 lines of constant b (after 1)
     Outputs:
-      shares (float, n + 1 per coarse triangle): scratch, each face's line transmissions
-      edge_forces (vec3, 3 (n + 1) per coarse triangle, N): scratch, each face's edge blends
+      shares (float, (n + 1) * max(3, n - 2) per coarse triangle): scratch, each line's transmissions
+      edge_forces (vec3, 3 (n + 1) per coarse triangle, N): the edges' blends (stage 0; read by 1 and 2)
       force (vec3, per detail vertex, N): force carried to each detail sample
     """
-    f = wp.tid()
-    slots = (n + 1) * (n + 2) // 2
-    f0 = coarse_force[corner_vertex[3 * f]]
-    f1 = coarse_force[corner_vertex[3 * f + 1]]
-    f2 = coarse_force[corner_vertex[3 * f + 2]]
-    v0 = face_grid[f * slots + grid_slot(0, 0, n)]
-    v1 = face_grid[f * slots + grid_slot(n, 0, n)]
-    v2 = face_grid[f * slots + grid_slot(0, n, n)]
-    if owner_face[v0] == f:
-        force[v0] = f0
-    if owner_face[v1] == f:
-        force[v1] = f1
-    if owner_face[v2] == f:
-        force[v2] = f2
+    f, line = wp.tid()
+    scratch = (f * wp.max(3, n - 2) + line) * (n + 1)
     e01 = 3 * f * (n + 1)  # the blends at sample k of the edges from corner 0 to 1, 0 to 2 and 1 to 2
     e02 = e01 + n + 1
     e12 = e02 + n + 1
-    carry_along_line(f, n, 0, 0, 1, 0, n + 1, face_grid, owner_face, positions, f0, f1, 0, shares, edge_forces, e01,
-                     force)
-    carry_along_line(f, n, 0, 0, 0, 1, n + 1, face_grid, owner_face, positions, f0, f2, 0, shares, edge_forces, e02,
-                     force)
-    carry_along_line(f, n, n, 0, -1, 1, n + 1, face_grid, owner_face, positions, f1, f2, 0, shares, edge_forces, e12,
-                     force)
-    # interior samples: the line of constant a from (a, 0) to (a, n - a), then the line of constant b
-    # from (0, b) to (n - b, b) averaged in; the lines' ends lie on edges, whose forces follow from
-    # the same rule
-    for a in range(1, n - 1):
+    if stage == 0:
+        slots = (n + 1) * (n + 2) // 2
+        f0 = coarse_force[corner_vertex[3 * f]]
+        f1 = coarse_force[corner_vertex[3 * f + 1]]
+        f2 = coarse_force[corner_vertex[3 * f + 2]]
+        if line == 0:
+            v0 = face_grid[f * slots + grid_slot(0, 0, n)]
+            v1 = face_grid[f * slots + grid_slot(n, 0, n)]
+            v2 = face_grid[f * slots + grid_slot(0, n, n)]
+            if owner_face[v0] == f:
+                force[v0] = f0
+            if owner_face[v1] == f:
+                force[v1] = f1
+            if owner_face[v2] == f:
+                force[v2] = f2
+            carry_along_line(f, n, 0, 0, 1, 0, n + 1, face_grid, owner_face, positions, f0, f1, 0, shares, scratch,
+                             edge_forces, e01, force)
+        elif line == 1:
+            carry_along_line(f, n, 0, 0, 0, 1, n + 1, face_grid, owner_face, positions, f0, f2, 0, shares, scratch,
+                             edge_forces, e02, force)
+        else:
+            carry_along_line(f, n, n, 0, -1, 1, n + 1, face_grid, owner_face, positions, f1, f2, 0, shares, scratch,
+                             edge_forces, e12, force)
+    elif stage == 1:
+        # the line of constant a from (a, 0) to (a, n - a); its ends lie on edges, whose forces
+        # follow from the same rule
+        a = line + 1
         carry_along_line(f, n, a, 0, 0, 1, n - a + 1, face_grid, owner_face, positions, edge_forces[e01 + a],
-                         edge_forces[e12 + n - a], 0, shares, edge_forces, -1, force)
-    for b in range(1, n - 1):
+                         edge_forces[e12 + n - a], 0, shares, scratch, edge_forces, -1, force)
+    else:
+        # the line of constant b from (0, b) to (n - b, b), averaged in
+        b = line + 1
         carry_along_line(f, n, 0, b, 1, 0, n - b + 1, face_grid, owner_face, positions, edge_forces[e02 + b],
-                         edge_forces[e12 + b], 1, shares, edge_forces, -1, force)
+                         edge_forces[e12 + b], 1, shares, scratch, edge_forces, -1, force)
 
 
 @wp.kernel
