@@ -236,7 +236,7 @@ class DetailParams:
 
     level: int = 6  # tessellation level: n x n detail triangles per coarse triangle (the paper: 6); 0 = none
     margin: float = 0.003  # m, detail vertices kept this far outside the body
-    band: float = 0.01  # m, a sample this close to the body makes its finer neighbours be tested (§4.2)
+    band: float = 0.01  # m, tests look at least this far beyond margin; a sample found no nearer spares its finer neighbours within band of it (§4.2)
     # eq. 3 carries dh from the last frame; carrying all of it would keep a lift forever after the
     # contact ends (only wrinkles and the dh >= 0 clamp ever lower it), so a share is carried
     height_carry: float = 0.85  # share of last frame's height carried into this frame (eq. 3)
@@ -304,7 +304,17 @@ class ClothDetail:
                 if edge_face[e] < 0:
                     edge_face[e], edge_side[e] = f, s
         rest = cloth_model.rest_positions_np.astype(np.float64)
-        self._rest_edge_np = self._polyline_lengths(rest, grid, edge_face, edge_side, n)
+        rest_base = self.surface.update(wp.array(rest.astype(np.float32), dtype=wp.vec3, device=device))[0].numpy()
+        self._rest_edge_np = self._polyline_lengths(rest_base.astype(np.float64), grid, edge_face, edge_side, n)
+        # the farthest a finer sample lies from its parent of each level, at rest: a level's tests look
+        # this far (with slack for stretch), so a sample found farther from the body spares its children
+        level_of = np.zeros(nv, np.int64)
+        for k in range(len(top.level_steps)):
+            level_of[top.level_order[top.level_start[k]:top.level_start[k + 1]]] = k
+        child = np.flatnonzero(top.parent >= 0)
+        offset = np.linalg.norm(rest_base[child] - rest_base[top.parent[child]], axis=1)
+        self.level_spread = np.zeros(len(top.level_steps))
+        np.maximum.at(self.level_spread, level_of[top.parent[child]], offset)
         self.edge_face, self.edge_side = arr(edge_face.astype(np.int32), wp.int32), arr(edge_side.astype(np.int32), wp.int32)
         self.face_edges = arr(face_edges.reshape(-1).astype(np.int32), wp.int32)
         ve = np.concatenate([edges[:, 0], edges[:, 1]])
@@ -316,7 +326,7 @@ class ClothDetail:
 
         z = lambda count, t=float: wp.zeros(count, dtype=t, device=device)  # noqa: E731
         self.height, self.height_tmp, self.change = z(nv), z(nv), z(nv)
-        self.vertical, self.near = z(nv), z(nv, wp.int32)
+        self.vertical, self.clearance = z(nv), z(nv)
         self.body_vertex, self.probe_point = arr(np.full(nv, -1, np.int32), wp.int32), z(nv, wp.vec3)
         self.force = z(nv, wp.vec3)
         nt = len(top.coarse_triangles)
@@ -327,16 +337,15 @@ class ClothDetail:
         self.coarse_deficit = z(cloth_model.num_particles)
         self.edge_deficit = z(len(edges))
         self.rest_edge = arr(self._rest_edge_np.astype(np.float32), float)
-        self.touching = z(nt, wp.int32)
         self.side = 1.0  # +1 when the garment's winding faces away from the body, -1 when it faces it
         self._side_known = False
         self.uncompressed = z(nt, wp.int32)
         self.queries = z(2, wp.int32)  # samples tested, BVH queries among them
 
-    def _polyline_lengths(self, coarse_points, grid, edge_face, edge_side, n):
-        """Rest length of every coarse edge measured along its PN curve on the rest shape."""
-        base, _ = self.surface.update(wp.array(coarse_points.astype(np.float32), dtype=wp.vec3, device=self.device))
-        p = base.numpy().astype(np.float64)
+    @staticmethod
+    def _polyline_lengths(p, grid, edge_face, edge_side, n):
+        """Rest length of every coarse edge measured along its PN curve on the rest shape (p, the PN
+        surface's positions at rest)."""
         slots = {(a, b): k for k, (a, b) in enumerate((a, b) for a in range(n + 1) for b in range(n + 1 - a))}
         out = np.zeros(len(edge_face))
         for s, walk in enumerate(([(k, 0) for k in range(n + 1)], [(0, k) for k in range(n + 1)],
@@ -362,16 +371,14 @@ class ClothDetail:
             self.side = self._outward_side(base, pn_normals, body)
             self._side_known = True
         if body is not None:
-            nt = len(self.surface.topology.coarse_triangles)
-            wp.launch(kernels.faces_touching_body, nt, [self.surface.triangles, cloth_state.contact, self.touching],
-                      device=dev)
             adj, walk = body.adjacency(), cloth_model.params
-            for level in self.levels:
+            for level, spread in zip(self.levels, self.level_spread, strict=True):
+                reach = p.margin + max(p.band, 1.25 * spread)
                 wp.launch(kernels.lift_out_of_body, len(level),
-                          [base, pn_normals, level, self.owner_face, self.parent, self.touching, body.mesh.id,
+                          [base, pn_normals, level, self.parent, body.mesh.id,
                            body.points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face,
                            adj.concave, walk.walk_steps, walk.teleport, walk.walk_trust_distance, self.side, p.margin,
-                           p.band, self.height, self.near, self.body_vertex, self.probe_point, self.queries],
+                           reach, self.height, self.clearance, self.body_vertex, self.probe_point, self.queries],
                           device=dev)
         wp.launch(kernels.displace_along_directions, nv, [base, pn_normals, self.side, self.height, self.positions],
                   device=dev)

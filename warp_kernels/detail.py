@@ -24,7 +24,7 @@ A frame (composed by sim.detail.ClothDetail) runs, after the three PN launches:
     -> [wrinkles: cloth.elastic_forces -> carry_forces -> vertical_forces -> edge_length_deficit
         -> vertex_deficit -> faces_without_compression -> wrinkle_heights -> add_heights
         -> [smooth_heights] x passes -> constrain_heights]
-    -> [faces_touching_body -> lift_out_of_body per hierarchy level, coarse to fine]
+    -> [lift_out_of_body per hierarchy level, coarse to fine]
     -> displace_along_directions -> surface_vertex_normals
 """
 
@@ -307,9 +307,7 @@ def lift_out_of_body(
     base: wp.array(dtype=wp.vec3),
     direction: wp.array(dtype=wp.vec3),
     vertices: wp.array(dtype=wp.int32),
-    owner_face: wp.array(dtype=wp.int32),
     parent: wp.array(dtype=wp.int32),
-    face_touching: wp.array(dtype=wp.int32),
     mesh: wp.uint64,
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
@@ -323,36 +321,40 @@ def lift_out_of_body(
     trust_distance: float,
     side: float,
     margin: float,
-    band: float,
+    reach: float,
     height: wp.array(dtype=float),
-    near: wp.array(dtype=wp.int32),
+    clearance: wp.array(dtype=float),
     body_vertex: wp.array(dtype=wp.int32),
     probe_point: wp.array(dtype=wp.vec3),
     queries: wp.array(dtype=wp.int32),
 ):
     """Oshita & Makinouchi §4.2 for one refinement level: raise heights so detail vertices leave the body.
 
-    A vertex is tested only if its coarse face has a vertex touching the body and (after level 0)
-    its parent sample was near the body; near marks samples within band of the surface so
-    their children are tested next. Most vertices are thus never tested. Each vertex moves along
-    its control direction times side. Launch the levels from coarse to fine, each after the last.
+    Every sample ends a level with a clearance: a lower bound of its distance outside the body. A
+    sample lies within |x - x_parent| of its parent (a sample of a coarser level, already final),
+    so while the parent's clearance less that offset stays above margin the sample cannot be
+    inside: it takes that bound untested. Most vertices are thus never tested, and no sample is
+    skipped that could be inside, whatever its coarse face touches (the paper tests the faces whose
+    particles touch; a face can cut the body between particles that do not). The corners (level 0,
+    the coarse particles, which the coarse collision keeps outside) are always tested. Each vertex
+    moves along its control direction times side. Launch the levels from coarse to fine, each after
+    the last.
 
     A test is the coarse cloth's (body_collide, §3.3): a greedy walk over the body's vertices from
     the vertex this sample found last time (or, new to the test, its parent's), then the planes of
     the faces around the vertex it stops at: the least-inside plane gives the signed distance and
     the direction to lift along. Where the walk is not to be trusted (no start, a jump farther than
     teleport since the last test, a walk out of steps, a concave vertex, a vertex farther than
-    trust_distance) a BVH closest-point query decides instead and restarts the walk. A walk costs a
-    fraction of a query on a body of tens of thousands of triangles.
+    trust_distance) a BVH closest-point query decides instead and restarts the walk. Its radius is
+    reach, widened to the parent's clearance plus the offset, the most a sample can lie inside, so
+    a sample pushed deep inside between frames is still found. A walk costs a fraction of a query on a body of tens of thousands of triangles.
 
     Launch: one thread per detail vertex of this level (dim = len(vertices)).
     Inputs:
       base (vec3, per detail vertex, m): PN surface positions
       direction (vec3, per detail vertex): unit control directions (the PN normals)
       vertices (int32, per vertex of this level): detail vertices of this level
-      owner_face (int32, per detail vertex): coarse triangle of each detail vertex
       parent (int32, per detail vertex): nearest sample of a coarser level, -1 on level 0 (corners)
-      face_touching (int32, per coarse triangle): faces_touching_body
       mesh (uint64): wp.Mesh id of the posed body, its BVH refitted to this pose
       points (vec3, per body vertex, m): the posed body (the mesh's points)
       indices (int32, 3 per body triangle): body triangles, outward winding
@@ -366,29 +368,28 @@ def lift_out_of_body(
       trust_distance (float, m): a walk that stops farther from its vertex leaves it to the BVH
       side (float): +1 or -1, whichever makes side * direction point away from the body
       margin (float, m): distance kept outside the body
-      band (float, m): distance from the body within which a sample's children are tested
+      reach (float, m): the smallest query radius; a sample found no nearer spares the finer
+          samples within reach - margin of it (sized to the level's largest parent-child offset)
     In/out:
       height (float, per detail vertex, m): heights along the control direction, raised where inside
-      near (int32, per detail vertex): written for this level's vertices, read for their parents
+      clearance (float, per detail vertex, m): written for this level's vertices, read for their parents
       body_vertex (int32, per detail vertex): body vertex each sample's last test ended at (-1 none)
       probe_point (vec3, per detail vertex, m): where each sample was last tested
       queries (int32, 2 elements): incremented per test (element 0) and per BVH query (element 1)
     """
     k = wp.tid()
     i = vertices[k]
-    near[i] = 0
-    if face_touching[owner_face[i]] == 0:
-        # untested here, so no verdict: a child in a neighbouring face that touches decides for itself
-        near[i] = 1
-        return
-    pa = parent[i]
-    if pa >= 0:
-        if near[pa] == 0:
-            return
-    wp.atomic_add(queries, 0, 1)
     n = direction[i] * side
     p = base[i] + height[i] * n
-    reach = margin + band
+    pa = parent[i]
+    if pa >= 0:
+        offset = wp.length(p - (base[pa] + height[pa] * side * direction[pa]))
+        bound = clearance[pa] - offset
+        if bound > margin:
+            clearance[i] = bound
+            return
+        reach = wp.max(reach, wp.abs(clearance[pa]) + offset)
+    wp.atomic_add(queries, 0, 1)
     vtx = body_vertex[i]
     if vtx >= 0:
         if wp.length(p - probe_point[i]) > teleport:
@@ -404,46 +405,35 @@ def lift_out_of_body(
             vtx = -1 - vtx
         elif concave[vtx] != 0 or wp.length(p - points[vtx]) > trust_distance:
             trusted = False
-    sd = float(0.0)
+    sd = reach  # a query that finds nothing shows the sample at least its radius outside
     nb = wp.vec3(0.0, 0.0, 0.0)
-    found = bool(False)
     if trusted:
         sd, nb = least_inside_plane(p, vtx, points, indices, vf_start, vf_face)
-        found = wp.abs(sd) <= reach
     else:
         wp.atomic_add(queries, 1, 1)
-        q = wp.mesh_query_point_sign_normal(mesh, p, reach)
+        if vtx >= 0:
+            # the surface is no farther than the vertex the walk reached (a query's cost grows with its radius)
+            sd = wp.min(reach, wp.length(p - points[vtx]) * 1.001 + 1.0e-6)
+        q = wp.mesh_query_point_sign_normal(mesh, p, sd)
         if q.result:
-            found = True
             cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
             nb = wp.mesh_eval_face_normal(mesh, q.face)
             sd = q.sign * wp.length(p - cp)
             vtx = closest_corner(p, q.face, points, indices)  # where the next test's walk starts
     body_vertex[i] = vtx
-    if found:
-        near[i] = 1
-        if sd < margin:
-            # move along the control direction until the point is `margin` outside the surface plane
-            height[i] = height[i] + (margin - sd) / wp.max(wp.dot(n, nb), 0.2)
-
-
-@wp.kernel
-def faces_touching_body(
-    triangles: wp.array(dtype=wp.int32),
-    contact: wp.array(dtype=wp.int32),
-    touching: wp.array(dtype=wp.int32),
-):
-    """Flag the coarse faces worth testing: any of their particles touched the body in the last step.
-
-    Launch: one thread per coarse triangle (dim = num_coarse_triangles).
-    Inputs:
-      triangles (int32, 3 per coarse triangle): coarse triangles
-      contact (int32, per coarse vertex): body_collide's contact flags of the cloth particles
-    Outputs:
-      touching (int32, per coarse triangle): 1 where a corner touched, else 0
-    """
-    f = wp.tid()
-    touching[f] = wp.max(wp.max(contact[triangles[3 * f]], contact[triangles[3 * f + 1]]), contact[triangles[3 * f + 2]])
+    if sd < margin:
+        # move along the control direction until the point is `margin` outside the surface plane; where
+        # the direction leads into the body (the garment folded over, its outer side facing the body)
+        # a raised sample would go deeper with every lift, so it is lowered towards the base instead
+        along = wp.dot(n, nb)
+        h = height[i]
+        if along > 0.0:
+            h = h + (margin - sd) / wp.max(along, 0.2)
+        else:
+            h = wp.max(h - (margin - sd) / wp.max(-along, 0.2), 0.0)
+        sd = sd + (h - height[i]) * along
+        height[i] = h
+    clearance[i] = sd
 
 
 @wp.kernel
