@@ -561,7 +561,8 @@ def body_collide(
     since the last step, a walk that ran out of steps, a concave vertex near the body) a BVH
     closest-point query decides and restarts the cache. Particles farther than trust_distance cannot
     collide, but their walk can stall between limbs; they are re-seeded from the BVH every refresh
-    steps, staggered by index, so the cost is spread out. With record != 0 the final position is also
+    steps, all on the same step: on a GPU a launch lasts as long as its slowest thread, so re-seeds
+    staggered over every step would make every launch wait for a query. With record != 0 the final position is also
     recorded against the nearest body face (follow_record) for begin_step of the next step.
 
     Launch: one thread per particle (dim = num_particles).
@@ -584,7 +585,7 @@ def body_collide(
           periodically
       reseed_radius (float, m): BVH query radius when re-seeding; farther particles keep their walk
       refresh (int, steps): re-seed period of far particles; at least 1
-      step_count (int32, 1 element): the step counter of begin_step, which staggers the re-seeding
+      step_count (int32, 1 element): the step counter of begin_step, which times the re-seeding
       margin (float, m): distance kept outside the body
       friction (float): Coulomb friction coefficient
       dt (float, s): step length
@@ -623,7 +624,7 @@ def body_collide(
         else:
             reach = wp.length(xp - points[vtx])
             far = reach > trust_distance
-            if (concave[vtx] != 0 and not far) or (far and (step_count[0] + p) % refresh == 0):
+            if (concave[vtx] != 0 and not far) or (far and step_count[0] % refresh == 0):
                 trusted = False
                 # the closest surface point is no farther than the vertex the walk reached; a far
                 # particle needs the right vertex only where it can touch or follow the body, so its
