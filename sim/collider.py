@@ -64,6 +64,7 @@ class Collider:
         self._adjacency = None
         self._embedding = None  # a proxy's (corners, barycentric, source vertex count): see proxy()
         self.bvh_stale = False  # the BVH lags the points: the next host query refits it first (fresh_mesh)
+        self._winding = None  # a mesh over the same points signing by winding numbers, built on demand
 
     def _shape(self):
         """What the collision kernels take: the mesh and the sphere tree (arrays refitted in place)."""
@@ -87,6 +88,7 @@ class Collider:
         twin._pose_buffers = {}
         twin._adjacency = self.adjacency()
         twin.bvh_stale = False
+        twin._winding = None
         return twin
 
     def proxy(self, spacing):
@@ -209,9 +211,21 @@ class Collider:
     def signed_distance(self, points, max_dist=1.0e6):
         """Signed distance [m] of (N, 3) points to the posed mesh (negative inside).
 
-        Points farther than max_dist from the surface report +max_dist.
+        Points farther than max_dist from the surface report +max_dist. The closest face's
+        pseudo-normal signs every point, and the mesh's winding number re-signs those it calls
+        inside: a posed body intersects itself (an arm pressed to the side), where the pseudo-normal
+        can call a point between the two surfaces inside.
         """
-        return signed_distance(points, self.fresh_mesh(), self.device, max_dist)[0]
+        points = np.asarray(points)
+        distance = signed_distance(points, self.fresh_mesh(), self.device, max_dist)[0]
+        inside = np.flatnonzero(distance < 0.0)
+        if inside.size:
+            if self._winding is None:
+                self._winding = wp.Mesh(points=self.points, indices=self.indices, support_winding_number=True)
+            else:
+                self._winding.refit()  # the points may have moved since: refitting also updates the winding data
+            distance[inside] = signed_distance(points[inside], self._winding, self.device, max_dist, winding=True)[0]
+        return distance
 
     def closest_points(self, points):
         """Closest surface points of the posed mesh, their faces and barycentric weights."""

@@ -413,3 +413,31 @@ def test_hair_on_a_walking_body_skips_queries_by_the_motion_near_it_and_steps_th
     np.testing.assert_array_equal(results[0], results[1])
     charged, below_half = np.mean(spread, axis=0)
     assert 0.0 < charged < 0.5 and below_half > 0.5  # most of the grid is charged less than the maximum
+
+
+def test_signed_distance_re_signs_points_a_self_intersecting_pose_puts_inside_by_mistake():
+    from sim.collider import Collider
+
+    # a ball and, outside it, a small ball wound inside out: the shape a skinned limb folding into
+    # itself leaves, where the closest face's normal points away from points that are outside
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    fold = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    v = np.concatenate([ball.vertices, fold.vertices + [0.5, 0.0, 0.0]])
+    f = np.concatenate([ball.faces, fold.faces[:, ::-1] + len(ball.vertices)])
+    weights = np.zeros((len(v), 4))
+    weights[:, 0] = 1.0
+    body = Collider("folded", v, f, np.zeros((len(v), 4), np.int32), weights, 1, "cpu", sphere_leaves=0)
+    body.set_poses(np.eye(4)[None, None])
+    body.apply_pose(0)
+    rng = np.random.default_rng(0)
+    u = rng.normal(size=(40, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    around_fold = [0.5, 0.0, 0.0] + 0.06 * u  # 1 cm outside the small ball: outside the body
+    inside_ball = 0.25 * u  # 5 cm inside the ball
+    d = body.signed_distance(np.concatenate([around_fold, inside_ball]))
+    np.testing.assert_allclose(d[:40], 0.01, atol=2e-3)
+    np.testing.assert_allclose(d[40:], -0.05, atol=2e-3)
+    # the pseudo-normal alone calls the first ones inside
+    from sim.sphere_tree import signed_distance
+
+    assert np.all(signed_distance(around_fold, body.fresh_mesh())[0] < 0.0)
