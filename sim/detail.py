@@ -236,7 +236,8 @@ class DetailParams:
 
     level: int = 6  # tessellation level: n x n detail triangles per coarse triangle (the paper: 6); 0 = none
     margin: float = 0.003  # m, detail vertices kept this far outside the body
-    band: float = 0.01  # m, tests look at least this far beyond margin; a sample found no nearer spares its finer neighbours within band of it (§4.2)
+    # tests look at least band beyond the margin: a sample found no nearer spares its finer neighbours within band of it
+    band: float = 0.01  # m (§4.2)
     # eq. 3 carries dh from the last frame; carrying all of it would keep a lift forever after the
     # contact ends (only wrinkles and the dh >= 0 clamp ever lower it), so a share is carried
     height_carry: float = 0.85  # share of last frame's height carried into this frame (eq. 3)

@@ -4,9 +4,11 @@ import numpy as np
 import pytest
 import trimesh
 
+from sim.collider import Collider
 from sim.hair_solver import HairParams, HairSolver
 from sim.hairstyle import HairstyleParams, grow_hairstyle, sample_scalp
 from sim.head import HeadAnimation
+from sim.sphere_tree import signed_distance
 from sim.strands import StrandBuilder
 from warp_kernels import strands as strand_kernels
 
@@ -416,8 +418,6 @@ def test_hair_on_a_walking_body_skips_queries_by_the_motion_near_it_and_steps_th
 
 
 def test_signed_distance_re_signs_points_a_self_intersecting_pose_puts_inside_by_mistake():
-    from sim.collider import Collider
-
     # a ball and, outside it, a small ball wound inside out: the shape a skinned limb folding into
     # itself leaves, where the closest face's normal points away from points that are outside
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
@@ -438,6 +438,4 @@ def test_signed_distance_re_signs_points_a_self_intersecting_pose_puts_inside_by
     np.testing.assert_allclose(d[:40], 0.01, atol=2e-3)
     np.testing.assert_allclose(d[40:], -0.05, atol=2e-3)
     # the pseudo-normal alone calls the first ones inside
-    from sim.sphere_tree import signed_distance
-
     assert np.all(signed_distance(around_fold, body.fresh_mesh())[0] < 0.0)

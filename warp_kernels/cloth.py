@@ -562,8 +562,9 @@ def body_collide(
     closest-point query decides and restarts the cache. Particles farther than trust_distance cannot
     collide, but their walk can stall between limbs; they are re-seeded from the BVH every refresh
     steps, all on the same step: on a GPU a launch lasts as long as its slowest thread, so re-seeds
-    staggered over every step would make every launch wait for a query. With record != 0 the final position is also
-    recorded against the nearest body face (follow_record) for begin_step of the next step.
+    staggered over every step would make every launch wait for a query. With record != 0 the final
+    position is also recorded against the nearest body face (follow_record) for begin_step of the
+    next step.
 
     Launch: one thread per particle (dim = num_particles).
     Inputs:

@@ -347,7 +347,8 @@ def lift_out_of_body(
     teleport since the last test, a walk out of steps, a concave vertex, a vertex farther than
     trust_distance) a BVH closest-point query decides instead and restarts the walk. Its radius is
     reach, widened to the parent's clearance plus the offset, the most a sample can lie inside, so
-    a sample pushed deep inside between frames is still found. A walk costs a fraction of a query on a body of tens of thousands of triangles.
+    a sample pushed deep inside between frames is still found. A walk costs a fraction of a query
+    on a body of tens of thousands of triangles.
 
     Launch: one thread per detail vertex of this level (dim = len(vertices)).
     Inputs:
