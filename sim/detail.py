@@ -18,6 +18,8 @@ import warp as wp
 from warp_kernels import detail as kernels
 
 KIND_VERTEX, KIND_EDGE, KIND_INTERIOR = 0, 1, 2
+# coarser samples whose clearances bound a detail sample's (the lift's gate; a wp.vec4i each)
+BOUNDED_BY = 4
 
 
 def _lattice(n):
@@ -29,28 +31,30 @@ def _lattice(n):
     return weights, index
 
 
-def _hierarchy(weights, n):
-    """Level and parent lattice point of every lattice point.
+def _hierarchy(weights, n, bounded_by=BOUNDED_BY):
+    """Level and nearest coarser lattice points of every lattice point.
 
     The levels are the divisors d_0 = 1 < d_1 < ... < d_L = n of n: a point belongs to the first
     level l whose grid of step 1/d_l contains it (all weights multiples of n / d_l). For n = 6 the
     steps are 1, 1/2, 1/3, 1/6, so level 0 is the corners and level 3 everything left; a prime n has
-    two levels. The parent is the nearest point of any strictly coarser level (Euclidean distance of
-    the barycentric weights, proportional to distance in an equilateral triangle); ties go to the
-    coarser level, then to the earlier lattice point.
+    two levels. `coarser[p]` lists the bounded_by points of strictly coarser levels nearest p
+    (Euclidean distance of the barycentric weights, proportional to distance in an equilateral
+    triangle; ties go to the coarser level, then to the earlier lattice point), -1 where there are
+    fewer; its first, the parent, is the nearest.
     """
     divisors = [d for d in range(1, n + 1) if n % d == 0]
     level = np.empty(len(weights), np.int64)
     for p, w in enumerate(weights):
         level[p] = next(k for k, d in enumerate(divisors) if np.all(w * d % n == 0))
-    parent = np.full(len(weights), -1, np.int64)
+    coarser = np.full((len(weights), bounded_by), -1, np.int64)
     for p, w in enumerate(weights):
         if level[p] == 0:
             continue
-        coarser = np.flatnonzero(level < level[p])
-        dist = np.sum((weights[coarser] - w) ** 2, axis=1)
-        parent[p] = coarser[np.lexsort((coarser, level[coarser], dist))[0]]
-    return divisors, level, parent
+        candidates = np.flatnonzero(level < level[p])
+        dist = np.sum((weights[candidates] - w) ** 2, axis=1)
+        nearest = candidates[np.lexsort((candidates, level[candidates], dist))[:bounded_by]]
+        coarser[p, :len(nearest)] = nearest
+    return divisors, level, coarser
 
 
 class DetailTopology:
@@ -65,7 +69,7 @@ class DetailTopology:
     Per detail vertex: `owner_face` (the lowest-indexed coarse face containing it; its patch evaluates
     the vertex), `bary` (float64 weights of the owner's corners 0, 1, 2), `kind` (KIND_VERTEX,
     KIND_EDGE, KIND_INTERIOR), `coarse_vertex` / `coarse_edge` (or -1), and the hierarchy `level` /
-    `parent` described in `_hierarchy`; `level_order[level_start[l]:level_start[l + 1]]` are the
+    `coarser` (with its first column, `parent`) described in `_hierarchy`; `level_order[level_start[l]:level_start[l + 1]]` are the
     vertices of level l, for one launch per level. `level_steps` are the divisors defining the levels.
     """
 
@@ -130,9 +134,11 @@ class DetailTopology:
         self.coarse_vertex = np.where(self.kind == KIND_VERTEX, ids, -1)
         self.coarse_edge = np.where(self.kind == KIND_EDGE, (ids - edge_base) // max(n - 1, 1), -1)
 
-        self.level_steps, point_level, point_parent = _hierarchy(weights, n)
+        self.level_steps, point_level, point_coarser = _hierarchy(weights, n)
         self.level = point_level[point]
-        self.parent = np.where(point_parent[point] >= 0, lattice[owner, np.maximum(point_parent[point], 0)], -1)
+        from_points = point_coarser[point]
+        self.coarser = np.where(from_points >= 0, lattice[owner[:, None], np.maximum(from_points, 0)], -1)
+        self.parent = self.coarser[:, 0]
         self.level_order = np.argsort(self.level, kind="stable")
         self.level_start = np.searchsorted(self.level[self.level_order], np.arange(len(self.level_steps) + 1))
 
@@ -280,7 +286,7 @@ class ClothDetail:
         self.bary = arr(top.bary.astype(np.float32), wp.vec3)
         self.kind = arr(top.kind.astype(np.int32), wp.int32)
         self.coarse_edge = arr(np.maximum(top.coarse_edge, 0).astype(np.int32), wp.int32)
-        self.parent = arr(top.parent.astype(np.int32), wp.int32)
+        self.coarser = arr(top.coarser.astype(np.int32), wp.vec4i)
         self.levels = [arr(top.level_order[top.level_start[k]:top.level_start[k + 1]].astype(np.int32), wp.int32)
                        for k in range(len(top.level_steps))]
         start, adj = top.detail_vertex_neighbours()
@@ -376,7 +382,7 @@ class ClothDetail:
             for level, spread in zip(self.levels, self.level_spread, strict=True):
                 reach = p.margin + max(p.band, 1.25 * spread)
                 wp.launch(kernels.lift_out_of_body, len(level),
-                          [base, pn_normals, level, self.parent, body.mesh.id,
+                          [base, pn_normals, level, self.coarser, body.mesh.id,
                            body.points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face,
                            adj.concave, walk.walk_steps, walk.teleport, walk.walk_trust_distance, self.side, p.margin,
                            reach, self.height, self.clearance, self.body_vertex, self.probe_point, self.queries],

@@ -85,14 +85,13 @@ def test_lifting_walks_over_the_body_and_leaves_lifted_samples_at_the_margin():
         detail.update(model, state, body, 1.0 / 24.0)
         sd = body.signed_distance(detail.positions.numpy().astype(np.float64), max_dist=0.05)
         tested, bvh = detail.queries.numpy()
-        # the samples tested: the corners, and those whose parent's clearance less their distance
-        # from it does not clear the margin (the kernel's gate, recomputed; nothing moved after the
-        # first update's lifts, so the positions are those the gate saw)
-        x, parent, clearance = detail.positions.numpy(), detail.parent.numpy(), detail.clearance.numpy()
-        has_parent = parent >= 0
-        gate = np.ones(len(x), bool)
-        gate[has_parent] = (clearance[parent[has_parent]] - np.linalg.norm(x[has_parent] - x[parent[has_parent]],
-                                                                           axis=1) <= params.margin)
+        # the samples tested: the corners, and those for which no listed coarser sample's clearance
+        # less their distance apart clears the margin (the kernel's gate, recomputed; nothing moved
+        # after the first update's lifts, so the positions are those the gate saw)
+        x, coarser, clearance = detail.positions.numpy(), detail.coarser.numpy(), detail.clearance.numpy()
+        listed = coarser >= 0
+        bound = np.where(listed, clearance[coarser] - np.linalg.norm(x[:, None] - x[coarser], axis=2), -np.inf)
+        gate = bound.max(axis=1) <= params.margin
         if update > 0:
             assert tested == np.count_nonzero(gate)
         # the first update has no vertex to start the corners' walks from and asks the BVH; finer

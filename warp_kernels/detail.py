@@ -307,7 +307,7 @@ def lift_out_of_body(
     base: wp.array(dtype=wp.vec3),
     direction: wp.array(dtype=wp.vec3),
     vertices: wp.array(dtype=wp.int32),
-    parent: wp.array(dtype=wp.int32),
+    coarser: wp.array(dtype=wp.vec4i),
     mesh: wp.uint64,
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
@@ -330,10 +330,11 @@ def lift_out_of_body(
 ):
     """Oshita & Makinouchi §4.2 for one refinement level: raise heights so detail vertices leave the body.
 
-    Every sample ends a level with a clearance: a lower bound of its distance outside the body. A
-    sample lies within |x - x_parent| of its parent (a sample of a coarser level, already final),
-    so while the parent's clearance less that offset stays above margin the sample cannot be
-    inside: it takes that bound untested. Most vertices are thus never tested, and no sample is
+    Every sample ends a level with a clearance: a lower bound of its distance outside the body. The
+    distance to a surface changes no faster than the point moves, so each sample of a coarser level
+    (already final) bounds this one's clearance by its own less their distance apart. The best of
+    the nearest few such bounds is kept; while it stays above margin the sample cannot be inside and
+    takes it untested. Most vertices are thus never tested, and no sample is
     skipped that could be inside, whatever its coarse face touches (the paper tests the faces whose
     particles touch; a face can cut the body between particles that do not). The corners (level 0,
     the coarse particles, which the coarse collision keeps outside) are always tested. Each vertex
@@ -341,9 +342,9 @@ def lift_out_of_body(
     the last.
 
     A test is the coarse cloth's (body_collide, §3.3): a greedy walk over the body's vertices from
-    the vertex this sample found last time (or, new to the test, its parent's), then the planes of
-    the faces around the vertex it stops at: the least-inside plane gives the signed distance and
-    the direction to lift along. Where the walk is not to be trusted (no start, a jump farther than
+    the vertex this sample found last time (or, new to the test, that of the nearest coarser sample
+    with one), then the planes of the faces around the vertex it stops at: the least-inside plane
+    gives the signed distance and the direction to lift along. Where the walk is not to be trusted (no start, a jump farther than
     teleport since the last test, a walk out of steps, a concave vertex, a vertex farther than
     trust_distance) a BVH closest-point query decides instead and restarts the walk. Its radius is
     reach, widened to the parent's clearance plus the offset, the most a sample can lie inside, so
@@ -355,7 +356,8 @@ def lift_out_of_body(
       base (vec3, per detail vertex, m): PN surface positions
       direction (vec3, per detail vertex): unit control directions (the PN normals)
       vertices (int32, per vertex of this level): detail vertices of this level
-      parent (int32, per detail vertex): nearest sample of a coarser level, -1 on level 0 (corners)
+      coarser (vec4i, per detail vertex): nearest samples of coarser levels, the nearest (the parent)
+          first, -1 past the last and on level 0 (corners)
       mesh (uint64): wp.Mesh id of the posed body, its BVH refitted to this pose
       points (vec3, per body vertex, m): the posed body (the mesh's points)
       indices (int32, 3 per body triangle): body triangles, outward winding
@@ -382,10 +384,15 @@ def lift_out_of_body(
     i = vertices[k]
     n = direction[i] * side
     p = base[i] + height[i] * n
-    pa = parent[i]
+    bounds = coarser[i]
+    pa = bounds[0]
     if pa >= 0:
         offset = wp.length(p - (base[pa] + height[pa] * side * direction[pa]))
         bound = clearance[pa] - offset
+        for s in range(1, 4):
+            j = bounds[s]
+            if j >= 0:
+                bound = wp.max(bound, clearance[j] - wp.length(p - (base[j] + height[j] * side * direction[j])))
         if bound > margin:
             clearance[i] = bound
             return
@@ -395,8 +402,9 @@ def lift_out_of_body(
     if vtx >= 0:
         if wp.length(p - probe_point[i]) > teleport:
             vtx = -1
-    if vtx < 0 and pa >= 0:
-        vtx = body_vertex[pa]
+    for s in range(4):  # new to the test: start where the nearest coarser sample's last test ended
+        if vtx < 0 and bounds[s] >= 0:
+            vtx = body_vertex[bounds[s]]
     probe_point[i] = p
     trusted = vtx >= 0
     if trusted:
