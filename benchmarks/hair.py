@@ -12,8 +12,13 @@ every array the frame's launches are given, see benchmarks/common.py) with the s
 device's copy bandwidth measured in this run; max stretch (largest |segment / rest - 1| after
 the timed frames) for us and for the peer.
 
+The sphere tree's walks for the particles whose leaf lists run short can be made in a parallel pass
+before the length pass (HairSolver.leaves_ahead, on by default on a GPU only); --leaves-ahead both
+times each case both ways, the rows with it marked "ahead" (the mesh cases are the same both ways).
+
     python benchmarks/hair.py                        # 1k, 10k, 100k strands on cpu (and cuda if present)
     python benchmarks/hair.py --strands 1000 --device cuda --cases full+mesh
+    python benchmarks/hair.py --device cuda --leaves-ahead both
 """
 
 import argparse
@@ -63,11 +68,14 @@ def settle(scene, seconds=0.5):
     return scene.state.x.numpy(), scene.state.v.numpy()
 
 
-def run_ours(scene, params, frames, settled, profile=False):
-    """(ms/frame, bytes/frame, max stretch) for one solver variant on a built scene, from `settled`."""
+def run_ours(scene, params, frames, settled, profile=False, ahead=None):
+    """(ms/frame, bytes/frame, max stretch) for one solver variant on a built scene, from `settled`;
+    ahead: HairSolver.leaves_ahead, None for the device's default."""
 
     def start(parts):
         scene.solver = HairSolver(scene.model, params, parts=parts)
+        if ahead is not None:
+            scene.solver.leaves_ahead = ahead
         scene.graphs.clear()
         scene.state, scene._scratch = scene.model.state(), scene.model.state()
         scene.state.x.assign(settled[0])
@@ -109,6 +117,8 @@ def main():
     parser.add_argument("--frames", type=int, default=10, help="timed frames (at least)")
     parser.add_argument("--no-peer", action="store_true", help="skip Newton")
     parser.add_argument("--profile", action="store_true", help="print per-kernel device time of one frame (CUDA)")
+    parser.add_argument("--leaves-ahead", choices=["auto", "on", "off", "both"], default="auto",
+                        help="HairSolver.leaves_ahead: the device's default, on, off, or each case both ways")
     args = parser.parse_args()
     quiet_warp()
     wp.init()
@@ -128,12 +138,14 @@ def main():
             scene = build_scene(strands, device, args.substeps)
             settled = settle(scene)
             peer_ms, peer_stretch = run_peer(scene, args.substeps, args.frames, settled) if peer_ok else (None, None)
-            for name in args.cases:
+            ways = {"auto": [None], "on": [True], "off": [False], "both": [False, True]}[args.leaves_ahead]
+            for name, ahead in ((n, a) for n in args.cases for a in ways):
                 params = HairParams(substeps=args.substeps, **CASES[name])
-                ms, moved, stretch = run_ours(scene, params, args.frames, settled, args.profile)
+                ms, moved, stretch = run_ours(scene, params, args.frames, settled, args.profile, ahead)
                 rate = scene.model.num_particles * params.substeps / (ms * 1e-3)
                 gbs = moved / (ms * 1e-3) / 1e9
-                rows.append([name, strands, scene.model.num_particles, device, fmt(ms, 4), fmt(rate),
+                label = name + (" ahead" if ahead and args.leaves_ahead == "both" else "")
+                rows.append([label, strands, scene.model.num_particles, device, fmt(ms, 4), fmt(rate),
                              fmt(moved / 1e6), f"{gbs:.0f} ({100 * gbs / ceiling:.0f}%)", fmt(stretch, 2),
                              fmt(peer_ms, 4), fmt(peer_stretch, 2),
                              f"{peer_ms / ms:.1f}x" if peer_ms else "-"])

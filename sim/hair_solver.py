@@ -18,6 +18,8 @@ COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
 # mesh query's cost grows fast with its radius (1k strands on the CPU, full+mesh: 216 -> 186 ms/frame
 # against querying collision_search = 2 cm; 5 mm re-queries far particles too often to gain more)
 PROBE = 0.01
+# list_leaves_ahead lists afresh the leaves of particles whose bounds come within this of the margin
+LIST_SLACK = 0.0005
 MAX_PARTS = 8  # strand ranges stepped side by side on the CPU
 
 
@@ -142,6 +144,10 @@ class HairSolver:
         self.near_leaves = wp.full(model.num_particles, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=device)
         self.beyond = wp.full(model.num_particles, strands.NO_BOUND, dtype=float, device=device)
         self.contact_bounds = True  # False queries every particle every substep (same result, slower)
+        # walk the sphere tree for the particles whose leaf lists run short in a parallel pass before the
+        # length pass (strands.list_leaves_ahead), the same strands: on a GPU the walks then leave the
+        # serial loop, where a warp waits for its slowest strand; a CPU runs each strand in turn anyway
+        self.leaves_ahead = wp.get_device(device).is_cuda
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
@@ -237,14 +243,18 @@ class HairSolver:
                       [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
                        c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
                        r.reach, p.collision_search, motion], device=dev)
+            if self.leaves_ahead and not mesh:
+                wp.launch(strands.list_leaves_ahead, r.particles,
+                          [state_out.x, state_in.x, m.particle_strand, m.strand_start, m.pinned_per_strand, c.shape,
+                           p.collision_margin, p.collision_search, LIST_SLACK, motion, r.reach, self.clearance,
+                           self.near_leaves, self.beyond, r.first_particle], device=dev)
         # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.follow_the_leader, r.strands,
                   [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), probe, motion, r.reach,
-                   self.clearance, self.near_leaves, self.beyond, p.ftl_damping, dt, state_out.v, r.first_strand],
-                  device=dev)
+                   int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
+                   p.ftl_damping, dt, state_out.v, r.first_strand], device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,

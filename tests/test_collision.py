@@ -129,11 +129,28 @@ def test_refitted_sphere_tree_bounds_each_subtree_exactly(head):
         assert abs(radii[i] - expected) < 1e-6
 
 
-@pytest.mark.parametrize("mode", ["sphere_tree", "mesh"])
-def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(head, head_collider, mode):
+def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed):
+    """A head turning and nodding fast (a quarter turn in 0.25 s) posed for substeps of dt, and wavy
+    hair grown on it: (collider at pose 0, strand model, the grown points)."""
+    moving = Collider("head", head.vertices, head.faces, head.skin_indices, head.skin_weights, head.num_bones, "cpu",
+                      sphere_leaves=sphere_leaves)
+    anim = HeadAnimation(turn_degrees=45.0, turn_period=1.0, nod_degrees=15.0, nod_period=0.8, ease_in=0.0)
+    moving.set_poses(anim.bone_matrices(dt * np.arange(substeps + 1)))
+    moving.apply_pose(0)
+    roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, strands, seed=seed)
+    pts, counts, widths = grow_hairstyle(HairstyleParams(style="wavy", vertices=12, length=0.2), roots, normals,
+                                         moving.push_out)
+    model = StrandBuilder().add_strands(pts, counts, widths).finalize("cpu").bind_to_mesh(moving.posed_points(),
+                                                                                          head.faces)
+    return moving, model, pts
+
+
+@pytest.mark.parametrize("mode,ahead", [("sphere_tree", False), ("mesh", False), ("sphere_tree", True)])
+def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(head, head_collider, mode, ahead):
+    """ahead: the tree walks of the lists that run short made in a parallel pass first (a GPU's
+    way), here on the CPU; the strands are the same."""
     import warp as wp
 
-    from sim.collider import Collider
     from warp_kernels import collision
 
     c = head_collider
@@ -161,21 +178,13 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
 
     # hair on a head turning and nodding fast (a quarter turn in 0.25 s), with and without the
     # contact bounds: the same strands, while most queries are skipped
-    moving = Collider("head", head.vertices, head.faces, head.skin_indices, head.skin_weights, head.num_bones, "cpu",
-                      sphere_leaves=256 if mode == "sphere_tree" else 0)
-    anim = HeadAnimation(turn_degrees=45.0, turn_period=1.0, nod_degrees=15.0, nod_period=0.8, ease_in=0.0)
     substeps, dt = 60, 1.0 / 240.0
-    moving.set_poses(anim.bone_matrices(dt * np.arange(substeps + 1)))
-    moving.apply_pose(0)
-    roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, 60, seed=2)
-    pts, counts, widths = grow_hairstyle(HairstyleParams(style="wavy", vertices=12, length=0.2), roots, normals,
-                                         moving.push_out)
-    model = StrandBuilder().add_strands(pts, counts, widths).finalize("cpu").bind_to_mesh(moving.posed_points(),
-                                                                                          head.faces)
+    moving, model, pts = _hair_on_a_turning_head(head, 256 if mode == "sphere_tree" else 0, substeps, dt, 60, 2)
     results, skipped = [], []
     for use in (True, False):
         solver = HairSolver(model, HairParams(collision=mode))
         solver.contact_bounds = use
+        solver.leaves_ahead = ahead
         s0, s1 = model.state(), model.state()
         moving.apply_pose(0)
         kept, moved = 0, 0.0
@@ -199,6 +208,78 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
         depth = moving.sphere_tree_depth(results[0])
     print(f"deepest {1e3 * depth.max():.2f} mm")
     assert depth.max() < 1e-4
+
+
+def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch):
+    """list_leaves_ahead, caught around each launch on a turning head: a particle whose bounds,
+    lowered as follow_the_leader lowers them (a NumPy reference of the motion grid), come within
+    slack of the margin at its predicted position gets the four leaves nearest its start position
+    carried into the new pose, and that point's distances as its bounds (a float64 reference over all
+    leaves); every other particle keeps its bounds and list."""
+    import warp as wp
+
+    from sim import hair_solver
+
+    substeps, dt = 24, 1.0 / 240.0
+    moving, model, _ = _hair_on_a_turning_head(head, 256, substeps, dt, 40, 5)
+    params = HairParams(collision="sphere_tree")
+    solver = HairSolver(model, params, parts=1)
+    solver.leaves_ahead = True
+    seen, launch = [], wp.launch
+
+    def spy(kernel, dim, inputs=(), *args, **kwargs):
+        if kernel is not strand_kernels.list_leaves_ahead:
+            return launch(kernel, dim, inputs, *args, **kwargs)
+        # copies: on the CPU numpy() views the array, which the length pass goes on to change
+        before = [inputs[k].numpy().copy() for k in (11, 12, 13)]
+        launch(kernel, dim, inputs, *args, **kwargs)
+        motion = inputs[9]
+        seen.append((inputs[0].numpy().astype(np.float64), inputs[1].numpy().astype(np.float64), before,
+                     [inputs[k].numpy().copy() for k in (11, 12, 13)], motion.rigid.numpy()[0].astype(np.float64),
+                     motion.center.numpy()[0].astype(np.float64), motion.cells.numpy().astype(np.float64),
+                     moving.sphere_centers.numpy().astype(np.float64)))
+
+    monkeypatch.setattr(wp, "launch", spy)
+    s0, s1 = model.state(), model.state()
+    for k in range(1, substeps + 1):
+        moving.apply_pose(k)
+        solver.step(s0, s1, moving, dt)
+        s0, s1 = s1, s0
+    assert len(seen) == substeps
+    radii = moving.sphere_radii.numpy().astype(np.float64)
+    leaf = np.flatnonzero(moving.tree.is_leaf == 1)
+    free = np.arange(model.num_particles) - model.strand_start_np[model.particle_strand_np] >= model.pinned_per_strand
+    margin, search, slack = params.collision_margin, params.collision_search, hair_solver.LIST_SLACK
+    reach, grid = solver.whole.reach, strand_kernels.MOTION_GRID
+    half = reach + search
+    listed_total = 0
+    for x, x_prev, before, after, rigid, center, cells, centers in seen:
+        carried = x_prev @ rigid[:3, :3].T + rigid[:3, 3]
+        cell = np.clip(np.floor((x - center + half) * grid / (2.0 * half)).astype(int), 0, grid - 1)
+        near = cells[(cell[:, 0] * grid + cell[:, 1]) * grid + cell[:, 2]]
+        lowered = np.linalg.norm(x - carried, axis=1) + near
+        known = before[0] > 0.5 * strand_kernels.NO_BOUND
+        within = np.linalg.norm(x - center, axis=1) <= reach
+        short = free & within & (~known | ((before[0] - lowered <= margin + slack) &
+                                           (before[2] - lowered <= margin + slack)))
+        # the kernel's float32 arithmetic decides the cases this close to the threshold
+        edge = known & (np.abs(np.minimum(before[0], before[2]) - lowered - margin - slack) < 1e-6)
+        dist = np.linalg.norm(carried[short][:, None] - centers[leaf][None], axis=2) - radii[leaf][None]
+        ranked = np.sort(dist, axis=1)
+        got_short = ~edge[short]
+        np.testing.assert_allclose(after[0][short][got_short], np.minimum(ranked[:, 0], search)[got_short], atol=2e-5)
+        np.testing.assert_allclose(after[2][short][got_short], np.minimum(ranked[:, 4], search)[got_short], atol=2e-5)
+        # the four nearest within search, ascending node indices, -1 after them
+        order = np.argsort(dist, axis=1)[:, :4]
+        nearest4 = np.where(np.take_along_axis(dist, order, axis=1) < search, leaf[order], np.iinfo(np.int32).max)
+        nearest4 = np.sort(nearest4, axis=1)
+        nearest4[nearest4 == np.iinfo(np.int32).max] = -1
+        np.testing.assert_array_equal(after[1][short][got_short], nearest4[got_short])
+        kept = ~short & ~edge
+        for b, a in zip(before, after, strict=True):
+            np.testing.assert_array_equal(a[kept], b[kept])
+        listed_total += np.count_nonzero(short)
+    assert 0 < listed_total < 0.5 * substeps * np.count_nonzero(free)
 
 
 def _listed_queries():

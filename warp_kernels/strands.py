@@ -6,6 +6,7 @@ Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launche
     -> [follow_guides]
     -> [shape_match_rotations (full variant) -> shape_match_step] x passes
     -> anchor_frame -> contact_motion (how far the collider moved near these strands)
+    -> [list_leaves_ahead (the sphere tree's walks, in parallel)]
     -> follow_the_leader (length, collision and the velocity update)
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
@@ -23,7 +24,8 @@ from ._options import MODULE_OPTIONS
 
 wp.set_module_options(MODULE_OPTIONS)
 
-from .collision import COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded, collide_point_listed
+from .collision import (COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded, collide_point_listed,
+                        sphere_tree_nearest)
 from .skinning import bound_position, face_frame, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
@@ -716,6 +718,76 @@ def contact_motion(
 
 
 @wp.kernel
+def list_leaves_ahead(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    particle_strand: wp.array(dtype=wp.int32),
+    strand_start: wp.array(dtype=wp.int32),
+    pinned_per_strand: int,
+    shape: ColliderShape,
+    margin: float,
+    search: float,
+    slack: float,
+    motion: ContactMotion,
+    strand_reach: float,
+    clearance: wp.array(dtype=float),
+    near_leaves: wp.array(dtype=wp.vec4i),
+    beyond: wp.array(dtype=float),
+    first: int,
+):
+    """List afresh, before follow_the_leader, the sphere-tree leaves near each particle whose list
+    that pass would find run short: the tree walks leave its serial loop.
+
+    follow_the_leader walks the tree for a particle whose contact bound and unlisted-leaf bound have
+    both fallen to margin. Here both are lowered as it would lower them, at the predicted position
+    instead of the one it settles on; where both come within slack of margin, the four nearest
+    leaves are listed at the particle's start position carried into the new pose (where the bounds
+    are anchored) and the bounds are set to that point's distances, which hold there in the new
+    pose, so the lowering the pass applies next keeps them lower bounds. On a GPU these walks run one
+    thread per particle instead of one after another in a strand's loop, where a warp waits for its
+    slowest strand at every particle. The strands are those that querying every particle gives.
+
+    Launch: one thread per particle of a range of particles (dim = particles in the range), after
+    contact_motion; sphere-tree collision with contact bounds only.
+    Inputs:
+      x (vec3, per particle, m): predicted positions (those follow_the_leader starts from)
+      x_prev (vec3, per particle, m): positions at the start of the substep, where the bounds hold
+      particle_strand (int32, per particle): the strand of each particle
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+      pinned_per_strand (int): leading particles of each strand that follow_the_leader leaves alone
+      shape (ColliderShape): the collider, posed for the end of the substep
+      margin (float, m): distance kept outside the collider
+      search (float, m): cap of the tree's distances
+      slack (float, m): how far short of margin a bound may be from running out and still be listed
+      motion (ContactMotion): how the collider moved near these strands (contact_motion)
+      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+      first (int, index): the range's first particle; thread t works on particle first + t
+    In/out:
+      clearance (float, per particle, m): contact bounds (NO_BOUND: unknown), anchored at x_prev
+      near_leaves (vec4i, per particle): the leaves listed for each particle
+      beyond (float, per particle, m): bound of the distance to every unlisted leaf
+    """
+    i = wp.tid() + first
+    if i - strand_start[particle_strand[i]] < pinned_per_strand:
+        return
+    p = x[i]
+    if wp.length(p - motion.center[0]) > strand_reach:
+        return  # follow_the_leader queries such a particle outright
+    carried = wp.transform_point(motion.rigid[0], x_prev[i])
+    bound = float(NO_BOUND)
+    unlisted = float(NO_BOUND)
+    if clearance[i] > 0.5 * NO_BOUND:
+        lowered = wp.length(p - carried) + motion_near(motion, p, strand_reach + search)
+        bound = clearance[i] - lowered
+        unlisted = beyond[i] - lowered
+    if bound <= margin + slack and unlisted <= margin + slack:
+        leaves, nearest, fifth = sphere_tree_nearest(carried, shape, search)
+        near_leaves[i] = leaves
+        clearance[i] = nearest
+        beyond[i] = fifth
+
+
+@wp.kernel
 def follow_the_leader(
     x: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
@@ -761,7 +833,9 @@ def follow_the_leader(
     Sphere tree with bounds: each particle also keeps the four leaf spheres nearest it and a lower
     bound of its distance from every other leaf (lowered like the contact bound). While that bound
     stays above margin a query tests only those four leaves (collide_point_listed), which is most of
-    the queries of hair lying on the body; the result is again the same as querying the tree.
+    the queries of hair lying on the body; the result is again the same as querying the tree. On a
+    GPU, list_leaves_ahead first lists afresh, in parallel, the leaves of the particles whose lists
+    would run short here.
 
     Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
