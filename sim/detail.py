@@ -69,8 +69,9 @@ class DetailTopology:
     Per detail vertex: `owner_face` (the lowest-indexed coarse face containing it; its patch evaluates
     the vertex), `bary` (float64 weights of the owner's corners 0, 1, 2), `kind` (KIND_VERTEX,
     KIND_EDGE, KIND_INTERIOR), `coarse_vertex` / `coarse_edge` (or -1), and the hierarchy `level` /
-    `coarser` (with its first column, `parent`) described in `_hierarchy`; `level_order[level_start[l]:level_start[l + 1]]` are the
-    vertices of level l, for one launch per level. `level_steps` are the divisors defining the levels.
+    `coarser` (its first column is `parent`) described in `_hierarchy`;
+    `level_order[level_start[l]:level_start[l + 1]]` are the vertices of level l, for one launch per
+    level. `level_steps` are the divisors defining the levels.
     """
 
     def __init__(self, triangles, num_points, tessellation=6):

@@ -231,6 +231,12 @@ def test_parent_is_the_nearest_coarser_vertex_of_the_owner_face():
             coarser = topo.level < topo.level[v]
             dist = np.sum((topo.bary[coarser] - topo.bary[v]) ** 2, axis=1)
             assert np.isclose(np.sum((topo.bary[topo.parent[v]] - topo.bary[v]) ** 2), dist.min())
+            # the lift's gate reads the four nearest coarser points, nearest first
+            listed = topo.coarser[v][topo.coarser[v] >= 0]
+            assert len(listed) == min(4, np.count_nonzero(coarser)) and listed[0] == topo.parent[v]
+            assert np.all(topo.level[listed] < topo.level[v])
+            np.testing.assert_allclose(np.sum((topo.bary[listed] - topo.bary[v]) ** 2, axis=1),
+                                       np.sort(dist)[:len(listed)], atol=1e-12)
     # on a mesh, the midpoint of a coarse edge (level 1 for even n) hangs from an end of that edge
     topo = DetailTopology(trimesh.creation.icosphere(1).faces, 42, 6)
     mids = np.flatnonzero((topo.level == 1) & (topo.kind == KIND_EDGE))

@@ -334,9 +334,9 @@ def lift_out_of_body(
     distance to a surface changes no faster than the point moves, so each sample of a coarser level
     (already final) bounds this one's clearance by its own less their distance apart. The best of
     the nearest few such bounds is kept; while it stays above margin the sample cannot be inside and
-    takes it untested. Most vertices are thus never tested, and no sample is
-    skipped that could be inside, whatever its coarse face touches (the paper tests the faces whose
-    particles touch; a face can cut the body between particles that do not). The corners (level 0,
+    takes it untested. Most vertices are thus never tested, and no sample is skipped that could be
+    inside, whatever its coarse face touches (the paper tests the faces whose particles touch; a
+    face can cut the body between particles that do not). The corners (level 0,
     the coarse particles, which the coarse collision keeps outside) are always tested. Each vertex
     moves along its control direction times side. Launch the levels from coarse to fine, each after
     the last.
@@ -344,9 +344,10 @@ def lift_out_of_body(
     A test is the coarse cloth's (body_collide, §3.3): a greedy walk over the body's vertices from
     the vertex this sample found last time (or, new to the test, that of the nearest coarser sample
     with one), then the planes of the faces around the vertex it stops at: the least-inside plane
-    gives the signed distance and the direction to lift along. Where the walk is not to be trusted (no start, a jump farther than
-    teleport since the last test, a walk out of steps, a concave vertex, a vertex farther than
-    trust_distance) a BVH closest-point query decides instead and restarts the walk. Its radius is
+    gives the signed distance and the direction to lift along. Where the walk is not to be trusted
+    (no start, a jump farther than teleport since the last test, a walk out of steps, a concave
+    vertex, a vertex farther than trust_distance) a BVH closest-point query decides instead and
+    restarts the walk. Its radius is
     reach, widened to the parent's clearance plus the offset, the most a sample can lie inside, so
     a sample pushed deep inside between frames is still found. A walk costs a fraction of a query
     on a body of tens of thousands of triangles.
@@ -387,12 +388,15 @@ def lift_out_of_body(
     bounds = coarser[i]
     pa = bounds[0]
     if pa >= 0:
-        offset = wp.length(p - (base[pa] + height[pa] * side * direction[pa]))
-        bound = clearance[pa] - offset
-        for s in range(1, 4):
+        bound = float(-1.0e30)
+        offset = float(0.0)  # from the parent
+        for s in range(4):
             j = bounds[s]
             if j >= 0:
-                bound = wp.max(bound, clearance[j] - wp.length(p - (base[j] + height[j] * side * direction[j])))
+                apart = wp.length(p - (base[j] + height[j] * side * direction[j]))
+                if s == 0:
+                    offset = apart
+                bound = wp.max(bound, clearance[j] - apart)
         if bound > margin:
             clearance[i] = bound
             return

@@ -570,6 +570,25 @@ def motion_near(motion: ContactMotion, p: wp.vec3, half: float):
     return motion.cells[(c[0] * MOTION_GRID + c[1]) * MOTION_GRID + c[2]]
 
 
+@wp.func
+def bound_lowering(motion: ContactMotion, start: wp.vec3, p: wp.vec3, half: float):
+    """How far a contact bound held at a particle's start position (before the substep, in the
+    collider's last pose) falls by the time the particle is at p in the new pose.
+
+    Inputs:
+      motion (ContactMotion): as contact_motion left it
+      start (vec3, m): the particle's position at the start of the substep
+      p (vec3, m): the particle's position now, within reach of motion.center
+      half (float, m): the motion grid's half width, reach + search
+    Returns:
+      vec3 (m): start carried by the anchor's rigid motion (where the bound now holds but for the
+          collider's own motion)
+      float (m): |p - carried| plus the collider's largest motion near p
+    """
+    carried = wp.transform_point(motion.rigid[0], start)
+    return carried, wp.length(p - carried) + motion_near(motion, p, half)
+
+
 @wp.kernel
 def anchor_frame(
     points_before: wp.array(dtype=wp.vec3),
@@ -773,11 +792,10 @@ def list_leaves_ahead(
     p = x[i]
     if wp.length(p - motion.center[0]) > strand_reach:
         return  # follow_the_leader queries such a particle outright
-    carried = wp.transform_point(motion.rigid[0], x_prev[i])
+    carried, lowered = bound_lowering(motion, x_prev[i], p, strand_reach + search)
     bound = float(NO_BOUND)
     unlisted = float(NO_BOUND)
     if clearance[i] > 0.5 * NO_BOUND:
-        lowered = wp.length(p - carried) + motion_near(motion, p, strand_reach + search)
         bound = clearance[i] - lowered
         unlisted = beyond[i] - lowered
     if bound <= margin + slack and unlisted <= margin + slack:
@@ -893,8 +911,7 @@ def follow_the_leader(
                 unlisted = float(NO_BOUND)
                 if use_bounds != 0:
                     if wp.length(p - motion.center[0]) <= strand_reach:
-                        carried = wp.transform_point(motion.rigid[0], x_prev[i])
-                        lowered = wp.length(p - carried) + motion_near(motion, p, strand_reach + search)
+                        _carried, lowered = bound_lowering(motion, x_prev[i], p, strand_reach + search)
                         bound = clearance[i] - lowered
                         if listed and clearance[i] > 0.5 * NO_BOUND:
                             leaves = near_leaves[i]
