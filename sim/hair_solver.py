@@ -61,6 +61,20 @@ def _contact_motion(device):
 
 
 @dataclass(frozen=True)
+class _Lanes:
+    """The length pass's arrays in lane order (strands.lane_slot) over every strand."""
+
+    strands: int
+    longest: int  # particles of the longest strand: slots = strands * longest
+    slot: np.ndarray  # (particles,) each particle's slot
+    x: wp.array  # vec3 positions, predicted in and resolved out
+    prev: wp.array  # vec3 positions at the start of the substep
+    v: wp.array  # vec3 velocities out
+    inv_mass: wp.array
+    rest_length: wp.array
+
+
+@dataclass(frozen=True)
 class HairParams:
     substeps: int = 10  # solver steps per output frame
     gravity: tuple = (0.0, -9.81, 0.0)  # m/s^2 (Y up)
@@ -128,6 +142,7 @@ class HairSolver:
         self.windows = model.shape_windows(params.window_size)
         self.whole = StrandRange(0, model.num_strands, 0, model.num_particles, 0, self.windows.count,
                                  model.reach(0, model.num_strands))
+        self._lanes = None
         if parts is None:
             parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
         self.set_parts(parts)
@@ -138,16 +153,18 @@ class HairSolver:
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
-        # contact bounds of the length pass (see strands.follow_the_leader): NO_BOUND = unknown, a full query
-        self.clearance = wp.full(model.num_particles, strands.NO_BOUND, dtype=float, device=device)
-        # the sphere tree's leaves near each particle, and a bound on the distance to all others
-        self.near_leaves = wp.full(model.num_particles, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=device)
-        self.beyond = wp.full(model.num_particles, strands.NO_BOUND, dtype=float, device=device)
+        # contact bounds of the length pass (see strands.follow_the_leader), per particle in the pass's
+        # order (set with lanes): clearance (NO_BOUND = unknown, a full query), the sphere tree's four
+        # leaves near each particle (near_leaves), and a bound on the distance to all others (beyond)
         self.contact_bounds = True  # False queries every particle every substep (same result, slower)
         # walk the sphere tree for the particles whose leaf lists run short in a parallel pass before the
         # length pass (strands.list_leaves_ahead), the same strands: on a GPU the walks then leave the
         # serial loop, where a warp waits for its slowest strand; a CPU runs each strand in turn anyway
         self.leaves_ahead = wp.get_device(device).is_cuda
+        # the length pass in lane order (strands.lane_slot) on a GPU, where a warp's strands then read
+        # consecutive memory at each step of their serial loops; a CPU thread walks one strand's
+        # cache lines and gains nothing from the copies in and out
+        self.lanes = wp.get_device(device).is_cuda and len(self.parts) == 1
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
@@ -163,9 +180,56 @@ class HairSolver:
         self._clock_time = 0.0
         self.comb = None  # a sim.comb.CombGrip holding strands, or None
 
+    @property
+    def lanes(self):
+        """Whether the length pass runs in lane order (strands.lane_slot): the same strands, bit for
+        bit. Lane order steps all strands as one range, so it needs one part (set_parts(1)); setting
+        it forgets the contact bounds, and frames captured before must be forgotten."""
+        return self._lanes is not None
+
+    @lanes.setter
+    def lanes(self, on):
+        m, dev = self.model, self.model.device
+        if on and len(self.parts) > 1:
+            raise ValueError("the length pass in lane order steps all strands as one range: set_parts(1) first")
+        self._lanes = None
+        slots = m.num_particles
+        if on:
+            counts = np.diff(m.strand_start_np)
+            longest = int(counts.max()) if len(counts) else 0
+            slots = m.num_strands * longest
+            # where each particle's slot is, and each slot's particle (-1 past a strand's tip)
+            strand = m.particle_strand_np
+            slot = (np.arange(m.num_particles) - m.strand_start_np[strand]) * m.num_strands + strand
+            particle = np.full(slots, -1, np.int64)
+            particle[slot] = np.arange(m.num_particles)
+            held = particle >= 0
+
+            def in_lanes(values):
+                lane = np.zeros(slots, np.float32)
+                lane[held] = np.asarray(values, np.float32)[particle[held]]
+                return wp.array(lane, dtype=float, device=dev)
+
+            self._lanes = _Lanes(m.num_strands, longest, slot, wp.zeros(slots, dtype=wp.vec3, device=dev),
+                                 wp.zeros(slots, dtype=wp.vec3, device=dev), wp.zeros(slots, dtype=wp.vec3, device=dev),
+                                 in_lanes(m.inv_mass.numpy()), in_lanes(m.rest_length_np))
+        self.clearance = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
+        self.near_leaves = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=dev)
+        self.beyond = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
+
+    def particle_bounds(self):
+        """The length pass's contact bounds in particle order, as NumPy: (clearance [m], the four listed
+        leaves, the bound on every other leaf [m]) per particle, whichever order the solver keeps."""
+        bounds = (self.clearance.numpy(), self.near_leaves.numpy(), self.beyond.numpy())
+        if self._lanes is None:
+            return bounds
+        return tuple(b[self._lanes.slot] for b in bounds)
+
     def set_parts(self, count):
         """Step the strands as `count` StrandRanges (self.parts) from now on: the same strands, a
         different share of the CPU's cores. Frames captured with the old ranges must be forgotten."""
+        if count > 1 and self.lanes:
+            raise ValueError("the length pass in lane order steps all strands as one range: set lanes off first")
         self.parts = split_strands(self.model, self.windows, count)
         # how the collider moved near each range in the substep (strands.contact_motion)
         self._motion = {r: _contact_motion(self.model.device) for r in [*self.parts, self.whole]}
@@ -243,22 +307,32 @@ class HairSolver:
                       [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
                        c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
                        r.reach, p.collision_search, motion], device=dev)
-            if self.leaves_ahead and not mesh:
-                wp.launch(strands.list_leaves_ahead, r.particles,
-                          [state_out.x, state_in.x, m.particle_strand, m.strand_start, m.pinned_per_strand, c.shape,
-                           p.collision_margin, p.collision_search, LIST_SLACK, motion, r.reach, self.clearance,
-                           self.near_leaves, self.beyond, r.first_particle], device=dev)
+        lane = self._lanes
+        x, x_prev, inv_mass, rest, v, lanes = state_out.x, state_in.x, m.inv_mass, m.rest_length, state_out.v, 0
+        if lane is not None:
+            wp.launch(strands.to_lanes, lane.strands * lane.longest,
+                      [state_out.x, state_in.x, m.strand_start, lane.strands, lane.x, lane.prev], device=dev)
+            x, x_prev, inv_mass, rest, v, lanes = lane.x, lane.prev, lane.inv_mass, lane.rest_length, lane.v, lane.strands
+        if mode != 0 and self.contact_bounds and self.leaves_ahead and mode != COLLISION["mesh"]:
+            wp.launch(strands.list_leaves_ahead, lane.strands * lane.longest if lanes else r.particles,
+                      [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, c.shape, p.collision_margin,
+                       p.collision_search, LIST_SLACK, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
+                       lanes, 0 if lanes else r.first_particle], device=dev)
         # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.follow_the_leader, r.strands,
-                  [state_out.x, state_in.x, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand, mode,
+                  [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
-                   p.ftl_damping, dt, state_out.v, r.first_strand], device=dev)
+                   p.ftl_damping, dt, v, lanes, r.first_strand], device=dev)
+        if lane is not None:
+            wp.launch(strands.from_lanes, m.num_particles,
+                      [lane.x, lane.v, m.particle_strand, m.strand_start, lane.strands, state_out.x, state_out.v],
+                      device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
-                             p.collision_margin, p.collision_search, self.clearance, r)
+                             p.collision_margin, p.collision_search, self.clearance, lanes, r)
 
     def contact_motion(self, part=None):
         """What the last substep measured of the collider's motion near a range of strands (the whole

@@ -145,10 +145,14 @@ def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed):
     return moving, model, pts
 
 
-@pytest.mark.parametrize("mode,ahead", [("sphere_tree", False), ("mesh", False), ("sphere_tree", True)])
-def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(head, head_collider, mode, ahead):
-    """ahead: the tree walks of the lists that run short made in a parallel pass first (a GPU's
-    way), here on the CPU; the strands are the same."""
+@pytest.mark.parametrize("mode,ahead,lanes", [("sphere_tree", False, False), ("mesh", False, False),
+                                              ("sphere_tree", True, False), ("sphere_tree", True, True),
+                                              ("mesh", False, True)])
+def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(head, head_collider, mode, ahead,
+                                                                              lanes):
+    """ahead: the tree walks of the lists that run short made in a parallel pass first; lanes: the
+    length pass in lane order (both a GPU's way), here on the CPU; the strands are the same as
+    those of querying every particle in particle order."""
     import warp as wp
 
     from warp_kernels import collision
@@ -182,9 +186,10 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
     moving, model, pts = _hair_on_a_turning_head(head, 256 if mode == "sphere_tree" else 0, substeps, dt, 60, 2)
     results, skipped = [], []
     for use in (True, False):
-        solver = HairSolver(model, HairParams(collision=mode))
+        solver = HairSolver(model, HairParams(collision=mode), parts=1)
         solver.contact_bounds = use
         solver.leaves_ahead = ahead
+        solver.lanes = lanes and use
         s0, s1 = model.state(), model.state()
         moving.apply_pose(0)
         kept, moved = 0, 0.0
@@ -193,7 +198,7 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
             moved = max(moved, float(np.linalg.norm(moving.points.numpy() - moving.prev_points.numpy(), axis=1).max()))
             solver.step(s0, s1, moving, dt)
             s0, s1 = s1, s0
-            kept += int(np.sum(solver.clearance.numpy() > margin + 1e-5))
+            kept += int(np.sum(solver.particle_bounds()[0] > margin + 1e-5))
         results.append(s0.x.numpy())
         skipped.append(kept / (substeps * model.num_particles))
     print(f"{mode}: {100 * skipped[0]:.0f}% of the bounds above the margin, head moved up to {1e3 * moved:.1f} mm per substep")
@@ -210,12 +215,13 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
     assert depth.max() < 1e-4
 
 
-def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch):
+@pytest.mark.parametrize("lanes", [False, True])
+def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch, lanes):
     """list_leaves_ahead, caught around each launch on a turning head: a particle whose bounds,
     lowered as follow_the_leader lowers them (a NumPy reference of the motion grid), come within
     slack of the margin at its predicted position gets the four leaves nearest its start position
     carried into the new pose, and that point's distances as its bounds (a float64 reference over all
-    leaves); every other particle keeps its bounds and list."""
+    leaves); every other particle keeps its bounds and list. lanes: the same in lane order."""
     import warp as wp
 
     from sim import hair_solver
@@ -225,17 +231,19 @@ def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_s
     params = HairParams(collision="sphere_tree")
     solver = HairSolver(model, params, parts=1)
     solver.leaves_ahead = True
+    solver.lanes = lanes
     seen, launch = [], wp.launch
+    order = solver._lanes.slot if lanes else np.arange(model.num_particles)  # each particle's element
 
     def spy(kernel, dim, inputs=(), *args, **kwargs):
         if kernel is not strand_kernels.list_leaves_ahead:
             return launch(kernel, dim, inputs, *args, **kwargs)
         # copies: on the CPU numpy() views the array, which the length pass goes on to change
-        before = [inputs[k].numpy().copy() for k in (11, 12, 13)]
+        before = [inputs[k].numpy()[order] for k in (11, 12, 13)]
         launch(kernel, dim, inputs, *args, **kwargs)
         motion = inputs[9]
-        seen.append((inputs[0].numpy().astype(np.float64), inputs[1].numpy().astype(np.float64), before,
-                     [inputs[k].numpy().copy() for k in (11, 12, 13)], motion.rigid.numpy()[0].astype(np.float64),
+        seen.append((inputs[0].numpy()[order].astype(np.float64), inputs[1].numpy()[order].astype(np.float64), before,
+                     [inputs[k].numpy()[order] for k in (11, 12, 13)], motion.rigid.numpy()[0].astype(np.float64),
                      motion.center.numpy()[0].astype(np.float64), motion.cells.numpy().astype(np.float64),
                      moving.sphere_centers.numpy().astype(np.float64)))
 

@@ -41,7 +41,7 @@ def _hold(x, grip, target, pinned=2):
     t = wp.array([target], dtype=wp.vec3)
     bounds = wp.full(len(x), 1.0, dtype=float)  # the length pass's contact bounds, lost where the comb moves hair
     wp.launch(strand_kernels.hold_in_comb, 1, [xa, wp.array(x, dtype=wp.vec3), start, wp.array(rest, dtype=float),
-                                               pinned, t, t, 1.0, 16, 0, ColliderShape(), 0.0, 0.0, 0.01, g, v, bounds, 0])
+                                               pinned, t, t, 1.0, 16, 0, ColliderShape(), 0.0, 0.0, 0.01, g, v, bounds, 0, 0])
     if grip >= 0:  # a held strand: every particle after the root was moved
         np.testing.assert_array_equal(bounds.numpy(), np.r_[np.ones(pinned), np.full(len(x) - pinned, np.float32(strand_kernels.NO_BOUND))])
     else:
@@ -190,6 +190,36 @@ def test_a_timeline_comb_lifts_holds_and_releases():
         assert reached.mean() > 0.8  # the rest were stopped short by the head
     assert np.median(held[7][0][:, 1] - held[2][0][:, 1]) > 0.04  # 40 px at about 0.9 m: 6 cm
     assert np.median(held[10][0][:, 1] - held[7][0][:, 1]) < -0.005  # released, it falls back
+
+
+def test_a_comb_over_the_length_pass_in_lane_order_holds_the_same_strands():
+    """The comb resets the contact bounds of the hair it moves in the length pass's own order: with
+    the pass in lane order (a GPU's way, here on the CPU) a timeline comb gives the strands of
+    particle order bit for bit, head collision on."""
+    from sim.comb import before_frame
+    from sim.haircut import run_events
+    from sim.scene import Scene
+
+    comb = {"frame": 2, "tool": "comb", "stroke": [[200, 230], [240, 232], [280, 230]], "camera": SIDE,
+            "moves": [[4, 0, -40]], "release": 6}
+    config = _timeline_config([comb])
+    assert config.solver.collision != "none"
+    results = []
+    for lanes in (False, True):
+        scene = Scene(config)
+        scene.solver = HairSolver(scene.model, config.solver, parts=1)
+        scene.solver.lanes = lanes
+        scene.advance(config.timing.preroll, animate=False)
+        held = 0
+        for frame in range(1, 8):
+            if frame > 1:
+                before_frame(scene, config.haircut, frame)
+                scene.advance(1.0 / 24.0)
+            run_events(scene, config.haircut, frame)
+            held += scene.held_comb is not None
+        assert held >= 3
+        results.append(scene.state.x.numpy().copy())
+    np.testing.assert_array_equal(results[1], results[0])
 
 
 @pytest.mark.parametrize("change, key", [({"moves": [[1, 0, 5]]}, "moves"), ({"release": 2}, "release"),

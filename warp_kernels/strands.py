@@ -736,6 +736,88 @@ def contact_motion(
                 wp.atomic_max(motion.cells, (a * MOTION_GRID + b) * MOTION_GRID + c, moved)
 
 
+@wp.func
+def lane_slot(start: int, s: int, k: int, lanes: int):
+    """Where the length pass finds particle k of strand s (whose first particle is `start`): in
+    particle order when lanes is 0, else in lane order, k * lanes + s, where the k-th particles of
+    `lanes` strands lie side by side. A thread per strand walking its particles then reads, with
+    its warp's 31 neighbours, 32 consecutive elements at each step instead of 32 far-apart ones.
+
+    Inputs:
+      start (int, index): the strand's first particle
+      s (int, index): the strand
+      k (int, index): the particle's place along it, from 0 at the root
+      lanes (int): 0 for particle order, else the strands in lane order (all of them)
+    Returns:
+      int (index): the element of a per-particle array of the length pass that holds the particle
+    """
+    if lanes > 0:
+        return k * lanes + s
+    return start + k
+
+
+@wp.kernel
+def to_lanes(
+    x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
+    strand_start: wp.array(dtype=wp.int32),
+    lanes: int,
+    lane_x: wp.array(dtype=wp.vec3),
+    lane_prev: wp.array(dtype=wp.vec3),
+):
+    """Copy the positions the length pass reads into lane order (lane_slot).
+
+    Launch: one thread per lane slot (dim = lanes * the longest strand's particle count).
+    Inputs:
+      x (vec3, per particle, m): predicted positions
+      x_prev (vec3, per particle, m): positions at the start of the substep
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+      lanes (int): strands in lane order (all of them)
+    Outputs:
+      lane_x (vec3, per lane slot, m): x in lane order; the slots past a strand's tip are left as
+          they were
+      lane_prev (vec3, per lane slot, m): x_prev in lane order
+    """
+    t = wp.tid()
+    k = t / lanes
+    s = t - k * lanes
+    start = strand_start[s]
+    if k < strand_start[s + 1] - start:
+        lane_x[t] = x[start + k]
+        lane_prev[t] = x_prev[start + k]
+
+
+@wp.kernel
+def from_lanes(
+    lane_x: wp.array(dtype=wp.vec3),
+    lane_v: wp.array(dtype=wp.vec3),
+    particle_strand: wp.array(dtype=wp.int32),
+    strand_start: wp.array(dtype=wp.int32),
+    lanes: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+):
+    """Copy the length pass's positions and velocities back from lane order to particle order.
+
+    Launch: one thread per particle (dim = particles); each reads its lane slot and writes its own
+    element, so the writes stay consecutive.
+    Inputs:
+      lane_x (vec3, per lane slot, m): positions in lane order
+      lane_v (vec3, per lane slot, m/s): velocities in lane order
+      particle_strand (int32, per particle): the strand of each particle
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+      lanes (int): strands in lane order (all of them)
+    Outputs:
+      x (vec3, per particle, m): the positions in particle order
+      v (vec3, per particle, m/s): the velocities in particle order
+    """
+    i = wp.tid()
+    s = particle_strand[i]
+    t = (i - strand_start[s]) * lanes + s
+    x[i] = lane_x[t]
+    v[i] = lane_v[t]
+
+
 @wp.kernel
 def list_leaves_ahead(
     x: wp.array(dtype=wp.vec3),
@@ -752,6 +834,7 @@ def list_leaves_ahead(
     clearance: wp.array(dtype=float),
     near_leaves: wp.array(dtype=wp.vec4i),
     beyond: wp.array(dtype=float),
+    lanes: int,
     first: int,
 ):
     """List afresh, before follow_the_leader, the sphere-tree leaves near each particle whose list
@@ -766,12 +849,14 @@ def list_leaves_ahead(
     thread per particle instead of one after another in a strand's loop, where a warp waits for its
     slowest strand at every particle. The strands are those that querying every particle gives.
 
-    Launch: one thread per particle of a range of particles (dim = particles in the range), after
-    contact_motion; sphere-tree collision with contact bounds only.
+    Launch: one thread per particle of a range of particles (dim = particles in the range), or with
+    lanes > 0 one thread per lane slot (dim = lanes * the longest strand), after contact_motion;
+    sphere-tree collision with contact bounds only. The per-particle arrays are in the order
+    follow_the_leader reads them (lane_slot).
     Inputs:
       x (vec3, per particle, m): predicted positions (those follow_the_leader starts from)
       x_prev (vec3, per particle, m): positions at the start of the substep, where the bounds hold
-      particle_strand (int32, per particle): the strand of each particle
+      particle_strand (int32, per particle): the strand of each particle (particle order only)
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       pinned_per_strand (int): leading particles of each strand that follow_the_leader leaves alone
       shape (ColliderShape): the collider, posed for the end of the substep
@@ -780,6 +865,7 @@ def list_leaves_ahead(
       slack (float, m): how far short of margin a bound may be from running out and still be listed
       motion (ContactMotion): how the collider moved near these strands (contact_motion)
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+      lanes (int): 0 for particle order, else the strands in lane order (all of them)
       first (int, index): the range's first particle; thread t works on particle first + t
     In/out:
       clearance (float, per particle, m): contact bounds (NO_BOUND: unknown), anchored at x_prev
@@ -787,7 +873,15 @@ def list_leaves_ahead(
       beyond (float, per particle, m): bound of the distance to every unlisted leaf
     """
     i = wp.tid() + first
-    if i - strand_start[particle_strand[i]] < pinned_per_strand:
+    k = int(0)
+    if lanes > 0:
+        k = i / lanes
+        s = i - k * lanes
+        if k >= strand_start[s + 1] - strand_start[s]:
+            return  # a slot past the strand's tip
+    else:
+        k = i - strand_start[particle_strand[i]]
+    if k < pinned_per_strand:
         return
     p = x[i]
     if wp.length(p - motion.center[0]) > strand_reach:
@@ -827,6 +921,7 @@ def follow_the_leader(
     ftl_damping: float,
     dt: float,
     v: wp.array(dtype=wp.vec3),
+    lanes: int,
     first: int,
 ):
     """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, then the velocities.
@@ -855,6 +950,11 @@ def follow_the_leader(
     GPU, list_leaves_ahead first lists afresh, in parallel, the leaves of the particles whose lists
     would run short here.
 
+    Per-particle arrays in particle order (lanes = 0) or all in lane order (lanes > 0, lane_slot:
+    to_lanes before, from_lanes after). On a GPU lane order makes each step of the loop read
+    consecutive memory across a warp's strands; in particle order (the CPU's, where a thread walks
+    one strand's cache lines) a warp touches 32 cache lines per array per step.
+
     Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
       x_prev (vec3, per particle, m): positions at the start of the substep (where the bounds hold)
@@ -875,6 +975,7 @@ def follow_the_leader(
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
       ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
       dt (float, s): substep length
+      lanes (int): 0 for particle order, else the strands in lane order (all of them, first = 0)
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out
@@ -889,19 +990,20 @@ def follow_the_leader(
     """
     s = wp.tid() + first
     start = strand_start[s]
-    end = strand_start[s + 1]
-    for i in range(start, end):
+    count = strand_start[s + 1] - start
+    for k in range(count):
+        i = lane_slot(start, s, k, lanes)
         correction = wp.vec3(0.0)
-        if i - start >= pinned_per_strand:
-            parent = x[i - 1]
+        if k >= pinned_per_strand:
+            parent = x[lane_slot(start, s, k - 1, lanes)]
             predicted = x[i]
             length = rest_length[i]
             d = predicted - parent
             dist = wp.length(d)
             if dist < 1.0e-12:
                 d = wp.vec3(0.0, -1.0, 0.0)
-                if i - start >= 2:
-                    d = parent - x[i - 2]
+                if k >= 2:
+                    d = parent - x[lane_slot(start, s, k - 2, lanes)]
                 dist = wp.length(d)
             p = parent + d * (length / dist)
             if collide_mode != 0:
@@ -950,13 +1052,13 @@ def follow_the_leader(
                     beyond[i] = unlisted - wp.length(p - origin)
             correction = p - predicted
             x[i] = p
-        if i > start:
-            j = i - 1
+        if k > 0:
+            j = lane_slot(start, s, k - 1, lanes)
             vel = (x[j] - x_prev[j]) / dt
             if inv_mass[j] > 0.0:
                 vel = vel - (ftl_damping / dt) * correction
             v[j] = vel
-    last = end - 1
+    last = lane_slot(start, s, count - 1, lanes)
     v[last] = (x[last] - x_prev[last]) / dt
 
 
@@ -988,6 +1090,7 @@ def hold_in_comb(
     grip: wp.array(dtype=int),
     v: wp.array(dtype=wp.vec3),
     clearance: wp.array(dtype=float),
+    lanes: int,
     first: int,
 ):
     """Strands held by a comb: the gripped particle sits on the comb, the hair between root and comb
@@ -1019,6 +1122,7 @@ def hold_in_comb(
       margin (float, m): clearance kept from the collider
       search (float, m): mesh query radius
       dt (float, s): substep length
+      lanes (int): the order of clearance, as follow_the_leader's (0: particle order)
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): positions after follow_the_leader in; held by the comb out
@@ -1093,7 +1197,7 @@ def hold_in_comb(
                 follow = 1
         x[k] = p
         v[k] = (x[k] - x_prev[k]) / dt
-        clearance[k] = NO_BOUND
+        clearance[lane_slot(start, s, k - start, lanes)] = NO_BOUND
 
 
 @wp.kernel
