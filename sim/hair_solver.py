@@ -18,7 +18,7 @@ COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
 # mesh query's cost grows fast with its radius (1k strands on the CPU, full+mesh: 216 -> 186 ms/frame
 # against querying collision_search = 2 cm; 5 mm re-queries far particles too often to gain more)
 PROBE = 0.01
-# list_leaves_ahead lists afresh the leaves of particles whose bounds come within this of the margin
+# find_short_lists queues for listing afresh the particles whose bounds come within this of the margin
 LIST_SLACK = 0.0005
 MAX_PARTS = 8  # strand ranges stepped side by side on the CPU
 
@@ -157,9 +157,10 @@ class HairSolver:
         # order (set with lanes): clearance (NO_BOUND = unknown, a full query), the sphere tree's four
         # leaves near each particle (near_leaves), and a bound on the distance to all others (beyond)
         self.contact_bounds = True  # False queries every particle every substep (same result, slower)
-        # walk the sphere tree for the particles whose leaf lists run short in a parallel pass before the
-        # length pass (strands.list_leaves_ahead), the same strands: on a GPU the walks then leave the
-        # serial loop, where a warp waits for its slowest strand; a CPU runs each strand in turn anyway
+        # walk the sphere tree for the particles whose leaf lists run short in parallel passes before the
+        # length pass (strands.find_short_lists, list_leaves_ahead), the same strands: on a GPU the walks
+        # then leave the serial loop, where a warp waits for its slowest strand; a CPU runs each strand
+        # in turn anyway
         self.leaves_ahead = wp.get_device(device).is_cuda
         # the length pass in lane order (strands.lane_slot) on a GPU, where a warp's strands then read
         # consecutive memory at each step of their serial loops; a CPU thread walks one strand's
@@ -216,6 +217,7 @@ class HairSolver:
         self.clearance = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
         self.near_leaves = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=dev)
         self.beyond = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
+        self._short = wp.zeros(slots, dtype=wp.int32, device=dev)  # strands.find_short_lists' queue
 
     def particle_bounds(self):
         """The length pass's contact bounds in particle order, as NumPy: (clearance [m], the four listed
@@ -233,6 +235,9 @@ class HairSolver:
         self.parts = split_strands(self.model, self.windows, count)
         # how the collider moved near each range in the substep (strands.contact_motion)
         self._motion = {r: _contact_motion(self.model.device) for r in [*self.parts, self.whole]}
+        # how many particles of each range strands.find_short_lists queued
+        self._short_count = {r: wp.zeros(1, dtype=wp.int32, device=self.model.device)
+                             for r in [*self.parts, self.whole]}
 
     def set_clock(self, time):
         """Set the device clock to `time` [s] (e.g. a frame's start, before launching its graph)."""
@@ -314,10 +319,16 @@ class HairSolver:
                       [state_out.x, state_in.x, m.strand_start, lane.strands, lane.x, lane.prev], device=dev)
             x, x_prev, inv_mass, rest, v, lanes = lane.x, lane.prev, lane.inv_mass, lane.rest_length, lane.v, lane.strands
         if mode != 0 and self.contact_bounds and self.leaves_ahead and mode != COLLISION["mesh"]:
-            wp.launch(strands.list_leaves_ahead, lane.strands * lane.longest if lanes else r.particles,
-                      [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, c.shape, p.collision_margin,
-                       p.collision_search, LIST_SLACK, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
-                       lanes, 0 if lanes else r.first_particle], device=dev)
+            dim, first = (lane.strands * lane.longest, 0) if lanes else (r.particles, r.first_particle)
+            count = self._short_count[r]
+            count.zero_()
+            wp.launch(strands.find_short_lists, dim,
+                      [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, p.collision_margin,
+                       p.collision_search, LIST_SLACK, motion, r.reach, self.clearance, self.beyond, lanes, first,
+                       count, self._short], device=dev)
+            wp.launch(strands.list_leaves_ahead, dim,
+                      [x_prev, c.shape, p.collision_search, motion, count, self._short, first, self.clearance,
+                       self.near_leaves, self.beyond], device=dev)
         # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.follow_the_leader, r.strands,

@@ -217,7 +217,7 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
 
 @pytest.mark.parametrize("lanes", [False, True])
 def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch, lanes):
-    """list_leaves_ahead, caught around each launch on a turning head: a particle whose bounds,
+    """find_short_lists and list_leaves_ahead, caught around their launches on a turning head: a particle whose bounds,
     lowered as follow_the_leader lowers them (a NumPy reference of the motion grid), come within
     slack of the margin at its predicted position gets the four leaves nearest its start position
     carried into the new pose, and that point's distances as its bounds (a float64 reference over all
@@ -235,15 +235,21 @@ def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_s
     seen, launch = [], wp.launch
     order = solver._lanes.slot if lanes else np.arange(model.num_particles)  # each particle's element
 
+    queued = []
+
     def spy(kernel, dim, inputs=(), *args, **kwargs):
+        if kernel is strand_kernels.find_short_lists:
+            # copies: on the CPU numpy() views the array, which the length pass goes on to change
+            queued.append((inputs[0].numpy()[order].astype(np.float64), inputs[1].numpy()[order].astype(np.float64),
+                           [solver.clearance.numpy()[order], solver.near_leaves.numpy()[order],
+                            solver.beyond.numpy()[order]]))
         if kernel is not strand_kernels.list_leaves_ahead:
             return launch(kernel, dim, inputs, *args, **kwargs)
-        # copies: on the CPU numpy() views the array, which the length pass goes on to change
-        before = [inputs[k].numpy()[order] for k in (11, 12, 13)]
         launch(kernel, dim, inputs, *args, **kwargs)
-        motion = inputs[9]
-        seen.append((inputs[0].numpy()[order].astype(np.float64), inputs[1].numpy()[order].astype(np.float64), before,
-                     [inputs[k].numpy()[order] for k in (11, 12, 13)], motion.rigid.numpy()[0].astype(np.float64),
+        motion = inputs[3]
+        x, x_prev, before = queued.pop()
+        seen.append((x, x_prev, before, [solver.clearance.numpy()[order], solver.near_leaves.numpy()[order],
+                                         solver.beyond.numpy()[order]], motion.rigid.numpy()[0].astype(np.float64),
                      motion.center.numpy()[0].astype(np.float64), motion.cells.numpy().astype(np.float64),
                      moving.sphere_centers.numpy().astype(np.float64)))
 

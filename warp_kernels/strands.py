@@ -6,7 +6,7 @@ Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launche
     -> [follow_guides]
     -> [shape_match_rotations (full variant) -> shape_match_step] x passes
     -> anchor_frame -> contact_motion (how far the collider moved near these strands)
-    -> [list_leaves_ahead (the sphere tree's walks, in parallel)]
+    -> [find_short_lists -> list_leaves_ahead (the sphere tree's walks, in parallel)]
     -> follow_the_leader (length, collision and the velocity update)
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
@@ -824,35 +824,32 @@ def from_lanes(
 
 
 @wp.kernel
-def list_leaves_ahead(
+def find_short_lists(
     x: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
     particle_strand: wp.array(dtype=wp.int32),
     strand_start: wp.array(dtype=wp.int32),
     pinned_per_strand: int,
-    shape: ColliderShape,
     margin: float,
     search: float,
     slack: float,
     motion: ContactMotion,
     strand_reach: float,
     clearance: wp.array(dtype=float),
-    near_leaves: wp.array(dtype=wp.vec4i),
     beyond: wp.array(dtype=float),
     lanes: int,
     first: int,
+    short_count: wp.array(dtype=wp.int32),
+    queue: wp.array(dtype=wp.int32),
 ):
-    """List afresh, before follow_the_leader, the sphere-tree leaves near each particle whose list
-    that pass would find run short: the tree walks leave its serial loop.
+    """Queue, before follow_the_leader, the particles whose sphere-tree leaf lists that pass would
+    find run short, for list_leaves_ahead to list afresh: the tree walks leave its serial loop.
 
     follow_the_leader walks the tree for a particle whose contact bound and unlisted-leaf bound have
     both fallen to margin. Here both are lowered as it would lower them, at the predicted position
-    instead of the one it settles on; where both come within slack of margin, the four nearest
-    leaves are listed at the particle's start position carried into the new pose (where the bounds
-    are anchored) and the bounds are set to that point's distances, which hold there in the new
-    pose, so the lowering the pass applies next keeps them lower bounds. On a GPU these walks run one
-    thread per particle instead of one after another in a strand's loop, where a warp waits for its
-    slowest strand at every particle. The strands are those that querying every particle gives.
+    instead of the one it settles on; a particle where both come within slack of margin (or whose
+    bounds are unknown) is queued. A walk costs a hundred node visits, and a warp runs as long as its
+    longest walk: queued, the walks fill whole warps instead of a few lanes of most warps.
 
     Launch: one thread per particle of a range of particles (dim = particles in the range), or with
     lanes > 0 one thread per lane slot (dim = lanes * the longest strand), after contact_motion;
@@ -864,18 +861,20 @@ def list_leaves_ahead(
       particle_strand (int32, per particle): the strand of each particle (particle order only)
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       pinned_per_strand (int): leading particles of each strand that follow_the_leader leaves alone
-      shape (ColliderShape): the collider, posed for the end of the substep
       margin (float, m): distance kept outside the collider
-      search (float, m): cap of the tree's distances
+      search (float, m): cap of the tree's distances (the motion grid's half width less reach)
       slack (float, m): how far short of margin a bound may be from running out and still be listed
       motion (ContactMotion): how the collider moved near these strands (contact_motion)
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+      clearance (float, per particle, m): contact bounds (NO_BOUND: unknown), anchored at x_prev
+      beyond (float, per particle, m): bound of the distance to every unlisted leaf
       lanes (int): 0 for particle order, else the strands in lane order (all of them)
       first (int, index): the range's first particle; thread t works on particle first + t
     In/out:
-      clearance (float, per particle, m): contact bounds (NO_BOUND: unknown), anchored at x_prev
-      near_leaves (vec4i, per particle): the leaves listed for each particle
-      beyond (float, per particle, m): bound of the distance to every unlisted leaf
+      short_count (int32, 1 element): particles queued, zero before the launch
+    Outputs:
+      queue (int32, per particle of the range): the queued particles' indices, from element first,
+          in no particular order
     """
     i = wp.tid() + first
     k = int(0)
@@ -892,17 +891,61 @@ def list_leaves_ahead(
     center = motion.center[0]
     if wp.length(p - center) > strand_reach:
         return  # follow_the_leader queries such a particle outright
-    carried, lowered = bound_lowering(motion, motion.rigid[0], center, x_prev[i], p, strand_reach + search)
+    _carried, lowered = bound_lowering(motion, motion.rigid[0], center, x_prev[i], p, strand_reach + search)
     bound = float(NO_BOUND)
     unlisted = float(NO_BOUND)
-    if clearance[i] > 0.5 * NO_BOUND:
-        bound = clearance[i] - lowered
+    held = clearance[i]
+    if held > 0.5 * NO_BOUND:
+        bound = held - lowered
         unlisted = beyond[i] - lowered
     if bound <= margin + slack and unlisted <= margin + slack:
-        leaves, nearest, fifth = sphere_tree_nearest(carried, shape, search)
-        near_leaves[i] = leaves
-        clearance[i] = nearest
-        beyond[i] = fifth
+        queue[first + wp.atomic_add(short_count, 0, 1)] = i
+
+
+@wp.kernel
+def list_leaves_ahead(
+    x_prev: wp.array(dtype=wp.vec3),
+    shape: ColliderShape,
+    search: float,
+    motion: ContactMotion,
+    short_count: wp.array(dtype=wp.int32),
+    queue: wp.array(dtype=wp.int32),
+    first: int,
+    clearance: wp.array(dtype=float),
+    near_leaves: wp.array(dtype=wp.vec4i),
+    beyond: wp.array(dtype=float),
+):
+    """List afresh the four sphere-tree leaves nearest each particle find_short_lists queued.
+
+    The list is made at the particle's start position carried into the new pose (where the bounds
+    are anchored), and the bounds are set to that point's distances, which hold there in the new
+    pose, so the lowering follow_the_leader applies next keeps them lower bounds. The strands are
+    those that querying every particle gives.
+
+    Launch: one thread per particle of a range of particles, as find_short_lists (dim = the same),
+    right after it; threads past the queue's length return at once.
+    Inputs:
+      x_prev (vec3, per particle, m): positions at the start of the substep, where the bounds hold
+      shape (ColliderShape): the collider, posed for the end of the substep
+      search (float, m): cap of the tree's distances
+      motion (ContactMotion): how the collider moved near these strands (contact_motion)
+      short_count (int32, 1 element): particles queued
+      queue (int32, per particle of the range): the queued particles, from element first
+      first (int, index): the range's first particle
+    In/out:
+      clearance (float, per particle, m): the queued particles' nearest leaf distance out
+      near_leaves (vec4i, per particle): the queued particles' four nearest leaves out
+      beyond (float, per particle, m): the queued particles' fifth nearest leaf distance out
+    """
+    t = wp.tid()
+    if t >= short_count[0]:
+        return
+    i = queue[first + t]
+    carried = wp.transform_point(motion.rigid[0], x_prev[i])
+    leaves, nearest, fifth = sphere_tree_nearest(carried, shape, search)
+    near_leaves[i] = leaves
+    clearance[i] = nearest
+    beyond[i] = fifth
 
 
 # 178 registers uncapped (CUDA, H100): one 256-thread block per SM, 8 warps to hide the serial loop's
@@ -956,8 +999,8 @@ def follow_the_leader(
     bound of its distance from every other leaf (lowered like the contact bound). While that bound
     stays above margin a query tests only those four leaves (collide_point_listed), which is most of
     the queries of hair lying on the body; the result is again the same as querying the tree. On a
-    GPU, list_leaves_ahead first lists afresh, in parallel, the leaves of the particles whose lists
-    would run short here.
+    GPU, find_short_lists and list_leaves_ahead first list afresh, in parallel, the leaves of the
+    particles whose lists would run short here.
 
     Per-particle arrays in particle order (lanes = 0) or all in lane order (lanes > 0, lane_slot:
     to_lanes before, from_lanes after). On a GPU lane order makes each step of the loop read
