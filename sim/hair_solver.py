@@ -317,7 +317,8 @@ class HairSolver:
         if lane is not None:
             wp.launch(strands.to_lanes, lane.strands * lane.longest,
                       [state_out.x, state_in.x, m.strand_start, lane.strands, lane.x, lane.prev], device=dev)
-            x, x_prev, inv_mass, rest, v, lanes = lane.x, lane.prev, lane.inv_mass, lane.rest_length, lane.v, lane.strands
+            x, x_prev, v, lanes = lane.x, lane.prev, lane.v, lane.strands
+            inv_mass, rest = lane.inv_mass, lane.rest_length
         if mode != 0 and self.contact_bounds and self.leaves_ahead and mode != COLLISION["mesh"]:
             dim, first = (lane.strands * lane.longest, 0) if lanes else (r.particles, r.first_particle)
             count = self._short_count[r]
