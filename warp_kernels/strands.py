@@ -556,32 +556,27 @@ def motion_cell(p: wp.vec3, center: wp.vec3, half: float):
 
 
 @wp.func
-def motion_near(motion: ContactMotion, center: wp.vec3, p: wp.vec3, half: float):
+def motion_near(motion: ContactMotion, p: wp.vec3, half: float):
     """How far the collider moved near p (a point within reach of the centre) in the last substep.
 
     Inputs:
       motion (ContactMotion): as contact_motion left it
-      center (vec3, m): motion.center[0], which a caller looping over particles loads once
       p (vec3, m): the point
       half (float, m): the grid's half width, reach + search
     Returns:
       float (m): the largest displacement counted for p's cell
     """
-    c = motion_cell(p, center, half)
+    c = motion_cell(p, motion.center[0], half)
     return motion.cells[(c[0] * MOTION_GRID + c[1]) * MOTION_GRID + c[2]]
 
 
 @wp.func
-def bound_lowering(motion: ContactMotion, rigid: wp.mat44, center: wp.vec3, start: wp.vec3, p: wp.vec3,
-                   half: float):
+def bound_lowering(motion: ContactMotion, start: wp.vec3, p: wp.vec3, half: float):
     """How far a contact bound held at a particle's start position (before the substep, in the
     collider's last pose) falls by the time the particle is at p in the new pose.
 
     Inputs:
       motion (ContactMotion): as contact_motion left it
-      rigid (mat44): motion.rigid[0], which a caller looping over a strand's particles loads once
-          (the loop's stores may alias it, so the compiler would load it at every particle)
-      center (vec3, m): motion.center[0], likewise
       start (vec3, m): the particle's position at the start of the substep
       p (vec3, m): the particle's position now, within reach of motion.center
       half (float, m): the motion grid's half width, reach + search
@@ -590,8 +585,8 @@ def bound_lowering(motion: ContactMotion, rigid: wp.mat44, center: wp.vec3, star
           collider's own motion)
       float (m): |p - carried| plus the collider's largest motion near p
     """
-    carried = wp.transform_point(rigid, start)
-    return carried, wp.length(p - carried) + motion_near(motion, center, p, half)
+    carried = wp.transform_point(motion.rigid[0], start)
+    return carried, wp.length(p - carried) + motion_near(motion, p, half)
 
 
 @wp.kernel
@@ -862,7 +857,7 @@ def find_short_lists(
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       pinned_per_strand (int): leading particles of each strand that follow_the_leader leaves alone
       margin (float, m): distance kept outside the collider
-      search (float, m): cap of the tree's distances (the motion grid's half width less reach)
+      search (float, m): the collider query radius (the motion grid's half width is strand_reach + search)
       slack (float, m): how far short of margin a bound may be from running out and still be listed
       motion (ContactMotion): how the collider moved near these strands (contact_motion)
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
@@ -888,10 +883,9 @@ def find_short_lists(
     if k < pinned_per_strand:
         return
     p = x[i]
-    center = motion.center[0]
-    if wp.length(p - center) > strand_reach:
+    if wp.length(p - motion.center[0]) > strand_reach:
         return  # follow_the_leader queries such a particle outright
-    _carried, lowered = bound_lowering(motion, motion.rigid[0], center, x_prev[i], p, strand_reach + search)
+    _carried, lowered = bound_lowering(motion, x_prev[i], p, strand_reach + search)
     bound = float(NO_BOUND)
     unlisted = float(NO_BOUND)
     held = clearance[i]
@@ -1043,8 +1037,6 @@ def follow_the_leader(
     s = wp.tid() + first
     start = strand_start[s]
     count = strand_start[s + 1] - start
-    rigid = motion.rigid[0]
-    center = motion.center[0]
     for k in range(count):
         i = lane_slot(start, s, k, lanes)
         correction = wp.vec3(0.0)
@@ -1066,8 +1058,8 @@ def follow_the_leader(
                 leaves = wp.vec4i(-1, -1, -1, -1)
                 unlisted = float(NO_BOUND)
                 if use_bounds != 0:
-                    if wp.length(p - center) <= strand_reach:
-                        _carried, lowered = bound_lowering(motion, rigid, center, x_prev[i], p, strand_reach + search)
+                    if wp.length(p - motion.center[0]) <= strand_reach:
+                        _carried, lowered = bound_lowering(motion, x_prev[i], p, strand_reach + search)
                         held = clearance[i]
                         bound = held - lowered
                         if listed and held > 0.5 * NO_BOUND:
