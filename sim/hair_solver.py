@@ -69,7 +69,6 @@ class _Lanes:
     slot: np.ndarray  # (particles,) each particle's slot
     x: wp.array  # vec3 positions, predicted in and resolved out
     prev: wp.array  # vec3 positions at the start of the substep
-    v: wp.array  # vec3 velocities out
     inv_mass: wp.array
     rest_length: wp.array
 
@@ -212,8 +211,8 @@ class HairSolver:
                 return wp.array(lane, dtype=float, device=dev)
 
             self._lanes = _Lanes(m.num_strands, longest, slot, wp.zeros(slots, dtype=wp.vec3, device=dev),
-                                 wp.zeros(slots, dtype=wp.vec3, device=dev), wp.zeros(slots, dtype=wp.vec3, device=dev),
-                                 in_lanes(m.inv_mass.numpy()), in_lanes(m.rest_length_np))
+                                 wp.zeros(slots, dtype=wp.vec3, device=dev), in_lanes(m.inv_mass.numpy()),
+                                 in_lanes(m.rest_length_np))
         self.clearance = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
         self.near_leaves = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=dev)
         self.beyond = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
@@ -263,6 +262,10 @@ class HairSolver:
         predicted, other = (state_out.x, self.shape_scratch) if passes % 2 == 0 else (self.shape_scratch, state_out.x)
         bound = m.bind_particle is not None and collider is not None
         c = collider
+        # lane order: predict_positions and the last shape pass also write what the length pass reads
+        # in that order, so no launch copies it there
+        lane = self._lanes
+        lanes = lane.strands if lane is not None else 0
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
         if bound and hold > 0.0:
             wp.launch(strands.root_frames, r.strands,
@@ -275,7 +278,8 @@ class HairSolver:
                    m.particle_binding if bound else None, m.bind_triangle if bound else None,
                    m.bind_barycentric if bound else None, m.bind_local if bound else None, m.particle_strand,
                    self.root_origin, self.root_frame, m.root_local if bound else None, self.hold, hold,
-                   predicted, state_out.v, r.first_particle], device=dev)
+                   m.strand_start, predicted, state_out.v, lane.prev if lanes else None, lanes, r.first_particle],
+                  device=dev)
         if guides is not None and p.guide_stiffness > 0.0:
             wp.launch(strands.follow_guides, r.particles,
                       [predicted, m.inv_mass, m.particle_strand, m.strand_start, guides.strand_guides,
@@ -284,7 +288,9 @@ class HairSolver:
                        float(1.0 - np.exp(-p.guide_stiffness * dt)), r.first_particle], device=dev)
         src, dst = predicted, other
         exact = int(self._rotations_exact)  # the first pass after a reset solves outright, later ones refine
-        for _ in range(passes):
+        for n in range(passes):
+            last = n == passes - 1
+            lane_x, lane_count = (lane.x, lanes) if lanes and last else (None, 0)
             if variant == SHAPE_MATCHING["full"] and r.windows > 0:
                 wp.launch(strands.shape_match_rotations, r.windows,
                           [src, win.first, win.size, win.rest, exact, p.rotation_iterations, self.rotations,
@@ -293,12 +299,13 @@ class HairSolver:
             if self.per_strand:
                 wp.launch(strands.shape_match_strands, r.strands,
                           [src, m.inv_mass, m.strand_start, win.at, win.size, win.rest, win.offsets, self.rotations,
-                           self.centroids, variant, p.shape_stiffness, dst, r.first_strand], device=dev)
+                           self.centroids, variant, p.shape_stiffness, dst, lane_x, lane_count, r.first_strand],
+                          device=dev)
             else:
                 wp.launch(strands.shape_match_step, r.particles,
                           [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets,
-                           self.rotations, self.centroids, variant, p.shape_stiffness, dst, r.first_particle],
-                          device=dev)
+                           self.rotations, self.centroids, variant, p.shape_stiffness, m.strand_start, dst, lane_x,
+                           lane_count, r.first_particle], device=dev)
             src, dst = dst, src
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright
@@ -312,13 +319,12 @@ class HairSolver:
                       [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
                        c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
                        r.reach, p.collision_search, motion], device=dev)
-        lane = self._lanes
-        x, x_prev, inv_mass, rest, v, lanes = state_out.x, state_in.x, m.inv_mass, m.rest_length, state_out.v, 0
-        if lane is not None:
-            wp.launch(strands.to_lanes, lane.strands * lane.longest,
-                      [state_out.x, state_in.x, m.strand_start, lane.strands, lane.x, lane.prev], device=dev)
-            x, x_prev, v, lanes = lane.x, lane.prev, lane.v, lane.strands
-            inv_mass, rest = lane.inv_mass, lane.rest_length
+        x, x_prev, inv_mass, rest = state_out.x, state_in.x, m.inv_mass, m.rest_length
+        if lanes:
+            if passes == 0:
+                wp.launch(strands.to_lanes, lane.strands * lane.longest, [state_out.x, m.strand_start, lanes, lane.x],
+                          device=dev)
+            x, x_prev, inv_mass, rest = lane.x, lane.prev, lane.inv_mass, lane.rest_length
         if mode != 0 and self.contact_bounds and self.leaves_ahead and mode != COLLISION["mesh"]:
             dim, first = (lane.strands * lane.longest, 0) if lanes else (r.particles, r.first_particle)
             count = self._short_count[r]
@@ -336,11 +342,7 @@ class HairSolver:
                   [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
-                   p.ftl_damping, dt, v, lanes, r.first_strand], device=dev)
-        if lane is not None:
-            wp.launch(strands.from_lanes, m.num_particles,
-                      [lane.x, lane.v, m.particle_strand, m.strand_start, lane.strands, state_out.x, state_out.v],
-                      device=dev)
+                   p.ftl_damping, dt, state_out.x, state_out.v, lanes, r.first_strand], device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,

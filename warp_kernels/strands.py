@@ -6,8 +6,12 @@ Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launche
     -> [follow_guides]
     -> [shape_match_rotations (full variant) -> shape_match_step] x passes
     -> anchor_frame -> contact_motion (how far the collider moved near these strands)
+    -> [to_lanes, in lane order when no shape pass ran]
     -> [find_short_lists -> list_leaves_ahead (the sphere tree's walks, in parallel)]
     -> follow_the_leader (length, collision and the velocity update)
+
+In lane order (lane_slot, a GPU's) predict_positions and the last shape pass also leave the length
+pass's inputs in that order, and follow_the_leader writes its results back in particle order.
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
 (window goals, root positions, FTL corrections) is recomputed or carried in registers instead,
@@ -33,6 +37,26 @@ TAUT = wp.constant(0.995)  # hold_in_comb: a root-to-comb chain this close to st
 SHAPE_FULL = wp.constant(1)
 NO_BOUND = wp.constant(-1.0e30)  # a contact bound that says nothing: the next query looks as far as it can
 MOTION_GRID = wp.constant(16)  # cells per axis of ContactMotion.cells
+
+
+@wp.func
+def lane_slot(start: int, s: int, k: int, lanes: int):
+    """Where the length pass finds particle k of strand s (whose first particle is `start`): in
+    particle order when lanes is 0, else in lane order, k * lanes + s, where the k-th particles of
+    `lanes` strands lie side by side. A thread per strand walking its particles then reads, with
+    its warp's 31 neighbours, 32 consecutive elements at each step instead of 32 far-apart ones.
+
+    Inputs:
+      start (int, index): the strand's first particle
+      s (int, index): the strand
+      k (int, index): the particle's place along it, from 0 at the root
+      lanes (int): 0 for particle order, else the strands in lane order (all of them)
+    Returns:
+      int (index): the element of a per-particle array of the length pass that holds the particle
+    """
+    if lanes > 0:
+        return k * lanes + s
+    return start + k
 
 
 @wp.kernel
@@ -63,8 +87,11 @@ def predict_positions(
     root_local: wp.array(dtype=wp.vec3),
     hold: wp.array(dtype=float),
     hold_stiffness: float,
+    strand_start: wp.array(dtype=wp.int32),
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
+    lane_prev: wp.array(dtype=wp.vec3),
+    lanes: int,
     first: int,
 ):
     """First launch of a hair substep: symplectic Euler prediction, pinned roots on the skin, root hold.
@@ -108,13 +135,22 @@ def predict_positions(
       root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
       hold (float, per particle): root-hold weight, 1 at the root falling to 0 along the strand
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count; read
+          only when lanes > 0
+      lanes (int): 0, or the strands in lane order (all of them): then x is also copied to lane_prev
       first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): predicted positions
       v_out (vec3, per particle, m/s): velocities after forces; pinned particles keep theirs
+      lane_prev (vec3, per lane slot, m): x in lane order (lane_slot), for follow_the_leader; written
+          only when lanes > 0 (may be None otherwise)
     """
     i = wp.tid() + first
     p = x[i]
+    if lanes > 0:
+        # the start positions in the length pass's order, copied here where they are read anyway
+        s = particle_strand[i]
+        lane_prev[lane_slot(0, s, i - strand_start[s], lanes)] = p
     vel = v[i]
     if inv_mass[i] == 0.0:
         if bound != 0:
@@ -388,7 +424,10 @@ def shape_match_step(
     centroids: wp.array(dtype=wp.vec3),
     variant: int,
     stiffness: float,
+    strand_start: wp.array(dtype=wp.int32),
     x_out: wp.array(dtype=wp.vec3),
+    lane_x: wp.array(dtype=wp.vec3),
+    lanes: int,
     first: int,
 ):
     """One shape-matching pass: each free particle moves toward the average goal of its windows.
@@ -413,16 +452,24 @@ def shape_match_step(
       centroids (vec3, per window, m): from shape_match_rotations (full variant only)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count; read
+          only when lanes > 0
+      lanes (int): 0, or the strands in lane order (all of them): the last pass of a substep also
+          writes its result to lane_x for follow_the_leader
       first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): positions after this pass; must not alias x
+      lane_x (vec3, per lane slot, m): x_out in lane order (lane_slot); written only when lanes > 0
+          (may be None otherwise)
     """
     i = wp.tid() + first
     p = x[i]
+    strand = particle_strand[i]
     if inv_mass[i] == 0.0:
         x_out[i] = p
+        if lanes > 0:
+            lane_x[lane_slot(0, strand, i - strand_start[strand], lanes)] = p
         return
-    strand = particle_strand[i]
     goal = wp.vec3(0.0)
     count = float(0.0)
     for k in range(window_size):
@@ -436,6 +483,8 @@ def shape_match_step(
     if count > 0.0:
         p = p + stiffness * (goal / count - p)
     x_out[i] = p
+    if lanes > 0:
+        lane_x[lane_slot(0, strand, i - strand_start[strand], lanes)] = p
 
 
 @wp.kernel
@@ -452,6 +501,8 @@ def shape_match_strands(
     variant: int,
     stiffness: float,
     x_out: wp.array(dtype=wp.vec3),
+    lane_x: wp.array(dtype=wp.vec3),
+    lanes: int,
     first: int,
 ):
     """shape_match_step one strand per thread, for the CPU: the same pass, the same goals.
@@ -476,9 +527,12 @@ def shape_match_strands(
       centroids (vec3, per window, m): from shape_match_rotations (full variant only)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+      lanes (int): 0, or the strands in lane order (all of them): as shape_match_step
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): positions after this pass; must not alias x
+      lane_x (vec3, per lane slot, m): x_out in lane order (lane_slot); written only when lanes > 0
+          (may be None otherwise)
     """
     s = wp.tid() + first
     start = strand_start[s]
@@ -512,6 +566,8 @@ def shape_match_strands(
             if count > 0.0:
                 p = p + stiffness * (x_out[i] / count - p)
         x_out[i] = p
+        if lanes > 0:
+            lane_x[lane_slot(start, s, i - start, lanes)] = p
 
 
 @wp.struct
@@ -736,47 +792,24 @@ def contact_motion(
                 wp.atomic_max(motion.cells, (a * MOTION_GRID + b) * MOTION_GRID + c, moved)
 
 
-@wp.func
-def lane_slot(start: int, s: int, k: int, lanes: int):
-    """Where the length pass finds particle k of strand s (whose first particle is `start`): in
-    particle order when lanes is 0, else in lane order, k * lanes + s, where the k-th particles of
-    `lanes` strands lie side by side. A thread per strand walking its particles then reads, with
-    its warp's 31 neighbours, 32 consecutive elements at each step instead of 32 far-apart ones.
-
-    Inputs:
-      start (int, index): the strand's first particle
-      s (int, index): the strand
-      k (int, index): the particle's place along it, from 0 at the root
-      lanes (int): 0 for particle order, else the strands in lane order (all of them)
-    Returns:
-      int (index): the element of a per-particle array of the length pass that holds the particle
-    """
-    if lanes > 0:
-        return k * lanes + s
-    return start + k
-
-
 @wp.kernel
 def to_lanes(
     x: wp.array(dtype=wp.vec3),
-    x_prev: wp.array(dtype=wp.vec3),
     strand_start: wp.array(dtype=wp.int32),
     lanes: int,
     lane_x: wp.array(dtype=wp.vec3),
-    lane_prev: wp.array(dtype=wp.vec3),
 ):
-    """Copy the positions the length pass reads into lane order (lane_slot).
+    """Copy the predicted positions into lane order (lane_slot) when no shape-matching pass ran to
+    write them there (shape_match_step's lane_x).
 
     Launch: one thread per lane slot (dim = lanes * the longest strand's particle count).
     Inputs:
       x (vec3, per particle, m): predicted positions
-      x_prev (vec3, per particle, m): positions at the start of the substep
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       lanes (int): strands in lane order (all of them)
     Outputs:
       lane_x (vec3, per lane slot, m): x in lane order; the slots past a strand's tip are left as
           they were
-      lane_prev (vec3, per lane slot, m): x_prev in lane order
     """
     t = wp.tid()
     k = t / lanes
@@ -784,38 +817,6 @@ def to_lanes(
     start = strand_start[s]
     if k < strand_start[s + 1] - start:
         lane_x[t] = x[start + k]
-        lane_prev[t] = x_prev[start + k]
-
-
-@wp.kernel
-def from_lanes(
-    lane_x: wp.array(dtype=wp.vec3),
-    lane_v: wp.array(dtype=wp.vec3),
-    particle_strand: wp.array(dtype=wp.int32),
-    strand_start: wp.array(dtype=wp.int32),
-    lanes: int,
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-):
-    """Copy the length pass's positions and velocities back from lane order to particle order.
-
-    Launch: one thread per particle (dim = particles); each reads its lane slot and writes its own
-    element, so the writes stay consecutive.
-    Inputs:
-      lane_x (vec3, per lane slot, m): positions in lane order
-      lane_v (vec3, per lane slot, m/s): velocities in lane order
-      particle_strand (int32, per particle): the strand of each particle
-      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-      lanes (int): strands in lane order (all of them)
-    Outputs:
-      x (vec3, per particle, m): the positions in particle order
-      v (vec3, per particle, m/s): the velocities in particle order
-    """
-    i = wp.tid()
-    s = particle_strand[i]
-    t = (i - strand_start[s]) * lanes + s
-    x[i] = lane_x[t]
-    v[i] = lane_v[t]
 
 
 @wp.kernel
@@ -966,6 +967,7 @@ def follow_the_leader(
     beyond: wp.array(dtype=float),
     ftl_damping: float,
     dt: float,
+    x_out: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     lanes: int,
     first: int,
@@ -996,10 +998,13 @@ def follow_the_leader(
     GPU, find_short_lists and list_leaves_ahead first list afresh, in parallel, the leaves of the
     particles whose lists would run short here.
 
-    Per-particle arrays in particle order (lanes = 0) or all in lane order (lanes > 0, lane_slot:
-    to_lanes before, from_lanes after). On a GPU lane order makes each step of the loop read
-    consecutive memory across a warp's strands; in particle order (the CPU's, where a thread walks
-    one strand's cache lines) a warp touches 32 cache lines per array per step.
+    The per-particle arrays it reads and keeps are in particle order (lanes = 0) or all in lane
+    order (lanes > 0, lane_slot: predict_positions and the last shape-matching pass write them
+    there). On a GPU lane order makes each step of the loop read consecutive memory across a warp's
+    strands; in particle order (the CPU's, where a thread walks one strand's cache lines) a warp
+    touches 32 cache lines per array per step. The results, x_out and v, are written in particle
+    order either way: a store does not hold up the loop as a load does, and no pass is needed to
+    copy them back.
 
     Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
@@ -1024,7 +1029,8 @@ def follow_the_leader(
       lanes (int): 0 for particle order, else the strands in lane order (all of them, first = 0)
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
-      x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out
+      x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out (the
+          loop reads each particle's parent back from it)
       clearance (float, per particle, m): contact bounds at x_prev in, at x out (NO_BOUND: unknown);
           written only when collide_mode != COLLIDE_NONE
       near_leaves (vec4i, per particle): the leaf spheres listed for each particle (ascending node
@@ -1032,7 +1038,9 @@ def follow_the_leader(
       beyond (float, per particle, m): lower bound of the distance to every unlisted leaf, at x_prev
           in, at x out; ignored where clearance is NO_BOUND; sphere tree with use_bounds != 0 only
     Outputs:
-      v (vec3, per particle, m/s): velocities at the end of the substep
+      x_out (vec3, per particle, m): x's free particles as resolved, in particle order; the pinned
+          ones are not written. May be x itself when lanes is 0
+      v (vec3, per particle, m/s): velocities at the end of the substep, in particle order
     """
     s = wp.tid() + first
     start = strand_start[s]
@@ -1099,14 +1107,15 @@ def follow_the_leader(
                     beyond[i] = unlisted - wp.length(p - origin)
             correction = p - predicted
             x[i] = p
+            x_out[start + k] = p
         if k > 0:
             j = lane_slot(start, s, k - 1, lanes)
             vel = (x[j] - x_prev[j]) / dt
             if inv_mass[j] > 0.0:
                 vel = vel - (ftl_damping / dt) * correction
-            v[j] = vel
+            v[start + k - 1] = vel
     last = lane_slot(start, s, count - 1, lanes)
-    v[last] = (x[last] - x_prev[last]) / dt
+    v[start + count - 1] = (x[last] - x_prev[last]) / dt
 
 
 @wp.func
