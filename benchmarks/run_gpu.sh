@@ -2,7 +2,7 @@
 # The GPU benchmark and check session, one part per call (each must end inside 10 minutes):
 #   bash benchmarks/run_gpu.sh tests    # graph checks on cuda and cpu (tests/test_graphs.py)
 #   bash benchmarks/run_gpu.sh hair     # benchmarks/hair.py on cuda with Newton chains (HAIR_ARGS: its
-#                                       # options, by default each case with and without leaves_ahead)
+#                                       # options, by default each case with lanes by root and as grown)
 #   bash benchmarks/run_gpu.sh cloth    # benchmarks/cloth.py on cuda with Newton VBD and XPBD
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 # Logs go to $OUT (or ./out/gpu); warp-lang, newton, usd-core and trimesh must be importable.
@@ -13,7 +13,7 @@ nvidia-smi --query-gpu=name,memory.total,clocks.max.sm --format=csv,noheader | t
 for part in "$@"; do
   case $part in
     tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_comb.py 2>&1 | tee "$out/tests.log" ;;
-    hair) timeout ${HAIR_TIMEOUT:-540} python3 benchmarks/hair.py --device cuda ${HAIR_ARGS:---leaves-ahead both} 2>&1 |
+    hair) timeout ${HAIR_TIMEOUT:-540} python3 benchmarks/hair.py --device cuda ${HAIR_ARGS:---lane-order both} 2>&1 |
         tee "$out/hair.log" ;;
     cloth) timeout ${CLOTH_TIMEOUT:-540} python3 benchmarks/cloth.py --device cuda ${CLOTH_ARGS:-} 2>&1 | tee "$out/cloth.log" ;;
     realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;

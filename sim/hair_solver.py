@@ -60,12 +60,30 @@ def _contact_motion(device):
     return motion
 
 
+def lanes_by_root(model):
+    """(strands,) int32: the strand of each lane, neighbouring roots in neighbouring lanes.
+
+    A warp of the length pass steps 32 lanes together, each step as long as its slowest lane, and
+    grooms list their strands in any order (sample_scalp: at random). Strands rooted side by side
+    meet the head at about the same particles, so lanes in the order of a k-d tree over the roots'
+    rest positions put the strands that collide in the same warps and leave others free (a model of
+    the pass's warps over 10k strands on a turning head: 0.47x the collision work of the grown
+    order, BENCHMARKS.md)."""
+    from scipy.spatial import cKDTree
+
+    roots = model.rest_positions_np[model.strand_start_np[:-1]]
+    if len(roots) < 2:
+        return np.arange(len(roots), dtype=np.int32)
+    return cKDTree(roots, leafsize=8).indices.astype(np.int32)
+
+
 @dataclass(frozen=True)
 class _Lanes:
-    """The length pass's arrays in lane order (strands.lane_slot) over every strand."""
+    """The length pass's arrays in lane order (strands.LaneOrder, lane_slot) over every strand."""
 
     strands: int
     longest: int  # particles of the longest strand: slots = strands * longest
+    order: strands.LaneOrder
     slot: np.ndarray  # (particles,) each particle's slot
     x: wp.array  # vec3 positions, predicted in and resolved out
     prev: wp.array  # vec3 positions at the start of the substep
@@ -142,6 +160,7 @@ class HairSolver:
         self.whole = StrandRange(0, model.num_strands, 0, model.num_particles, 0, self.windows.count,
                                  model.reach(0, model.num_strands))
         self._lanes = None
+        self._particle_order = strands.LaneOrder()  # lanes = 0: the length pass's arrays in particle order
         if parts is None:
             parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
         self.set_parts(parts)
@@ -183,12 +202,19 @@ class HairSolver:
     @property
     def lanes(self):
         """Whether the length pass runs in lane order (strands.lane_slot): the same strands, bit for
-        bit. Lane order steps all strands as one range, so it needs one part (set_parts(1)); setting
-        it forgets the contact bounds, and frames captured before must be forgotten."""
+        bit. Setting it is set_lanes(on) with the lanes following the roots."""
         return self._lanes is not None
 
     @lanes.setter
     def lanes(self, on):
+        self.set_lanes(on)
+
+    def set_lanes(self, on, by_root=True):
+        """Run the length pass in lane order (on) or particle order, the same strands bit for bit.
+        by_root puts neighbouring roots in neighbouring lanes (lanes_by_root), else the lanes keep
+        the model's strand order. Lane order steps all strands as one range, so it needs one part
+        (set_parts(1)); setting it forgets the contact bounds, and frames captured before must be
+        forgotten."""
         m, dev = self.model, self.model.device
         if on and len(self.parts) > 1:
             raise ValueError("the length pass in lane order steps all strands as one range: set_parts(1) first")
@@ -198,9 +224,16 @@ class HairSolver:
             counts = np.diff(m.strand_start_np)
             longest = int(counts.max()) if len(counts) else 0
             slots = m.num_strands * longest
+            order = strands.LaneOrder()
+            order.lanes = m.num_strands
+            strand_of = lanes_by_root(m) if by_root else np.arange(m.num_strands, dtype=np.int32)
+            lane_of = np.empty_like(strand_of)
+            lane_of[strand_of] = np.arange(len(strand_of), dtype=strand_of.dtype)
+            order.strand_of = wp.array(strand_of, dtype=wp.int32, device=dev)
+            order.lane_of = wp.array(lane_of, dtype=wp.int32, device=dev)
             # where each particle's slot is, and each slot's particle (-1 past a strand's tip)
             strand = m.particle_strand_np
-            slot = (np.arange(m.num_particles) - m.strand_start_np[strand]) * m.num_strands + strand
+            slot = (np.arange(m.num_particles) - m.strand_start_np[strand]) * m.num_strands + lane_of[strand]
             particle = np.full(slots, -1, np.int64)
             particle[slot] = np.arange(m.num_particles)
             held = particle >= 0
@@ -210,7 +243,7 @@ class HairSolver:
                 lane[held] = np.asarray(values, np.float32)[particle[held]]
                 return wp.array(lane, dtype=float, device=dev)
 
-            self._lanes = _Lanes(m.num_strands, longest, slot, wp.zeros(slots, dtype=wp.vec3, device=dev),
+            self._lanes = _Lanes(m.num_strands, longest, order, slot, wp.zeros(slots, dtype=wp.vec3, device=dev),
                                  wp.zeros(slots, dtype=wp.vec3, device=dev), in_lanes(m.inv_mass.numpy()),
                                  in_lanes(m.rest_length_np))
         self.clearance = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
@@ -266,6 +299,7 @@ class HairSolver:
         # in that order, so no launch copies it there
         lane = self._lanes
         lanes = lane.strands if lane is not None else 0
+        order = lane.order if lanes else self._particle_order
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
         if bound and hold > 0.0:
             wp.launch(strands.root_frames, r.strands,
@@ -278,7 +312,7 @@ class HairSolver:
                    m.particle_binding if bound else None, m.bind_triangle if bound else None,
                    m.bind_barycentric if bound else None, m.bind_local if bound else None, m.particle_strand,
                    self.root_origin, self.root_frame, m.root_local if bound else None, self.hold, hold,
-                   m.strand_start, predicted, state_out.v, lane.prev if lanes else None, lanes, r.first_particle],
+                   m.strand_start, predicted, state_out.v, lane.prev if lanes else None, order, r.first_particle],
                   device=dev)
         if guides is not None and p.guide_stiffness > 0.0:
             wp.launch(strands.follow_guides, r.particles,
@@ -290,7 +324,7 @@ class HairSolver:
         exact = int(self._rotations_exact)  # the first pass after a reset solves outright, later ones refine
         for n in range(passes):
             last = n == passes - 1
-            lane_x, lane_count = (lane.x, lanes) if lanes and last else (None, 0)
+            lane_x, lane_order = (lane.x, order) if lanes and last else (None, self._particle_order)
             if variant == SHAPE_MATCHING["full"] and r.windows > 0:
                 wp.launch(strands.shape_match_rotations, r.windows,
                           [src, win.first, win.size, win.rest, exact, p.rotation_iterations, self.rotations,
@@ -299,13 +333,13 @@ class HairSolver:
             if self.per_strand:
                 wp.launch(strands.shape_match_strands, r.strands,
                           [src, m.inv_mass, m.strand_start, win.at, win.size, win.rest, win.offsets, self.rotations,
-                           self.centroids, variant, p.shape_stiffness, dst, lane_x, lane_count, r.first_strand],
+                           self.centroids, variant, p.shape_stiffness, dst, lane_x, lane_order, r.first_strand],
                           device=dev)
             else:
                 wp.launch(strands.shape_match_step, r.particles,
                           [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets,
                            self.rotations, self.centroids, variant, p.shape_stiffness, m.strand_start, dst, lane_x,
-                           lane_count, r.first_particle], device=dev)
+                           lane_order, r.first_particle], device=dev)
             src, dst = dst, src
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright
@@ -322,7 +356,7 @@ class HairSolver:
         x, x_prev, inv_mass, rest = state_out.x, state_in.x, m.inv_mass, m.rest_length
         if lanes:
             if passes == 0:
-                wp.launch(strands.to_lanes, lane.strands * lane.longest, [state_out.x, m.strand_start, lanes, lane.x],
+                wp.launch(strands.to_lanes, lane.strands * lane.longest, [state_out.x, m.strand_start, order, lane.x],
                           device=dev)
             x, x_prev, inv_mass, rest = lane.x, lane.prev, lane.inv_mass, lane.rest_length
         if mode != 0 and self.contact_bounds and self.leaves_ahead and mode != COLLISION["mesh"]:
@@ -331,7 +365,7 @@ class HairSolver:
             count.zero_()
             wp.launch(strands.find_short_lists, dim,
                       [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, p.collision_margin,
-                       p.collision_search, LIST_SLACK, motion, r.reach, self.clearance, self.beyond, lanes, first,
+                       p.collision_search, LIST_SLACK, motion, r.reach, self.clearance, self.beyond, order, first,
                        count, self._short], device=dev)
             wp.launch(strands.list_leaves_ahead, dim,
                       [x_prev, c.shape, p.collision_search, motion, count, self._short, first, self.clearance,
@@ -342,11 +376,11 @@ class HairSolver:
                   [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
-                   p.ftl_damping, dt, state_out.x, state_out.v, lanes, r.first_strand], device=dev)
+                   p.ftl_damping, dt, state_out.x, state_out.v, order, r.first_strand], device=dev)
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
-                             p.collision_margin, p.collision_search, self.clearance, lanes, r)
+                             p.collision_margin, p.collision_search, self.clearance, order, r)
 
     def contact_motion(self, part=None):
         """What the last substep measured of the collider's motion near a range of strands (the whole

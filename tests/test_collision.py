@@ -235,6 +235,8 @@ def test_lane_order_gives_the_same_strands_and_velocities(head, shape_matching, 
         solver = HairSolver(model, params, parts=1)
         solver.leaves_ahead = True
         solver.lanes = lanes
+        if lanes:  # neighbouring roots in neighbouring lanes, not the grown order
+            assert np.any(solver._lanes.order.strand_of.numpy() != np.arange(model.num_strands))
         s0, s1 = model.state(), model.state()
         moving.apply_pose(0)
         frames = []

@@ -41,7 +41,8 @@ def _hold(x, grip, target, pinned=2):
     t = wp.array([target], dtype=wp.vec3)
     bounds = wp.full(len(x), 1.0, dtype=float)  # the length pass's contact bounds, lost where the comb moves hair
     wp.launch(strand_kernels.hold_in_comb, 1, [xa, wp.array(x, dtype=wp.vec3), start, wp.array(rest, dtype=float),
-                                               pinned, t, t, 1.0, 16, 0, ColliderShape(), 0.0, 0.0, 0.01, g, v, bounds, 0, 0])
+                                               pinned, t, t, 1.0, 16, 0, ColliderShape(), 0.0, 0.0, 0.01, g, v, bounds,
+                                               strand_kernels.LaneOrder(), 0])
     if grip >= 0:  # a held strand: every particle after the root was moved
         np.testing.assert_array_equal(bounds.numpy(), np.r_[np.ones(pinned), np.full(len(x) - pinned, np.float32(strand_kernels.NO_BOUND))])
     else:

@@ -55,11 +55,12 @@ def groom(rng):
 
 
 def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1, rotations=None, refine=True,
-                per_strand=False, lane_x=None):
+                per_strand=False, lane_x=None, order=None):
     """One shape_match_step (shape_match_strands with per_strand) over positions x (after
     shape_match_rotations unless refine=False): (moved positions, rotations). With lane_x (a vec3
-    array of num_strands x longest strand slots) the pass also writes its result there in lane order."""
-    lanes = model.num_strands if lane_x is not None else 0
+    array of num_strands x longest strand slots) and order (a strands.LaneOrder) the pass also
+    writes its result there in lane order."""
+    order = order if order is not None else kernels.LaneOrder()
     if rotations is None:
         rotations = wp.zeros(win.count, dtype=wp.quat)
     xs = wp.array(x, dtype=wp.vec3)
@@ -74,11 +75,11 @@ def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1,
     if per_strand:
         wp.launch(kernels.shape_match_strands, model.num_strands,
                   [xs, model.inv_mass, model.strand_start, win.at, win.size, win.rest, win.offsets, rotations,
-                   centroids, variant, stiffness, out, lane_x, lanes, 0])
+                   centroids, variant, stiffness, out, lane_x, order, 0])
     else:
         wp.launch(kernels.shape_match_step, model.num_particles,
                   [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations,
-                   centroids, variant, stiffness, model.strand_start, out, lane_x, lanes, 0])
+                   centroids, variant, stiffness, model.strand_start, out, lane_x, order, 0])
     return out.numpy(), rotations
 
 
@@ -113,9 +114,9 @@ def test_one_thread_per_strand_gives_the_per_particle_pass(variant, size):
 
 @pytest.mark.parametrize("per_strand", [False, True], ids=["per particle", "per strand"])
 def test_the_pass_writes_lane_order_for_the_length_pass(per_strand):
-    """With lanes the pass also leaves its result where follow_the_leader reads it: particle k of
-    strand s at k * strands + s (strands of different lengths, pinned particles included), and the
-    slots past a strand's tip untouched."""
+    """In lane order the pass also leaves its result where follow_the_leader reads it: particle k of
+    the strand in lane l at k * strands + l (strands of different lengths and out of their order,
+    pinned particles included), and the slots past a strand's tip untouched."""
     rng = np.random.default_rng(4)
     model, x = groom(rng)
     win = model.shape_windows(4)
@@ -123,11 +124,16 @@ def test_the_pass_writes_lane_order_for_the_length_pass(per_strand):
     assert counts.min() < counts.max()  # the groom has strands of different lengths
     slots = model.num_strands * int(counts.max())
     lane_x = wp.full(slots, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3)
-    moved, _ = launch_pass(x, model, win, 1, stiffness=0.6, per_strand=per_strand, lane_x=lane_x)
+    strand_of = np.array([2, 0, 1], np.int32)  # lane -> strand
+    lane_of = np.argsort(strand_of).astype(np.int32)
+    order = kernels.LaneOrder()
+    order.lanes = model.num_strands
+    order.strand_of, order.lane_of = wp.array(strand_of, dtype=wp.int32), wp.array(lane_of, dtype=wp.int32)
+    moved, _ = launch_pass(x, model, win, 1, stiffness=0.6, per_strand=per_strand, lane_x=lane_x, order=order)
     plain, _ = launch_pass(x, model, win, 1, stiffness=0.6, per_strand=per_strand)
     np.testing.assert_array_equal(moved, plain)
     strand = model.particle_strand_np
-    slot = (np.arange(model.num_particles) - model.strand_start_np[strand]) * model.num_strands + strand
+    slot = (np.arange(model.num_particles) - model.strand_start_np[strand]) * model.num_strands + lane_of[strand]
     lanes = lane_x.numpy()
     np.testing.assert_array_equal(lanes[slot], moved)
     past_tip = np.ones(slots, bool)

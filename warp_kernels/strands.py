@@ -39,23 +39,44 @@ NO_BOUND = wp.constant(-1.0e30)  # a contact bound that says nothing: the next q
 MOTION_GRID = wp.constant(16)  # cells per axis of ContactMotion.cells
 
 
+@wp.struct
+class LaneOrder:
+    """Where the length pass keeps its per-particle arrays: in particle order (lanes = 0, the
+    arrays unused) or in lane order over all strands, each strand in a lane (see lane_slot).
+
+    Neighbouring strands take neighbouring lanes (sim.hair_solver.lanes_by_root): a warp then steps
+    32 strands that meet the head at about the same particles, instead of 32 from all over the
+    scalp, each of which keeps it waiting for its own collisions.
+
+    Fields:
+      lanes (int): strands in lane order (all of them); 0 for particle order
+      lane_of (int32, per strand): each strand's lane
+      strand_of (int32, per lane): each lane's strand
+    """
+
+    lanes: int
+    lane_of: wp.array(dtype=wp.int32)
+    strand_of: wp.array(dtype=wp.int32)
+
+
 @wp.func
-def lane_slot(start: int, s: int, k: int, lanes: int):
-    """Where the length pass finds particle k of strand s (whose first particle is `start`): in
-    particle order when lanes is 0, else in lane order, k * lanes + s, where the k-th particles of
-    `lanes` strands lie side by side. A thread per strand walking its particles then reads, with
-    its warp's 31 neighbours, 32 consecutive elements at each step instead of 32 far-apart ones.
+def lane_slot(start: int, lane: int, k: int, lanes: int):
+    """Where the length pass finds particle k of a strand (whose first particle is `start`): in
+    particle order when lanes is 0, else in lane order, k * lanes + lane, where the k-th particles
+    of `lanes` strands lie side by side. A thread per lane walking its strand's particles then
+    reads, with its warp's 31 neighbours, 32 consecutive elements at each step instead of 32
+    far-apart ones.
 
     Inputs:
       start (int, index): the strand's first particle
-      s (int, index): the strand
+      lane (int, index): the strand's lane (LaneOrder.lane_of); unused in particle order
       k (int, index): the particle's place along it, from 0 at the root
       lanes (int): 0 for particle order, else the strands in lane order (all of them)
     Returns:
       int (index): the element of a per-particle array of the length pass that holds the particle
     """
     if lanes > 0:
-        return k * lanes + s
+        return k * lanes + lane
     return start + k
 
 
@@ -91,7 +112,7 @@ def predict_positions(
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
     lane_prev: wp.array(dtype=wp.vec3),
-    lanes: int,
+    order: LaneOrder,
     first: int,
 ):
     """First launch of a hair substep: symplectic Euler prediction, pinned roots on the skin, root hold.
@@ -136,21 +157,21 @@ def predict_positions(
       hold (float, per particle): root-hold weight, 1 at the root falling to 0 along the strand
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count; read
-          only when lanes > 0
-      lanes (int): 0, or the strands in lane order (all of them): then x is also copied to lane_prev
+          only in lane order
+      order (LaneOrder): the length pass's order; in lane order x is also copied to lane_prev
       first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): predicted positions
       v_out (vec3, per particle, m/s): velocities after forces; pinned particles keep theirs
       lane_prev (vec3, per lane slot, m): x in lane order (lane_slot), for follow_the_leader; written
-          only when lanes > 0 (may be None otherwise)
+          only in lane order (may be None otherwise)
     """
     i = wp.tid() + first
     p = x[i]
-    if lanes > 0:
+    if order.lanes > 0:
         # the start positions in the length pass's order, copied here where they are read anyway
         s = particle_strand[i]
-        lane_prev[lane_slot(0, s, i - strand_start[s], lanes)] = p
+        lane_prev[lane_slot(0, order.lane_of[s], i - strand_start[s], order.lanes)] = p
     vel = v[i]
     if inv_mass[i] == 0.0:
         if bound != 0:
@@ -427,7 +448,7 @@ def shape_match_step(
     strand_start: wp.array(dtype=wp.int32),
     x_out: wp.array(dtype=wp.vec3),
     lane_x: wp.array(dtype=wp.vec3),
-    lanes: int,
+    order: LaneOrder,
     first: int,
 ):
     """One shape-matching pass: each free particle moves toward the average goal of its windows.
@@ -453,13 +474,13 @@ def shape_match_step(
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count; read
-          only when lanes > 0
-      lanes (int): 0, or the strands in lane order (all of them): the last pass of a substep also
-          writes its result to lane_x for follow_the_leader
+          only in lane order
+      order (LaneOrder): particle order, or the length pass's lane order: then the pass also writes
+          its result to lane_x for follow_the_leader (the last pass of a substep)
       first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): positions after this pass; must not alias x
-      lane_x (vec3, per lane slot, m): x_out in lane order (lane_slot); written only when lanes > 0
+      lane_x (vec3, per lane slot, m): x_out in lane order (lane_slot); written only in lane order
           (may be None otherwise)
     """
     i = wp.tid() + first
@@ -467,8 +488,8 @@ def shape_match_step(
     strand = particle_strand[i]
     if inv_mass[i] == 0.0:
         x_out[i] = p
-        if lanes > 0:
-            lane_x[lane_slot(0, strand, i - strand_start[strand], lanes)] = p
+        if order.lanes > 0:
+            lane_x[lane_slot(0, order.lane_of[strand], i - strand_start[strand], order.lanes)] = p
         return
     goal = wp.vec3(0.0)
     count = float(0.0)
@@ -483,8 +504,8 @@ def shape_match_step(
     if count > 0.0:
         p = p + stiffness * (goal / count - p)
     x_out[i] = p
-    if lanes > 0:
-        lane_x[lane_slot(0, strand, i - strand_start[strand], lanes)] = p
+    if order.lanes > 0:
+        lane_x[lane_slot(0, order.lane_of[strand], i - strand_start[strand], order.lanes)] = p
 
 
 @wp.kernel
@@ -502,7 +523,7 @@ def shape_match_strands(
     stiffness: float,
     x_out: wp.array(dtype=wp.vec3),
     lane_x: wp.array(dtype=wp.vec3),
-    lanes: int,
+    order: LaneOrder,
     first: int,
 ):
     """shape_match_step one strand per thread, for the CPU: the same pass, the same goals.
@@ -527,11 +548,11 @@ def shape_match_strands(
       centroids (vec3, per window, m): from shape_match_rotations (full variant only)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
-      lanes (int): 0, or the strands in lane order (all of them): as shape_match_step
+      order (LaneOrder): as shape_match_step
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): positions after this pass; must not alias x
-      lane_x (vec3, per lane slot, m): x_out in lane order (lane_slot); written only when lanes > 0
+      lane_x (vec3, per lane slot, m): x_out in lane order (lane_slot); written only in lane order
           (may be None otherwise)
     """
     s = wp.tid() + first
@@ -566,8 +587,8 @@ def shape_match_strands(
             if count > 0.0:
                 p = p + stiffness * (x_out[i] / count - p)
         x_out[i] = p
-        if lanes > 0:
-            lane_x[lane_slot(start, s, i - start, lanes)] = p
+        if order.lanes > 0:
+            lane_x[lane_slot(start, order.lane_of[s], i - start, order.lanes)] = p
 
 
 @wp.struct
@@ -796,24 +817,24 @@ def contact_motion(
 def to_lanes(
     x: wp.array(dtype=wp.vec3),
     strand_start: wp.array(dtype=wp.int32),
-    lanes: int,
+    order: LaneOrder,
     lane_x: wp.array(dtype=wp.vec3),
 ):
     """Copy the predicted positions into lane order (lane_slot) when no shape-matching pass ran to
     write them there (shape_match_step's lane_x).
 
-    Launch: one thread per lane slot (dim = lanes * the longest strand's particle count).
+    Launch: one thread per lane slot (dim = order.lanes * the longest strand's particle count).
     Inputs:
       x (vec3, per particle, m): predicted positions
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-      lanes (int): strands in lane order (all of them)
+      order (LaneOrder): the lane order
     Outputs:
       lane_x (vec3, per lane slot, m): x in lane order; the slots past a strand's tip are left as
           they were
     """
     t = wp.tid()
-    k = t / lanes
-    s = t - k * lanes
+    k = t / order.lanes
+    s = order.strand_of[t - k * order.lanes]
     start = strand_start[s]
     if k < strand_start[s + 1] - start:
         lane_x[t] = x[start + k]
@@ -833,7 +854,7 @@ def find_short_lists(
     strand_reach: float,
     clearance: wp.array(dtype=float),
     beyond: wp.array(dtype=float),
-    lanes: int,
+    order: LaneOrder,
     first: int,
     short_count: wp.array(dtype=wp.int32),
     queue: wp.array(dtype=wp.int32),
@@ -847,8 +868,8 @@ def find_short_lists(
     bounds are unknown) is queued. A walk costs a hundred node visits, and a warp runs as long as its
     longest walk: queued, the walks fill whole warps instead of a few lanes of most warps.
 
-    Launch: one thread per particle of a range of particles (dim = particles in the range), or with
-    lanes > 0 one thread per lane slot (dim = lanes * the longest strand), after contact_motion;
+    Launch: one thread per particle of a range of particles (dim = particles in the range), or in
+    lane order one thread per lane slot (dim = order.lanes * the longest strand), after contact_motion;
     sphere-tree collision with contact bounds only. The per-particle arrays are in the order
     follow_the_leader reads them (lane_slot).
     Inputs:
@@ -864,7 +885,7 @@ def find_short_lists(
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
       clearance (float, per particle, m): contact bounds (NO_BOUND: unknown), anchored at x_prev
       beyond (float, per particle, m): bound of the distance to every unlisted leaf
-      lanes (int): 0 for particle order, else the strands in lane order (all of them)
+      order (LaneOrder): particle order, or the lane order (then first is 0)
       first (int, index): the range's first particle; thread t works on particle first + t
     In/out:
       short_count (int32, 1 element): particles queued, zero before the launch
@@ -874,9 +895,9 @@ def find_short_lists(
     """
     i = wp.tid() + first
     k = int(0)
-    if lanes > 0:
-        k = i / lanes
-        s = i - k * lanes
+    if order.lanes > 0:
+        k = i / order.lanes
+        s = order.strand_of[i - k * order.lanes]
         if k >= strand_start[s + 1] - strand_start[s]:
             return  # a slot past the strand's tip
     else:
@@ -969,7 +990,7 @@ def follow_the_leader(
     dt: float,
     x_out: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    lanes: int,
+    order: LaneOrder,
     first: int,
 ):
     """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, then the velocities.
@@ -998,9 +1019,9 @@ def follow_the_leader(
     GPU, find_short_lists and list_leaves_ahead first list afresh, in parallel, the leaves of the
     particles whose lists would run short here.
 
-    The per-particle arrays it reads and keeps are in particle order (lanes = 0) or all in lane
-    order (lanes > 0, lane_slot: predict_positions and the last shape-matching pass write them
-    there). On a GPU lane order makes each step of the loop read consecutive memory across a warp's
+    The per-particle arrays it reads and keeps are in particle order or all in lane order (order,
+    lane_slot: predict_positions and the last shape-matching pass write them there; a thread per
+    lane). On a GPU lane order makes each step of the loop read consecutive memory across a warp's
     strands; in particle order (the CPU's, where a thread walks one strand's cache lines) a warp
     touches 32 cache lines per array per step. The results, x_out and v, are written in particle
     order either way: a store does not hold up the loop as a load does, and no pass is needed to
@@ -1026,7 +1047,8 @@ def follow_the_leader(
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
       ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
       dt (float, s): substep length
-      lanes (int): 0 for particle order, else the strands in lane order (all of them, first = 0)
+      order (LaneOrder): particle order, or the lane order (then first is 0 and thread t works on
+          lane t)
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out (the
@@ -1039,17 +1061,21 @@ def follow_the_leader(
           in, at x out; ignored where clearance is NO_BOUND; sphere tree with use_bounds != 0 only
     Outputs:
       x_out (vec3, per particle, m): x's free particles as resolved, in particle order; the pinned
-          ones are not written. May be x itself when lanes is 0
+          ones are not written. May be x itself in particle order
       v (vec3, per particle, m/s): velocities at the end of the substep, in particle order
     """
     s = wp.tid() + first
+    lane = s
+    lanes = order.lanes
+    if lanes > 0:
+        s = order.strand_of[lane]
     start = strand_start[s]
     count = strand_start[s + 1] - start
     for k in range(count):
-        i = lane_slot(start, s, k, lanes)
+        i = lane_slot(start, lane, k, lanes)
         correction = wp.vec3(0.0)
         if k >= pinned_per_strand:
-            parent = x[lane_slot(start, s, k - 1, lanes)]
+            parent = x[lane_slot(start, lane, k - 1, lanes)]
             predicted = x[i]
             length = rest_length[i]
             d = predicted - parent
@@ -1057,7 +1083,7 @@ def follow_the_leader(
             if dist < 1.0e-12:
                 d = wp.vec3(0.0, -1.0, 0.0)
                 if k >= 2:
-                    d = parent - x[lane_slot(start, s, k - 2, lanes)]
+                    d = parent - x[lane_slot(start, lane, k - 2, lanes)]
                 dist = wp.length(d)
             p = parent + d * (length / dist)
             if collide_mode != 0:
@@ -1109,12 +1135,12 @@ def follow_the_leader(
             x[i] = p
             x_out[start + k] = p
         if k > 0:
-            j = lane_slot(start, s, k - 1, lanes)
+            j = lane_slot(start, lane, k - 1, lanes)
             vel = (x[j] - x_prev[j]) / dt
             if inv_mass[j] > 0.0:
                 vel = vel - (ftl_damping / dt) * correction
             v[start + k - 1] = vel
-    last = lane_slot(start, s, count - 1, lanes)
+    last = lane_slot(start, lane, count - 1, lanes)
     v[start + count - 1] = (x[last] - x_prev[last]) / dt
 
 
@@ -1146,7 +1172,7 @@ def hold_in_comb(
     grip: wp.array(dtype=int),
     v: wp.array(dtype=wp.vec3),
     clearance: wp.array(dtype=float),
-    lanes: int,
+    order: LaneOrder,
     first: int,
 ):
     """Strands held by a comb: the gripped particle sits on the comb, the hair between root and comb
@@ -1178,7 +1204,7 @@ def hold_in_comb(
       margin (float, m): clearance kept from the collider
       search (float, m): mesh query radius
       dt (float, s): substep length
-      lanes (int): the order of clearance, as follow_the_leader's (0: particle order)
+      order (LaneOrder): the order of clearance, as follow_the_leader's
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): positions after follow_the_leader in; held by the comb out
@@ -1192,6 +1218,9 @@ def hold_in_comb(
     g = grip[s]
     if g < 0:
         return
+    lane = s
+    if order.lanes > 0:
+        lane = order.lane_of[s]
     start = strand_start[s]
     end = strand_start[s + 1]
     root = start + pinned_per_strand - 1
@@ -1253,7 +1282,7 @@ def hold_in_comb(
                 follow = 1
         x[k] = p
         v[k] = (x[k] - x_prev[k]) / dt
-        clearance[lane_slot(start, s, k - start, lanes)] = NO_BOUND
+        clearance[lane_slot(start, lane, k - start, order.lanes)] = NO_BOUND
 
 
 @wp.kernel
