@@ -43,3 +43,26 @@ def test_plot_reads_the_recorded_h100_logs(tmp_path):
     sys.argv = ["plot", *map(str, logs), "-o", str(out)]
     plot.main()
     assert out.stat().st_size > 10_000
+
+
+def test_warp_model_takes_each_steps_slowest_lane_and_counts_the_real_pass():
+    """benchmarks/hair_warps.py: a warp's work is the sum over particle steps of its slowest lane's;
+    its counting copy of follow_the_leader compiles from the kernel's source and steps the same hair
+    (the counts are 1 per step, and more where a step queried the collider)."""
+    import hair_warps
+
+    work = np.zeros((1, 2, 64))
+    work[0, :, :] = 1.0
+    work[0, 0, 3] = 86.0  # strand 3 walks at the first step
+    work[0, 1, 40] = 5.0  # strand 40 tests its listed leaves at the second
+    total, slowest = hair_warps.warp_costs(work, np.arange(64))
+    assert (total, slowest) == (86.0 + 1.0 + 1.0 + 5.0, 87.0)
+    together = np.r_[3, 40, [s for s in range(64) if s not in (3, 40)]]  # both in the first warp
+    assert hair_warps.warp_costs(work, together) == (86.0 + 5.0 + 1.0 + 1.0, 91.0)
+
+    counted = hair_warps.counting_follow_the_leader()
+    counts, model = hair_warps.count_work(40, 1, counted)
+    assert counts.shape == (10, model.strand_start_np[1], model.num_strands)
+    steps = counts[counts > 0]
+    assert len(steps) == 10 * model.num_particles  # every particle step counted once ...
+    assert np.all(steps >= 1.0) and np.any(steps >= 5.0)  # ... and some of them queried the head

@@ -1,0 +1,143 @@
+"""What the order of the strands costs the hair's length pass on a GPU, modelled from CPU counts.
+
+follow_the_leader runs a thread per strand; a GPU steps 32 of them together (a warp), each particle
+step as long as the slowest of the 32, and a tree walk there costs some twenty times the listed-leaf
+tests. This script steps the benchmark's scene (benchmarks/hair.py, simplified1+spheres, lane order,
+leaves ahead: a GPU's configuration) on the CPU with a copy of follow_the_leader that also counts
+each particle step's work: 1 for the step, 4 more where it tests its four listed leaves, 85 more
+where it walks the sphere tree (about the nodes a walk near the head visits). Then for each strand
+order, with warps of 32 consecutive lanes:
+
+- warp work: the sum over warps of each particle step's largest count, per substep. A launch with
+  more warps than the GPU holds at once (100k strands on an H100) takes about this.
+- slowest warp: the largest one warp's work, per substep. A launch that fits at once (1k, 10k
+  strands) takes about this.
+
+    python benchmarks/hair_warps.py --strands 1000 10000
+"""
+
+import argparse
+import importlib.util
+import inspect
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import commit, table  # noqa: E402
+
+STEP, LISTED, WALK = 1.0, 4.0, 85.0
+
+
+def counting_follow_the_leader():
+    """follow_the_leader with one more argument, a float array per lane slot that each particle step
+    adds its work to; compiled from the kernel's own source, so the two cannot drift apart."""
+    from warp_kernels import strands
+
+    src = inspect.getsource(strands.follow_the_leader.func)
+    src = src[src.index("def follow_the_leader("):].replace("def follow_the_leader(", "def follow_the_leader_counted(")
+    edits = [
+        ("    order: LaneOrder,\n    first: int,\n):", "    order: LaneOrder,\n    first: int,\n    work: wp.array(dtype=float),\n):"),
+        ("        correction = wp.vec3(0.0)\n", f"        correction = wp.vec3(0.0)\n        work[i] += {STEP}\n"),
+        ("                        if listed:\n                            pushed, bound, leaves, origin, unlisted = ",
+         "                        if listed:\n"
+         "                            if unlisted - wp.length(p - origin) > margin + 1.0e-5:\n"
+         f"                                work[i] += {LISTED}\n"
+         "                            else:\n"
+         f"                                work[i] += {WALK}\n"
+         "                            pushed, bound, leaves, origin, unlisted = "),
+    ]
+    for old, new in edits:
+        if old not in src:
+            raise RuntimeError("follow_the_leader changed: update benchmarks/hair_warps.py's counting edits")
+        src = src.replace(old, new, 1)
+    header = ("import warp as wp\nfrom warp_kernels._options import MODULE_OPTIONS\nwp.set_module_options(MODULE_OPTIONS)\n"
+              "from warp_kernels.strands import *  # noqa\nfrom warp_kernels.strands import NO_BOUND, bound_lowering\n"
+              "from warp_kernels.collision import *  # noqa\n\n@wp.kernel\n")
+    path = Path(tempfile.mkdtemp(prefix="cfx_warps_")) / "counted_ftl.py"
+    path.write_text(header + src)
+    spec = importlib.util.spec_from_file_location("counted_ftl", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.follow_the_leader_counted
+
+
+def count_work(strands, frames, counted):
+    """(substeps, particles along a strand, strands) work of each particle step, by strand."""
+    import hair
+    from sim.hair_solver import HairParams, HairSolver
+    from warp_kernels import strands as kernels
+
+    scene = hair.build_scene(strands, "cpu", 10)
+    settled = hair.settle(scene)
+    scene.solver = HairSolver(scene.model, HairParams(substeps=10, **hair.CASES["simplified1+spheres"]), parts=1)
+    scene.solver.leaves_ahead = True
+    scene.solver.lanes = True
+    scene.graphs.enabled = False
+    scene.state.x.assign(settled[0])
+    scene.state.v.assign(settled[1])
+    lane = scene.solver._lanes
+    work = wp.zeros(lane.strands * lane.longest, dtype=float)
+    records, launch = [], wp.launch
+
+    def spy(kernel, dim, inputs=(), *args, **kwargs):
+        if kernel is not kernels.follow_the_leader:
+            return launch(kernel, dim, inputs, *args, **kwargs)
+        work.zero_()
+        launch(counted, dim, [*inputs, work], *args, **kwargs)
+        records.append(work.numpy().reshape(lane.longest, lane.strands).copy())
+
+    wp.launch = spy
+    try:
+        for _ in range(frames):
+            scene.advance(1.0 / hair.FPS)
+    finally:
+        wp.launch = launch
+    return np.stack(records)[:, :, lane.order.lane_of.numpy()], scene.model
+
+
+def warp_costs(work, strand_of):
+    """(warp work, slowest warp) per substep with lane l holding strand strand_of[l]."""
+    w = work[:, :, strand_of]
+    full = (w.shape[2] // 32) * 32
+    per_warp = w[:, :, :full].reshape(w.shape[0], w.shape[1], -1, 32).max(axis=3).sum(axis=1)
+    return float(per_warp.sum(axis=1).mean()), float(per_warp.max(axis=1).mean())
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--strands", type=int, nargs="*", default=[1000, 10000])
+    parser.add_argument("--frames", type=int, default=2, help="1/24 s frames of 10 substeps counted")
+    args = parser.parse_args()
+    from sim.hair_solver import lanes_by_root
+    from sim.scene import quiet_warp
+
+    quiet_warp()
+    wp.init()
+    counted = counting_follow_the_leader()
+    print(f"# the length pass's warps modelled from CPU counts, commit {commit()}: step {STEP:g}, "
+          f"listed leaves +{LISTED:g}, tree walk +{WALK:g}")
+    header = ["strands", "lanes", "warp work/substep", "vs grown", "slowest warp/substep", "vs grown",
+              "steps querying", "steps walking"]
+    rows = []
+    for strands in args.strands:
+        work, model = count_work(strands, args.frames, counted)
+        steps = work[work > 0]
+        queried = np.mean(steps >= STEP + LISTED) * 100.0
+        walked = np.mean(steps >= STEP + WALK) * 100.0
+        grown = warp_costs(work, np.arange(model.num_strands))
+        for name, order in (("grown", np.arange(model.num_strands)), ("by root", lanes_by_root(model))):
+            total, slowest = warp_costs(work, order)
+            rows.append([strands, name, f"{total:.0f}", f"{total / grown[0]:.2f}x", f"{slowest:.0f}",
+                         f"{slowest / grown[1]:.2f}x", f"{queried:.1f}%", f"{walked:.2f}%"])
+            print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
+    print()
+    print(table(header, rows))
+
+
+if __name__ == "__main__":
+    main()
