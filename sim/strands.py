@@ -34,6 +34,10 @@ class HairModel:
         self.num_strands = len(counts)
         self.num_particles = len(rest)
         self.pinned_per_strand = int(pinned_per_strand)
+        if self.pinned_per_strand < 1:
+            # follow_the_leader puts each particle at rest length from its parent: a root has none
+            raise ValueError(f"pinned_per_strand must be at least 1 (each strand's root is bound), "
+                             f"got {pinned_per_strand}")
         self.counts = counts
         self.strand_start_np = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
         self.rest_positions_np = rest.astype(np.float32)

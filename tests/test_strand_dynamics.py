@@ -143,3 +143,14 @@ def test_root_hold_keeps_the_groom_near_the_scalp(head, head_collider):
     # measured: 5.9 mm held, 27 mm free (a 12 cm strand hanging off a 3 cm lift)
     assert held < 0.008  # the lift survives gravity within 8 mm at 3 cm from the root
     assert free > 4.0 * held  # windowed shape matching alone lets it sag
+
+
+def test_a_strand_needs_a_bound_root_and_a_free_particle():
+    """follow_the_leader puts each particle at rest length from its parent, so a root must be bound
+    (with none pinned the first particle would follow the previous strand's tip)."""
+    builder = StrandBuilder().add_strand(np.stack([np.zeros(4), -np.linspace(0, 0.1, 4), np.zeros(4)], 1))
+    with pytest.raises(ValueError, match="pinned_per_strand must be at least 1"):
+        builder.finalize("cpu", pinned_per_strand=0)
+    with pytest.raises(ValueError, match="more than 4 vertices"):
+        builder.finalize("cpu", pinned_per_strand=4)
+    assert builder.finalize("cpu", pinned_per_strand=1).pinned_per_strand == 1
