@@ -784,7 +784,6 @@ def begin_step(
 @wp.kernel
 def elastic_forces(
     x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
     adj_start: wp.array(dtype=wp.int32),
     adj_spring: wp.array(dtype=wp.int32),
     spring_i: wp.array(dtype=wp.int32),
@@ -802,7 +801,6 @@ def elastic_forces(
     Launch: one thread per particle (dim = num_particles).
     Inputs:
       x (vec3, per particle, m): positions
-      v (vec3, per particle, m/s): velocities; read, but without damping they do not change the force
       adj_start (int32, num_particles + 1): CSR offsets of each particle's incident springs
       adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
       spring_i (int32, per spring): first particle of each spring
@@ -815,10 +813,11 @@ def elastic_forces(
     """
     p = wp.tid()
     f = wp.vec3(0.0)
+    still = wp.vec3(0.0)  # no dashpot: velocities do not enter
     for k in range(adj_start[p], adj_start[p + 1]):
         s = adj_spring[k]
         q = spring_j[s]
         if q == p:
             q = spring_i[s]
-        f += spring_force(x[p], x[q], v[p], v[q], spring_rest[s], spring_k_stretch[s], spring_k_compress[s], 0.0)
+        f += spring_force(x[p], x[q], still, still, spring_rest[s], spring_k_stretch[s], spring_k_compress[s], 0.0)
     force[p] = f
