@@ -156,11 +156,14 @@ def cmd_studio(args):
     except ValueError:
         return _fail(f"--size: expected WIDTHxHEIGHT in pixels, e.g. 960x720, got {args.size!r}", EXIT_INPUT)
     session = Session(sim.load_scene(args.scene, _overrides(args)), width, height)
-    StudioWindow(session, args.cache, args.script, max_frames=args.max_frames).run()
-    saved = [p for p in (args.cache, args.script) if p]
-    if saved:
-        print(f"wrote {' and '.join(saved)}: {len(session.events)} edits over {len(session.frames)} frames",
-              file=sys.stderr)
+    try:
+        StudioWindow(session, args.cache, args.script, max_frames=args.max_frames).run()
+        saved = [p for p in (args.cache, args.script) if p]
+        if saved:
+            print(f"wrote {' and '.join(saved)}: {len(session.events)} edits over {len(session.frames)} frames",
+                  file=sys.stderr)
+    finally:
+        session.close()
     return 0
 
 

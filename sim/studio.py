@@ -17,6 +17,7 @@ so it is also usable (and tested) without a display.
 """
 
 import os
+import tempfile
 
 import numpy as np
 
@@ -65,9 +66,53 @@ class LiveReader:
         return None
 
 
+class FrameSpool:
+    """The frames a studio session has simulated, kept on disk, one .npz each in a temporary folder,
+    so that a long session holds one frame in memory: a 10k-strand groom records 4 MB a frame, some
+    10 GB in ten minutes at 24 frames/s. Saving reads them back in order; the folder goes with the
+    spool (close, or when it is collected)."""
+
+    FIELDS = ("hair", "counts", "widths", "collider")
+
+    def __init__(self, folder=None):
+        self._dir = tempfile.TemporaryDirectory(prefix="cfx_studio_", dir=folder)
+        self.numbers = []  # the frame numbers recorded, in order
+
+    @property
+    def folder(self):
+        return self._dir.name
+
+    def _path(self, index):
+        return os.path.join(self._dir.name, f"{index:07d}.npz")
+
+    def append(self, frame, hair, counts, widths, collider):
+        np.savez(self._path(len(self.numbers)), hair=hair, counts=counts, widths=widths, collider=collider)
+        self.numbers.append(int(frame))
+
+    def pop(self):
+        """Forget the last frame recorded."""
+        os.remove(self._path(len(self.numbers) - 1))
+        self.numbers.pop()
+
+    def read(self, index):
+        """(frame, hair points, counts, widths, collider points) of the index-th frame recorded."""
+        with np.load(self._path(index % len(self.numbers))) as data:
+            return (self.numbers[index], *(data[k] for k in self.FIELDS))
+
+    def __len__(self):
+        return len(self.numbers)
+
+    def __iter__(self):
+        return (self.read(i) for i in range(len(self.numbers)))
+
+    def close(self):
+        self._dir.cleanup()
+        self.numbers = []
+
+
 class Session:
     """A studio session without its window: the scene, the camera the tools act through, the edits
-    made so far (as timeline tables) and the frames simulated (for the cache)."""
+    made so far (as timeline tables) and the frames simulated (for the cache, spooled to disk)."""
 
     def __init__(self, config, width=640, height=480):
         from .scene import Scene, quiet_warp
@@ -87,7 +132,7 @@ class Session:
         self.radius = float(np.linalg.norm(points.max(0) - points.min(0)))
         self.camera = self.view(0.0)
         self.events = []  # [[haircut]] tables, in the order applied
-        self.frames = []  # (frame, hair points, counts, widths, collider points)
+        self.frames = FrameSpool()  # (frame, hair points, counts, widths, collider points) on disk
         self.comb = None  # the held comb's timeline table while the comb is in the hair
         self._comb_drag = np.zeros(2)
         from . import haircut
@@ -184,13 +229,16 @@ class Session:
 
     def _record(self):
         s = self.scene
-        self.frames.append((self.frame, s.state.x.numpy().copy(), s.model.counts.copy(), s.model.widths_np.copy(),
-                            s.collider.points.numpy().copy()))
+        self.frames.append(self.frame, s.state.x.numpy(), s.model.counts, s.model.widths_np, s.collider.points.numpy())
 
     def _refresh_frame(self):
         """An edit at this frame replaces what was recorded for it."""
         self.frames.pop()
         self._record()
+
+    def close(self):
+        """Remove the recorded frames from disk (save first to keep them)."""
+        self.frames.close()
 
     # -- saving -----------------------------------------------------------------------------------
     def save(self, cache_path, script_path):
@@ -238,10 +286,11 @@ def write_session_cache(session, path):
 
     s, t = session.scene, session.config.timing
     frames = session.frames
-    with CacheWriter(path, t.fps, frames[0][0], frames[-1][0], settings=session.config.settings(),
+    _, _, counts, widths, _ = frames.read(0)
+    with CacheWriter(path, t.fps, frames.numbers[0], frames.numbers[-1], settings=session.config.settings(),
                      engine_version=__version__) as writer:
         writer.add_mesh(s.collider_name, "collider", s.head.vertices, s.head.faces, color=SKIN_COLOR)
-        writer.add_curves("hair", "hair", frames[0][2], frames[0][3], color=HAIR_COLOR)
+        writer.add_curves("hair", "hair", counts, widths, color=HAIR_COLOR)
         for frame, hair, counts, widths, collider in frames:
             writer.write_frame(frame, {s.collider_name: collider, "hair": hair},
                                curves={"hair": (counts, widths)})

@@ -166,3 +166,32 @@ def test_studio_window_cuts_hair_with_the_mouse(scene_file, tmp_path):
     first, last = frames[0], frames[-1]
     assert _lengths(reader.points("hair", last), reader.counts("hair", last)) < \
         0.9 * _lengths(reader.points("hair", first), reader.counts("hair", first))
+
+
+def test_recorded_frames_wait_on_disk_and_read_back_exactly(tmp_path):
+    """A long session keeps its frames in a spool on disk, not in memory: each reads back bit for
+    bit, an edit's re-record replaces the last, and closing removes the folder."""
+    from sim.studio import FrameSpool
+
+    rng = np.random.default_rng(2)
+    spool = FrameSpool(folder=tmp_path)
+    frames = []
+    for frame in range(1, 5):
+        counts = np.full(3 + frame % 2, 8, np.int64)
+        record = (frame, rng.random((int(counts.sum()), 3)).astype(np.float32), counts,
+                  rng.random(int(counts.sum())).astype(np.float32), rng.random((50, 3)).astype(np.float32))
+        spool.append(*record)
+        frames.append(record)
+    spool.pop()
+    spool.append(*frames[-1])
+    assert len(spool) == 4 and spool.numbers == [1, 2, 3, 4]
+    assert len(os.listdir(spool.folder)) == 4
+    for got, want in zip(spool, frames, strict=True):
+        assert got[0] == want[0]
+        for a, b in zip(got[1:], want[1:], strict=True):
+            np.testing.assert_array_equal(a, b)
+            assert a.dtype == b.dtype
+    assert spool.read(-1)[0] == 4
+    folder = spool.folder
+    spool.close()
+    assert not os.path.exists(folder) and len(spool) == 0
