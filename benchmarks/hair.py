@@ -155,8 +155,10 @@ def main():
             peer_ms, peer_stretch = run_peer(scene, args.substeps, args.frames, settled) if peer_ok else (None, None)
             ways = {"auto": [None], "on": [True], "off": [False], "both": [False, True]}
             orders = {"root": [True], "grown": [False], "both": [True, False]}[args.lane_order]
-            variants = [(n, a, lane, r) for n in args.cases for lane in ways[args.lanes] for a in ways[args.leaves_ahead]
-                        for r in (orders if lane is not False else [True])
+            variants = [(n, a, lane, r) for n in args.cases for lane in ways[args.lanes]
+                        for a in ways[args.leaves_ahead]
+                        # the lane order matters only where the lanes are on (auto: on a GPU)
+                        for r in (orders if (lane if lane is not None else wp.get_device(device).is_cuda) else [True])
                         if not (a and "mesh" in n and args.leaves_ahead == "both")]  # the mesh has no leaves
             for name, ahead, lanes, by_root in variants:
                 params = HairParams(substeps=args.substeps, **CASES[name])
