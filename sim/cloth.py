@@ -37,7 +37,8 @@ class ClothParams:
     walk_steps: int = 16  # most steps of the nearest-vertex walk before falling back to the BVH
     teleport: float = 0.05  # m, a particle that moved this far in one step restarts from the BVH
     walk_trust_distance: float = 0.015  # m, farther from the body the walk is re-seeded from the BVH ...
-    walk_refresh: int = 8  # ... every this many steps
+    walk_refresh: int = 8  # ... every this many steps, ...
+    reseed_drift: float = 0.003  # m: ... once they have drifted this far relative to the body (0: always)
     follow: bool = True  # move particles with the body before each step (§3.4)
     follow_full_within: float = 0.02  # m: particles this close to the body follow it fully ...
     follow_none_beyond: float = 0.08  # m: ... fading to not at all at this distance
@@ -51,7 +52,7 @@ class ClothParams:
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be positive")
         for name in ("compress_stiffness", "shear_stiffness", "bend_stiffness", "spring_damping", "damping",
-                     "air_drag", "friction", "collision_margin", "body_proxy", "strain_limit"):
+                     "air_drag", "friction", "collision_margin", "body_proxy", "strain_limit", "reseed_drift"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"{name} must be zero or positive")
         if self.substeps < 0:
@@ -74,6 +75,19 @@ class ClothState:
     follow_barycentric: wp.array
     follow_local: wp.array
     contact: wp.array  # 1 where the particle touched the body in the last step
+    clearance: kernels.BodyClearance  # lower bounds of the distance from the body, kept between queries
+
+
+UNKNOWN = 1.0e30  # a distance never measured is -UNKNOWN, the body's motion since never measured +UNKNOWN
+
+
+def unknown_clearance(count, device):
+    """A kernels.BodyClearance for `count` particles that knows nothing yet: the first pass queries."""
+    clearance = kernels.BodyClearance()
+    clearance.distance = wp.full(count, -UNKNOWN, dtype=float, device=device)
+    clearance.at = wp.zeros(count, dtype=wp.vec3, device=device)
+    clearance.body_motion = wp.full(count, UNKNOWN, dtype=float, device=device)
+    return clearance
 
 
 def rk4_stable_dt(masses, pairs, stiffness, dashpot, decay, fixed=()):
@@ -230,6 +244,7 @@ class ClothModel:
             follow_barycentric=wp.zeros(n, dtype=wp.vec3, device=d),
             follow_local=wp.zeros(n, dtype=wp.vec3, device=d),
             contact=wp.zeros(n, dtype=wp.int32, device=d),
+            clearance=unknown_clearance(n, d),
         )
 
     def bind_to_mesh(self, mesh_points, mesh_indices):
@@ -304,20 +319,20 @@ class ClothSolver:
             adj = body.adjacency()
             limit = p.strain_limit > 0.0
             # the follow record is taken by the last collision pass, on the final positions
-            self._collide(state_in, state_out, body, adj, dt, record=p.follow and not limit)
+            self._collide(state_in, state_out, body, adj, dt, record=p.follow and not limit, first=True)
         if p.strain_limit > 0.0:
             self._limit_strain(state_out, dt)
-            if body is not None:  # contact has the last word
-                self._collide(state_out, state_out, body, adj, dt, record=p.follow)
+            if body is not None:  # contact has the last word, in the same pose
+                self._collide(state_out, state_out, body, adj, dt, record=p.follow, first=False)
 
-    def _collide(self, state_prev, state, body, adj, dt, record):
+    def _collide(self, state_prev, state, body, adj, dt, record, first):
         m, p = self.model, self.params
         wp.launch(kernels.body_collide, m.num_particles,
                   [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
                    adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, p.walk_steps,
-                   p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), self.step_count,
-                   p.collision_margin,
-                   p.friction, dt, state_prev.nearest, int(record), state.nearest, state.contact, self.fallbacks,
+                   p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), p.reseed_drift,
+                   self.step_count, body.moved, int(first), p.collision_margin, p.friction, dt, state_prev.nearest,
+                   state_prev.clearance, int(record), state.nearest, state.clearance, state.contact, self.fallbacks,
                    state.follow_face, state.follow_barycentric, state.follow_local], device=m.device)
 
     def _limit_strain(self, state, dt):

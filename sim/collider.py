@@ -17,6 +17,8 @@ from .collision_proxy import blend_skin_weights, coarse_remesh
 from .graphs import refit_mesh
 from .sphere_tree import build_sphere_tree, empty_sphere_tree, signed_distance
 
+UNKNOWN_MOTION = 1.0e30  # Collider.moved after a pose that did not measure it: lowers every bound to nothing
+
 
 class Collider:
     def __init__(self, name, vertices, faces, skin_indices, skin_weights, num_bones, device="cpu",
@@ -35,6 +37,9 @@ class Collider:
         self.rest_points = arr(self.rest_points_np, wp.vec3)
         self.points = arr(self.rest_points_np, wp.vec3)
         self.prev_points = arr(self.rest_points_np, wp.vec3)  # the pose before, for surface velocities
+        # the largest displacement of a vertex from prev_points to points: how far the surface moved
+        # (UNKNOWN_MOTION after a pose that did not measure it)
+        self.moved = wp.zeros(1, dtype=float, device=device)
         self._pose_points = None  # poses given as point arrays instead of bone matrices
         self.indices = arr(self.faces_np.reshape(-1), wp.int32)
         self.skin_indices = arr(skin_indices, wp.vec4i)
@@ -80,6 +85,7 @@ class Collider:
         step side by side (sim.scene) each pose their own twin, so neither sees the other's substeps."""
         twin = copy.copy(self)
         twin.points, twin.prev_points = wp.clone(self.points), wp.clone(self.prev_points)
+        twin.moved = wp.clone(self.moved)
         twin.mesh = wp.Mesh(points=twin.points, indices=self.indices)
         twin.sphere_centers, twin.prev_sphere_centers = wp.clone(self.sphere_centers), wp.clone(self.prev_sphere_centers)
         twin.sphere_radii = wp.clone(self.sphere_radii)  # inner radii are refitted in place
@@ -153,11 +159,13 @@ class Collider:
         wp.copy(self.prev_points, self.points)
         wp.copy(self.prev_sphere_centers, self.sphere_centers)
         self.bvh_stale = not refit
+        self.moved.fill_(UNKNOWN_MOTION)  # until measured below
         if self._pose_points is not None:
             n = len(self.rest_points_np)
             wp.copy(self.points, self._pose_points, 0, k * n, n)
             if refit:
                 refit_mesh(self.mesh)
+                self._measure_motion()
         else:  # the sphere tree follows skinned poses only
             offset = k * self.num_bones
             if listed is not None:
@@ -170,6 +178,7 @@ class Collider:
                            self.points], device=self.device)
             if refit:
                 refit_mesh(self.mesh)
+                self._measure_motion()
             wp.launch(skinning.skin_points, len(self.sphere_centers),
                       [self.sphere_rest_centers, self.sphere_skin_indices, self.sphere_skin_weights,
                        self.bone_matrices, offset, self.sphere_centers], device=self.device)
@@ -186,9 +195,17 @@ class Collider:
             self._adjacency = _Adjacency(self.rest_points_np, self.faces_np, self.device)
         return self._adjacency
 
+    def _measure_motion(self):
+        """moved for the pose just applied: a pose with a refitted BVH is one mesh queries read, and the
+        cloth's contact bounds (kernels.cloth.BodyClearance) are lowered by how far it moved."""
+        self.moved.zero_()
+        wp.launch(collision.largest_displacement, len(self.points), [self.prev_points, self.points, self.moved],
+                  device=self.device)
+
     def reset_motion(self):
         """Make the current pose also the previous one (after a jump, so surfaces have no velocity)."""
         wp.copy(self.prev_points, self.points)
+        self.moved.zero_()
 
     def fresh_mesh(self):
         """The posed mesh with its BVH refitted to the current points (a refit only if stale)."""

@@ -6,7 +6,7 @@ import trimesh
 import warp as wp
 
 from sim.cloth import ClothModel, ClothParams, ClothSolver
-from sim.collider import Collider
+from sim.collider import UNKNOWN_MOTION, Collider
 from warp_kernels import cloth as kernels
 
 PLAIN = dict(damping=0.0, air_drag=0.0, spring_damping=0.0, gravity=(0.0, 0.0, 0.0), follow=False)
@@ -151,9 +151,9 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     before = state.x.numpy()
     wp.launch(kernels.body_collide, 50,
               [state.x, state.x, state.v, model.inv_mass, body.points, body.prev_points, body.indices, adj.vv_start,
-               adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, 16, 1.0, 1.0, 1.0, 1, steps, 0.0, 0.0,
-               1e-3, state.nearest, 1, state.nearest, state.contact, fallbacks, state.follow_face,
-               state.follow_barycentric, state.follow_local])
+               adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, 16, 1.0, 1.0, 1.0, 1, 0.0, steps,
+               body.moved, 1, 0.0, 0.0, 1e-3, state.nearest, state.clearance, 1, state.nearest, state.clearance,
+               state.contact, fallbacks, state.follow_face, state.follow_barycentric, state.follow_local])
     np.testing.assert_array_equal(state.x.numpy(), before)
     assert np.all(state.follow_face.numpy() >= 0)
     angle = 0.8
@@ -167,6 +167,91 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
                                        None, 1e-3, steps])
     assert steps.numpy()[0] == 1
     np.testing.assert_allclose(state.x.numpy(), pts @ R.T + M[:3, 3], atol=1e-5)
+
+
+def test_collider_moved_is_the_largest_vertex_displacement_of_the_last_pose():
+    body = sphere_body()
+    poses = np.repeat(np.eye(4)[None, None], 3, axis=0)
+    poses[1, 0, :3, 3] = [0.003, -0.004, 0.0]  # 5 mm
+    angle = 0.1
+    poses[2, 0, :2, :2] = [[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]]
+    poses[2, 0, :3, 3] = poses[1, 0, :3, 3]
+    body.set_poses(poses)
+    body.apply_pose(1)
+    assert body.moved.numpy()[0] == pytest.approx(0.005, rel=1e-5)
+    body.apply_pose(2)  # a turn by 0.1 rad about the z axis: the equator moves 2 r sin(0.05)
+    rim = np.linalg.norm(body.rest_points_np[:, :2], axis=1).max()
+    assert body.moved.numpy()[0] == pytest.approx(2.0 * rim * np.sin(0.05), rel=1e-4)
+    body.reset_motion()  # the pose is also the last one: nothing moved
+    assert body.moved.numpy()[0] == 0.0
+    body.apply_pose(0, refit=False)  # a pose for the sphere tree only says nothing of the mesh's motion
+    assert body.moved.numpy()[0] == UNKNOWN_MOTION
+
+
+def test_body_clearance_stays_a_lower_bound_of_the_distance_on_a_moving_body():
+    """The bounds that let body_collide skip queries never claim more room than there is: cloth
+    falls on a ball that slides and rises into it, re-seeded every other step."""
+    body = sphere_body()
+    pts, tris, edges, shear, bend = grid(12, 0.8, 0.36)
+    model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams(walk_refresh=2))
+    dt = model.stable_dt
+    steps = 120
+    poses = np.repeat(np.eye(4)[None, None], steps + 1, axis=0)
+    poses[:, 0, 0, 3] = 0.0015 * np.arange(steps + 1)
+    poses[:, 0, 1, 3] = 0.0004 * np.arange(steps + 1)
+    body.set_poses(poses)
+    solver = ClothSolver(model)
+    s0, s1 = model.state(), model.state()
+    checked = touching = 0
+    for k in range(1, steps + 1):
+        body.apply_pose(k)
+        solver.step(s0, s1, body, dt)
+        s0, s1 = s1, s0
+        x = s0.x.numpy()
+        distance, at = s0.clearance.distance.numpy(), s0.clearance.at.numpy()
+        bound = distance - np.linalg.norm(x - at, axis=1)
+        known = distance > -1e29
+        sd = body.signed_distance(x)
+        assert np.all(bound[known] <= sd[known] + 1e-5), (k, (bound - sd)[known].max())
+        checked += np.count_nonzero(known)
+        touching += np.count_nonzero(s0.contact.numpy())
+    assert checked == steps * model.num_particles  # every particle was queried on the first step
+    assert touching > 300  # the ball really pushed into the cloth
+
+
+def test_dress_at_rest_skips_the_queries_its_clearance_rules_out():
+    """On a still body the dress settles with about half the BVH queries of re-seeding every far
+    particle on schedule, and lands where that would have put it."""
+    from sim.body import procedural_body
+    from sim.garment import fit_dress
+
+    body_mesh = procedural_body()
+    garment = fit_dress(body_mesh, particles=322)
+    finals, queries = [], []
+    for drift in (0.0, ClothParams().reseed_drift):
+        model = ClothModel.from_garment(garment, ClothParams(reseed_drift=drift))
+        skin_w = np.zeros((len(body_mesh.vertices), 4))
+        skin_w[:, 0] = 1.0
+        body = Collider("body", body_mesh.vertices, body_mesh.faces, np.zeros((len(skin_w), 4), np.int32), skin_w,
+                        1, "cpu", sphere_leaves=0)
+        body.set_poses(np.eye(4)[None, None])
+        body.apply_pose(0)
+        body.reset_motion()
+        model.bind_to_mesh(body.posed_points(), body.faces_np)
+        solver = ClothSolver(model)
+        s0, s1 = model.state(), model.state()
+        dt = 1.0 / 60.0 / model.substeps_for(1.0 / 60.0)
+        count = 0
+        for k in range(240):
+            solver.fallbacks.zero_()
+            solver.step(s0, s1, body, dt)
+            s0, s1 = s1, s0
+            count += int(solver.fallbacks.numpy()[0]) if k >= 12 else 0  # after the first frame's seeding
+        finals.append(s0.x.numpy())
+        queries.append(count)
+        assert body.signed_distance(s0.x.numpy()).min() > 0.0
+    assert queries[1] < 0.6 * queries[0], queries
+    np.testing.assert_allclose(finals[1], finals[0], atol=1e-4)
 
 
 def _chain(masses, params):

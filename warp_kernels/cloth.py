@@ -519,6 +519,29 @@ def follow_record(
         local[p] = wp.transpose(face_frame(points, indices, best_f)) * (xp - face_point(points, indices, best_f, best_w))
 
 
+@wp.struct
+class BodyClearance:
+    """What each cloth particle knows of its distance from the body between BVH queries (body_collide).
+
+    The signed distance from a surface changes by at most the point's own displacement plus the
+    largest displacement of the surface, so the distance a query measured stays a lower bound of the
+    particle's distance when lowered by how far the body has moved since and how far the particle is
+    from where it was measured. While that exceeds the margin the particle cannot touch the body and
+    needs no query; the two lowerings together say how far it drifted relative to the body.
+
+    Fields:
+      distance (float, per particle, m): signed distance from the body at `at` measured by the last
+          query, lowered by the body's motion since (very negative: unknown)
+      at (vec3, per particle, m): where the last query measured it
+      body_motion (float, per particle, m): how far the body moved since (the sum of
+          sim.Collider.moved; very large: never queried)
+    """
+
+    distance: wp.array(dtype=float)
+    at: wp.array(dtype=wp.vec3)
+    body_motion: wp.array(dtype=float)
+
+
 @wp.kernel
 def body_collide(
     x: wp.array(dtype=wp.vec3),
@@ -539,13 +562,18 @@ def body_collide(
     trust_distance: float,
     reseed_radius: float,
     refresh: int,
+    reseed_drift: float,
     step_count: wp.array(dtype=wp.int32),
+    body_moved: wp.array(dtype=float),
+    first_pass: int,
     margin: float,
     friction: float,
     dt: float,
     nearest_in: wp.array(dtype=wp.int32),
+    clearance_in: BodyClearance,
     record: int,
     nearest: wp.array(dtype=wp.int32),
+    clearance: BodyClearance,
     contact: wp.array(dtype=wp.int32),
     fallbacks: wp.array(dtype=wp.int32),
     follow_face: wp.array(dtype=wp.int32),
@@ -561,10 +589,14 @@ def body_collide(
     since the last step, a walk that ran out of steps, a concave vertex near the body) a BVH
     closest-point query decides and restarts the cache. Particles farther than trust_distance cannot
     collide, but their walk can stall between limbs; they are re-seeded from the BVH every refresh
-    steps, all on the same step: on a GPU a launch lasts as long as its slowest thread, so re-seeds
-    staggered over every step would make every launch wait for a query. With record != 0 the final
-    position is also recorded against the nearest body face (follow_record) for begin_step of the
-    next step.
+    steps, all on the same step (on a GPU a launch lasts as long as its slowest thread, so re-seeds
+    staggered over every step would make every launch wait for a query), once they have drifted
+    reseed_drift relative to the body since their last query: a particle that kept still on a body
+    that kept still would find the same vertex again. Near a concave vertex the query is skipped
+    while the particle's clearance (BodyClearance, a lower bound of its signed distance lowered by
+    its own and the body's motion) stays above the margin: it cannot touch the body, which is the
+    query's own answer. With record != 0 the final position is also recorded against the nearest
+    body face (follow_record) for begin_step of the next step.
 
     Launch: one thread per particle (dim = num_particles).
     Inputs:
@@ -586,11 +618,18 @@ def body_collide(
           periodically
       reseed_radius (float, m): BVH query radius when re-seeding; farther particles keep their walk
       refresh (int, steps): re-seed period of far particles; at least 1
+      reseed_drift (float, m): far particles that drifted less than this relative to the body since
+          their last query skip the re-seed; 0 re-seeds them all
       step_count (int32, 1 element): the step counter of begin_step, which times the re-seeding
+      body_moved (float, 1 element, m): largest displacement of a body vertex from prev_points to
+          points (sim.Collider.moved)
+      first_pass (int, flag): non-zero in the step's first pass, which lowers the clearances by
+          body_moved; a second pass in the same pose must not lower them again
       margin (float, m): distance kept outside the body
       friction (float): Coulomb friction coefficient
       dt (float, s): step length
       nearest_in (int32, per particle): cached nearest body vertex from the last step, -1 when unknown
+      clearance_in (BodyClearance): the clearances from the last pass; may be clearance itself
       record (int, flag): non-zero records the follow data
     In/out:
       x (vec3, per particle, m): positions, pushed outside the body
@@ -598,6 +637,7 @@ def body_collide(
       fallbacks (int32, 1 element): incremented once per BVH query (zero it to count one launch)
     Outputs:
       nearest (int32, per particle): nearest body vertex after this pass; may be nearest_in itself
+      clearance (BodyClearance): the clearances after this pass
       contact (int32, per particle): 1 where the particle was pushed out, else 0
       follow_face (int32, per particle): body face recorded (-1 none); written only when record != 0
       follow_barycentric (vec3, per particle): weights of the recorded face's corners; record != 0 only
@@ -605,14 +645,28 @@ def body_collide(
     """
     p = wp.tid()
     contact[p] = 0
+    # the last query's distance carried to this pose and position
+    xp = x[p]
+    measured = clearance_in.distance[p]
+    at = clearance_in.at[p]
+    body_motion = clearance_in.body_motion[p]
+    if first_pass != 0:
+        measured -= body_moved[0]
+        body_motion += body_moved[0]
+    away = wp.length(xp - at)
+    bound = measured - away
+    drift = body_motion + away
     if inv_mass[p] == 0.0:
         nearest[p] = nearest_in[p]
+        clearance.distance[p] = measured
+        clearance.at[p] = at
+        clearance.body_motion[p] = body_motion
         if record != 0:
             follow_face[p] = -1
         return
-    xp = x[p]
     vtx = nearest_in[p]
     trusted = vtx >= 0
+    clear = bool(False)  # the clearance alone shows the particle cannot touch the body
     search = float(1.0e6)  # BVH query radius when the walk is not trusted
     if trusted:
         if wp.length(xp - x_prev[p]) > teleport:
@@ -625,29 +679,46 @@ def body_collide(
         else:
             reach = wp.length(xp - points[vtx])
             far = reach > trust_distance
-            if (concave[vtx] != 0 and not far) or (far and step_count[0] % refresh == 0):
+            if concave[vtx] != 0 and not far:
+                if bound > margin:
+                    clear = True
+                else:
+                    trusted = False
+                    # the closest surface point is no farther than the vertex the walk reached; and
+                    # while the particle cannot be deeper inside than the margin, a query of twice
+                    # the margin tells a touch from none just as well (a BVH query's cost grows
+                    # with its radius)
+                    search = reach + margin
+                    if bound > -margin:
+                        search = wp.min(search, 2.0 * margin)
+            elif far and step_count[0] % refresh == 0 and drift >= reseed_drift:
                 trusted = False
-                # the closest surface point is no farther than the vertex the walk reached; a far
-                # particle needs the right vertex only where it can touch or follow the body, so its
-                # query looks no farther than reseed_radius (a BVH query's cost grows with its radius)
+                # a far particle needs the right vertex only where it can touch or follow the body,
+                # so its query looks no farther than reseed_radius
                 search = wp.min(reach + margin, reseed_radius)
     n = wp.vec3(float(0.0), float(0.0), float(0.0))
     depth = float(0.0)  # how far to move along n to reach margin outside the surface
     hit = bool(False)
     if trusted:
-        # behind every incident face: the least-inside face decides the projection
-        best, nf = least_inside_plane(xp, vtx, points, indices, vf_start, vf_face)
-        if best < margin and vf_start[vtx + 1] > vf_start[vtx]:
-            hit = True
-            n = nf
-            depth = margin - best
+        # behind every incident face: the least-inside face decides the projection (at a concave
+        # vertex the faces do not, and the clearance has already said no)
+        if not clear:
+            best, nf = least_inside_plane(xp, vtx, points, indices, vf_start, vf_face)
+            if best < margin and vf_start[vtx + 1] > vf_start[vtx]:
+                hit = True
+                n = nf
+                depth = margin - best
     else:
         wp.atomic_add(fallbacks, 0, 1)
+        at = xp
+        body_motion = 0.0
+        measured = search  # nothing within the radius; a particle deeper inside than it is not seen
         q = wp.mesh_query_point_sign_normal(mesh, xp, search)
         if q.result:
             cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
             nf = wp.mesh_eval_face_normal(mesh, q.face)
             sd = q.sign * wp.length(xp - cp)
+            measured = sd
             # restart the cache at the closest corner of the closest face, then settle it locally
             vtx = walk_to_nearest_vertex(xp, closest_corner(xp, q.face, points, indices), points, vv_start, vv_adj,
                                          max_steps)
@@ -658,6 +729,9 @@ def body_collide(
                 n = nf
                 depth = margin - sd
     nearest[p] = vtx
+    clearance.distance[p] = measured
+    clearance.at[p] = at
+    clearance.body_motion[p] = body_motion
     if hit:
         x[p] = xp + depth * n
         vb = (points[vtx] - prev_points[vtx]) / dt

@@ -606,3 +606,23 @@ def refit_sphere_tree(
     while a >= 0:
         wp.atomic_max(radii, a, wp.length(c - centers[a]) + r)
         a = parent[a]
+
+
+@wp.kernel
+def largest_displacement(before: wp.array(dtype=wp.vec3), after: wp.array(dtype=wp.vec3), moved: wp.array(dtype=float)):
+    """The largest distance any point moved, for bounds on how far a surface moved (sim.Collider.moved).
+
+    A thread reads the maximum so far before raising it: once a large displacement is in, most
+    threads skip the atomic, so a GPU does not serialise one per point on a single address.
+
+    Launch: one thread per point (dim = len(before)).
+    Inputs:
+      before (vec3, per point, m): positions before the move
+      after (vec3, per point, m): and after it
+    In/out:
+      moved (float, 1 element, m): raised to the largest |after - before|; zero it first
+    """
+    i = wp.tid()
+    d = wp.length(after[i] - before[i])
+    if d > moved[0]:
+        wp.atomic_max(moved, 0, d)
