@@ -347,7 +347,8 @@ class HairSolver:
         motion = self._motion[r]
         if mode != 0 and self.contact_bounds:
             adjacency = c.adjacency()
-            wp.launch(strands.anchor_frame, 1, [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
+            wp.launch(strands.anchor_frame, strands.MOTION_GRID ** 3,
+                      [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
             mesh = mode == COLLISION["mesh"]  # the sphere tree's strands see only its leaves
             wp.launch(strands.contact_motion, (len(c.points) if mesh else 0) + len(c.sphere_centers),
                       [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,

@@ -678,7 +678,8 @@ def anchor_frame(
     triangle's frame (skinning.triangle_frame) from the previous pose to the new one, and the
     triangle's new centroid.
 
-    Launch: one thread per range of strands (dim = 1).
+    Launch: one thread per cell of the motion grid (dim = MOTION_GRID^3): the first also writes the
+    frame, each zeroes its cell (one thread zeroing them all made a serial launch of every substep).
     Inputs:
       points_before (vec3, per vertex, m): collider vertices in the previous pose
       points (vec3, per vertex, m): and in the new one
@@ -689,6 +690,10 @@ def anchor_frame(
       motion (ContactMotion): rigid (x -> R x + t: R the frame's turn, t taking the old centroid to
           the new one) and center written, moved and cells zeroed
     """
+    cell = wp.tid()
+    motion.cells[cell] = 0.0
+    if cell > 0:
+        return
     rotation = wp.identity(3, dtype=float)
     before = wp.vec3(0.0)
     after = wp.vec3(0.0)
@@ -709,8 +714,6 @@ def anchor_frame(
                                0.0, 0.0, 0.0, 1.0)
     motion.center[0] = after
     motion.moved[0] = 0.0
-    for k in range(MOTION_GRID * MOTION_GRID * MOTION_GRID):
-        motion.cells[k] = 0.0
 
 
 @wp.kernel
