@@ -185,7 +185,7 @@ def test_collider_moved_is_the_largest_vertex_displacement_of_the_last_pose():
     body.reset_motion()  # the pose is also the last one: nothing moved
     assert body.moved.numpy()[0] == 0.0
     body.apply_pose(0, refit=False)  # a pose for the sphere tree only says nothing of the mesh's motion
-    assert body.moved.numpy()[0] == UNKNOWN_MOTION
+    assert body.moved.numpy()[0] == np.float32(UNKNOWN_MOTION)
 
 
 def test_body_clearance_stays_a_lower_bound_of_the_distance_on_a_moving_body():
