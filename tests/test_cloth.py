@@ -95,16 +95,19 @@ def test_spring_force_kernel_matches_float64_reference():
     np.testing.assert_allclose(f.numpy(), ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
 
 
-def sphere_body(radius=0.3, subdivisions=4):
-    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
-    v = np.asarray(m.vertices)
-    skin_i = np.zeros((len(v), 4), np.int32)
-    skin_w = np.zeros((len(v), 4))
+def rigid_body(name, vertices, faces):
+    """A mesh-only collider on one bone, posed at rest."""
+    skin_w = np.zeros((len(vertices), 4))
     skin_w[:, 0] = 1.0
-    body = Collider("ball", v, m.faces, skin_i, skin_w, 1, "cpu", sphere_leaves=0)
+    body = Collider(name, vertices, faces, np.zeros((len(vertices), 4), np.int32), skin_w, 1, "cpu", sphere_leaves=0)
     body.set_poses(np.eye(4)[None, None])
     body.apply_pose(0)
     return body
+
+
+def sphere_body(radius=0.3, subdivisions=4):
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    return rigid_body("ball", np.asarray(m.vertices), m.faces)
 
 
 def grid(n, size, height):
@@ -230,12 +233,7 @@ def test_dress_at_rest_skips_the_queries_its_clearance_rules_out():
     finals, queries = [], []
     for drift in (0.0, ClothParams().reseed_drift):
         model = ClothModel.from_garment(garment, ClothParams(reseed_drift=drift))
-        skin_w = np.zeros((len(body_mesh.vertices), 4))
-        skin_w[:, 0] = 1.0
-        body = Collider("body", body_mesh.vertices, body_mesh.faces, np.zeros((len(skin_w), 4), np.int32), skin_w,
-                        1, "cpu", sphere_leaves=0)
-        body.set_poses(np.eye(4)[None, None])
-        body.apply_pose(0)
+        body = rigid_body("body", body_mesh.vertices, body_mesh.faces)
         body.reset_motion()
         model.bind_to_mesh(body.posed_points(), body.faces_np)
         solver = ClothSolver(model)
