@@ -113,7 +113,8 @@ def quality(x, model, body):
 
 
 def run_ours(model, body, frames):
-    """(ms/frame, substeps/frame, bytes/frame, final positions): RK4 frames of RACE_DT, graph-launched."""
+    """(ms/frame, substeps/frame, bytes/frame, final positions, BVH queries or gatherings per timed
+    frame): RK4 frames of RACE_DT, graph-launched."""
     solver = ClothSolver(model)
     states = [model.state(), model.state()]
     substeps = model.substeps_for(RACE_DT)
@@ -133,11 +134,13 @@ def run_ours(model, body, frames):
 
     with counting_launch_bytes() as moved:
         step()
+    before = int(solver.fallbacks.numpy()[0])  # counted on the device across replays, never zeroed here
     ms = time_frames(step, model.device, frames=frames, min_seconds=0.0, max_frames=frames)
+    queries = (int(solver.fallbacks.numpy()[0]) - before) / (frames + 2)  # time_frames warms up with 2
     if PROFILE:
         graphs.enabled = False
         print("\n".join(kernel_profile(step, model.device)), flush=True)
-    return ms, substeps, moved[0], states[0].x.numpy()
+    return ms, substeps, moved[0], states[0].x.numpy(), queries
 
 
 def run_newton(model, body, solver, frames):
@@ -162,12 +165,14 @@ def race(devices, grids, frames, peers, ceilings):
             model, body, truth = build()
             n = model.num_particles
             f = frames if n < 200_000 else max(3, frames // 6)
-            ms, substeps, moved, x = run_ours(model, body, f)
+            ms, substeps, moved, x, queries = run_ours(model, body, f)
             stretch, depth = quality(x, model, truth)
             gbs = moved / (ms * 1e-3) / 1e9
             rows.append([name, n, device, "ours RK4", f"{substeps} x 1", fmt(ms, 4), fmt(n * substeps / (ms * 1e-3)),
                          f"{gbs:.0f} ({100 * gbs / ceilings[device]:.0f}%)", fmt(stretch, 2), fmt(depth, 2), "1.0x"])
             print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
+            if body is not None:
+                print(f"# {name}, ours: {queries:.1f} BVH queries or gatherings per frame after the first", flush=True)
             for solver in peers:
                 peer_ms, px = run_newton(model, body, solver, f)
                 stretch, depth = quality(px, model, truth)

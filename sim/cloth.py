@@ -39,6 +39,8 @@ class ClothParams:
     walk_trust_distance: float = 0.015  # m, farther from the body the walk is re-seeded from the BVH ...
     walk_refresh: int = 8  # ... every this many steps, ...
     reseed_drift: float = 0.003  # m: ... once they have drifted this far relative to the body (0: always)
+    body_candidates: int = 64  # body triangles gathered per particle at a concave vertex (0: query the BVH)
+    candidate_slack: float = 0.008  # m the particle and body may move before those are gathered again
     follow: bool = True  # move particles with the body before each step (§3.4)
     follow_full_within: float = 0.02  # m: particles this close to the body follow it fully ...
     follow_none_beyond: float = 0.08  # m: ... fading to not at all at this distance
@@ -52,11 +54,14 @@ class ClothParams:
             if getattr(self, name) <= 0.0:
                 raise ValueError(f"{name} must be positive")
         for name in ("compress_stiffness", "shear_stiffness", "bend_stiffness", "spring_damping", "damping",
-                     "air_drag", "friction", "collision_margin", "body_proxy", "strain_limit", "reseed_drift"):
+                     "air_drag", "friction", "collision_margin", "body_proxy", "strain_limit", "reseed_drift",
+                     "candidate_slack"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"{name} must be zero or positive")
         if self.substeps < 0:
             raise ValueError("substeps must be 0 (automatic) or positive")
+        if self.body_candidates < 0:
+            raise ValueError("body_candidates must be 0 (off) or positive")
         if self.follow_none_beyond < self.follow_full_within:
             raise ValueError("follow_none_beyond must be at least follow_full_within")
 
@@ -88,6 +93,19 @@ def unknown_clearance(count, device):
     clearance.at = wp.zeros(count, dtype=wp.vec3, device=device)
     clearance.body_motion = wp.full(count, UNKNOWN, dtype=float, device=device)
     return clearance
+
+
+def _no_candidates(device):
+    """A kernels.BodyCandidates with no room: body_collide then queries the BVH."""
+    c = kernels.BodyCandidates()
+    c.corners = wp.zeros(1, dtype=wp.vec3i, device=device)
+    c.distance = wp.zeros(1, dtype=float, device=device)
+    c.count = wp.full(1, -1, dtype=wp.int32, device=device)
+    c.center = wp.zeros(1, dtype=wp.vec3, device=device)
+    c.radius = wp.zeros(1, dtype=float, device=device)
+    c.body_motion = wp.zeros(1, dtype=float, device=device)
+    c.capacity = 0
+    return c
 
 
 def rk4_stable_dt(masses, pairs, stiffness, dashpot, decay, fixed=()):
@@ -289,6 +307,26 @@ class ClothSolver:
         self.step_count = wp.zeros(1, dtype=wp.int32, device=d)  # on the device: captured frames advance it
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=d)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
+        self.candidates = _no_candidates(d)  # kernels.BodyCandidates, allocated for the first body
+        self._candidates_body = None
+
+    def _candidates_for(self, body):
+        """The gatherings of body triangles for this body: allocated at its first step (a frame's
+        first run is eager), forgotten when another body comes."""
+        capacity = self.params.body_candidates
+        if body is self._candidates_body or capacity == 0:
+            return self.candidates
+        d, n = self.model.device, self.model.num_particles
+        c = kernels.BodyCandidates()
+        c.corners = wp.zeros(n * capacity, dtype=wp.vec3i, device=d)
+        c.distance = wp.zeros(n * capacity, dtype=float, device=d)
+        c.count = wp.full(n, -1, dtype=wp.int32, device=d)
+        c.center = wp.zeros(n, dtype=wp.vec3, device=d)
+        c.radius = wp.zeros(n, dtype=float, device=d)
+        c.body_motion = wp.zeros(n, dtype=float, device=d)
+        c.capacity = capacity
+        self.candidates, self._candidates_body = c, body
+        return c
 
     def step(self, state_in, state_out, body, dt):
         """One step of dt. `body` (a Collider or None) must be posed for the end of the step."""
@@ -327,13 +365,15 @@ class ClothSolver:
 
     def _collide(self, state_prev, state, body, adj, dt, record, first):
         m, p = self.model, self.params
+        candidates = self._candidates_for(body)
         wp.launch(kernels.body_collide, m.num_particles,
                   [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
                    adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, p.walk_steps,
                    p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), p.reseed_drift,
                    self.step_count, body.moved, int(first), p.collision_margin, p.friction, dt, state_prev.nearest,
-                   state_prev.clearance, int(record), state.nearest, state.clearance, state.contact, self.fallbacks,
-                   state.follow_face, state.follow_barycentric, state.follow_local], device=m.device)
+                   state_prev.clearance, p.candidate_slack, adj.tie, int(record), state.nearest, state.clearance,
+                   candidates, state.contact, self.fallbacks, state.follow_face, state.follow_barycentric,
+                   state.follow_local], device=m.device)
 
     def _limit_strain(self, state, dt):
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles

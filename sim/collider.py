@@ -327,3 +327,7 @@ class _Adjacency:
         self.vf_start, self.vf_face = arr(vf_start.astype(np.int32), wp.int32), arr(vf[:, 1].astype(np.int32), wp.int32)
         self.concave = arr(concave, wp.int32)
         self.concave_fraction = float(concave.mean())
+        # distances this close count as equal when signing a closest point, as wp.Mesh's queries do
+        # (1e-3 of the mean edge)
+        edges = np.linalg.norm(vertices[faces] - vertices[np.roll(faces, 1, axis=1)], axis=2)
+        self.tie = 1.0e-3 * float(edges.mean()) if len(faces) else 0.0

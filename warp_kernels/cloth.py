@@ -542,6 +542,186 @@ class BodyClearance:
     body_motion: wp.array(dtype=float)
 
 
+@wp.struct
+class BodyCandidates:
+    """The body triangles near each particle at a concave body vertex, gathered from the BVH now and
+    then so that the steps between test only those (body_collide).
+
+    A triangle left out lay farther than radius from center when the others were gathered; it can
+    since have come no closer to the particle than radius - |x - center| - body_motion. While that is
+    at least a query's radius, the gathered triangles give the query's answer. They are kept in
+    order of their distance at gathering, so a test stops at the first one that cannot come closer
+    than the best found.
+
+    Fields:
+      corners (vec3i, capacity per particle): the gathered triangles' body vertices, particle p's in
+          slots p * capacity .. p * capacity + count - 1
+      distance (float, capacity per particle, m): each one's distance from center when gathered,
+          ascending
+      count (int32, per particle): triangles gathered; -1 when none were (or more than capacity)
+      center (vec3, per particle, m): where they were gathered
+      radius (float, per particle, m): how far from center they were gathered
+      body_motion (float, per particle, m): how far the body has moved since (the sum of
+          sim.Collider.moved)
+      capacity (int): slots per particle
+    """
+
+    corners: wp.array(dtype=wp.vec3i)
+    distance: wp.array(dtype=float)
+    count: wp.array(dtype=wp.int32)
+    center: wp.array(dtype=wp.vec3)
+    radius: wp.array(dtype=float)
+    body_motion: wp.array(dtype=float)
+    capacity: int
+
+
+@wp.func
+def gather_candidates(xp: wp.vec3, radius: float, mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
+                      indices: wp.array(dtype=wp.int32), p: int, candidates: BodyCandidates):
+    """Gather the body triangles within radius of xp for particle p (BodyCandidates), nearest first.
+
+    Inputs:
+      xp (vec3, m): where to gather
+      radius (float, m): how far to look
+      mesh (uint64): wp.Mesh id over points, its BVH refitted to this pose
+      points (vec3, per body vertex, m): posed body vertices
+      indices (int32, 3 per body triangle): body triangles
+      p (int, index): the particle, whose slots are written
+    In/out:
+      candidates (BodyCandidates): particle p's gathering; count -1 when more than capacity were near
+    Returns:
+      int: the triangles gathered, -1 when more than capacity were near
+    """
+    base = p * candidates.capacity
+    n = int(0)
+    full = bool(False)
+    query = wp.mesh_query_aabb(mesh, xp - wp.vec3(radius), xp + wp.vec3(radius))
+    f = int(0)
+    while wp.mesh_query_aabb_next(query, f):
+        corners = wp.vec3i(indices[3 * f + 0], indices[3 * f + 1], indices[3 * f + 2])
+        a = points[corners[0]]
+        b = points[corners[1]]
+        c = points[corners[2]]
+        w = closest_on_triangle(xp, a, b, c)
+        d = wp.length(xp - (w[0] * a + w[1] * b + w[2] * c))
+        if d <= radius:
+            if n == candidates.capacity:
+                full = True
+                break
+            else:
+                # insertion keeps the slots in ascending distance
+                k = n
+                while k > 0:
+                    if candidates.distance[base + k - 1] <= d:
+                        break
+                    candidates.distance[base + k] = candidates.distance[base + k - 1]
+                    candidates.corners[base + k] = candidates.corners[base + k - 1]
+                    k -= 1
+                candidates.distance[base + k] = d
+                candidates.corners[base + k] = corners
+                n += 1
+    if full:
+        n = -1
+    candidates.count[p] = n
+    candidates.center[p] = xp
+    candidates.radius[p] = radius
+    candidates.body_motion[p] = 0.0
+    return n
+
+
+@wp.func
+def corner_angle(at: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """The angle of a triangle at one corner.
+
+    Inputs:
+      at (vec3, m): the corner
+      b (vec3, m): another corner
+      c (vec3, m): the third corner
+    Returns:
+      float (radians): the angle between the edges to b and to c
+    """
+    return wp.acos(wp.clamp(wp.dot(wp.normalize(b - at), wp.normalize(c - at)), -1.0, 1.0))
+
+
+@wp.func
+def closest_candidate(xp: wp.vec3, max_dist: float, tie: float, points: wp.array(dtype=wp.vec3), p: int,
+                      candidates: BodyCandidates):
+    """The closest point of particle p's gathered body triangles to xp within max_dist, signed as
+    wp.mesh_query_point_sign_normal signs it.
+
+    The sign is that of the angle-weighted pseudo-normal (Baerentzen and Aanaes) at the closest
+    feature: the normals of the triangles equally close (within tie) are summed, weighted by the
+    angle each has at a shared corner, pi at a shared edge, 2 pi inside. The gathering must hold
+    every triangle within max_dist of xp (BodyCandidates).
+
+    Inputs:
+      xp (vec3, m): query point
+      max_dist (float, m): how far to look
+      tie (float, m): distances this close count as equal (1e-3 of the body's mean edge, as Warp's)
+      points (vec3, per body vertex, m): posed body vertices
+      p (int, index): the particle whose gathering is searched
+      candidates (BodyCandidates): the gathering; count >= 0
+    Returns:
+      bool: whether any triangle lies within max_dist
+      float (m): signed distance, negative inside the body
+      vec3: the closest triangle's unit normal
+      int: the closest triangle's corner nearest xp (where a walk restarts)
+    """
+    base = p * candidates.capacity
+    # how much closer than at its gathering a triangle can have come since
+    slack = wp.length(xp - candidates.center[p]) + candidates.body_motion[p]
+    best = max_dist
+    found = bool(False)
+    closest = wp.vec3(0.0)
+    normal = wp.vec3(0.0)
+    corner = int(-1)
+    weighted = wp.vec3(0.0)
+    for k in range(candidates.count[p]):
+        if candidates.distance[base + k] - slack > best + tie:
+            break  # this one and every later one are farther than the best
+        corners = candidates.corners[base + k]
+        a = points[corners[0]]
+        b = points[corners[1]]
+        c = points[corners[2]]
+        e0 = b - a
+        e1 = c - a
+        e2 = c - b
+        n = wp.cross(e0, e1)
+        if wp.length(n) < 1.0e-6 * (wp.dot(e0, e0) + wp.dot(e1, e1) + wp.dot(e2, e2)):
+            continue  # a sliver has no trustworthy normal (skipped by Warp's query too)
+        w = closest_on_triangle(xp, a, b, c)
+        q = w[0] * a + w[1] * b + w[2] * c
+        d = wp.length(xp - q)
+        if d < best + tie:
+            # the feature of the closest point sets the weight of this triangle's normal
+            weight = float(2.0 * wp.pi)
+            if wp.length(q - a) < tie:
+                weight = corner_angle(a, b, c)
+            elif wp.length(q - b) < tie:
+                weight = corner_angle(b, c, a)
+            elif wp.length(q - c) < tie:
+                weight = corner_angle(c, a, b)
+            elif w[0] * w[1] * w[2] == 0.0:
+                weight = float(wp.pi)
+            if d > best - tie:
+                weighted += weight * wp.normalize(n)
+            else:
+                weighted = weight * wp.normalize(n)
+            if d < best:
+                best = d
+                found = True
+                closest = q
+                normal = wp.normalize(n)
+                corner = corners[0]
+                for j in range(1, 3):
+                    if wp.length_sq(xp - points[corners[j]]) < wp.length_sq(xp - points[corner]):
+                        corner = corners[j]
+    sign = float(-1.0)
+    if wp.dot(weighted, xp - closest) > 0.0:
+        sign = 1.0
+    return found, sign * best, normal, corner
+
+
 @wp.kernel
 def body_collide(
     x: wp.array(dtype=wp.vec3),
@@ -571,9 +751,12 @@ def body_collide(
     dt: float,
     nearest_in: wp.array(dtype=wp.int32),
     clearance_in: BodyClearance,
+    candidate_slack: float,
+    tie: float,
     record: int,
     nearest: wp.array(dtype=wp.int32),
     clearance: BodyClearance,
+    candidates: BodyCandidates,
     contact: wp.array(dtype=wp.int32),
     fallbacks: wp.array(dtype=wp.int32),
     follow_face: wp.array(dtype=wp.int32),
@@ -595,8 +778,12 @@ def body_collide(
     that kept still would find the same vertex again. Near a concave vertex the query is skipped
     while the particle's clearance (BodyClearance, a lower bound of its signed distance lowered by
     its own and the body's motion) stays above the margin: it cannot touch the body, which is the
-    query's own answer. With record != 0 the final position is also recorded against the nearest
-    body face (follow_record) for begin_step of the next step.
+    query's own answer. Where it does need one, it tests the body triangles gathered near it
+    (BodyCandidates) instead of walking the BVH, for as long as the gathering holds every triangle the
+    query could find; the gathering is renewed when it no longer does, and on the refresh steps once
+    it has used half its slack, so that on a GPU the renewals mostly wait in the launches that
+    re-seed. With record != 0 the final position is also recorded against the nearest body face
+    (follow_record) for begin_step of the next step.
 
     Launch: one thread per particle (dim = num_particles).
     Inputs:
@@ -630,11 +817,17 @@ def body_collide(
       dt (float, s): step length
       nearest_in (int32, per particle): cached nearest body vertex from the last step, -1 when unknown
       clearance_in (BodyClearance): the clearances from the last pass; may be clearance itself
+      candidate_slack (float, m): a gathering reaches this much farther than the query it serves, so
+          it lasts until the particle and the body have moved this far between them
+      tie (float, m): distances this close count as equal when signing (closest_candidate)
       record (int, flag): non-zero records the follow data
     In/out:
       x (vec3, per particle, m): positions, pushed outside the body
       v (vec3, per particle, m/s): velocities, made non-penetrating relative to the body
-      fallbacks (int32, 1 element): incremented once per BVH query (zero it to count one launch)
+      candidates (BodyCandidates): the triangles gathered near particles at concave vertices;
+          capacity 0 queries the BVH instead
+      fallbacks (int32, 1 element): incremented once per BVH query or gathering (zero it to count one
+          launch)
     Outputs:
       nearest (int32, per particle): nearest body vertex after this pass; may be nearest_in itself
       clearance (BodyClearance): the clearances after this pass
@@ -653,6 +846,8 @@ def body_collide(
     if first_pass != 0:
         measured -= body_moved[0]
         body_motion += body_moved[0]
+        if candidates.capacity > 0:
+            candidates.body_motion[p] = candidates.body_motion[p] + body_moved[0]
     away = wp.length(xp - at)
     bound = measured - away
     drift = body_motion + away
@@ -668,6 +863,7 @@ def body_collide(
     trusted = vtx >= 0
     clear = bool(False)  # the clearance alone shows the particle cannot touch the body
     search = float(1.0e6)  # BVH query radius when the walk is not trusted
+    listed = bool(False)  # the query is answered from the particle's gathered triangles
     if trusted:
         if wp.length(xp - x_prev[p]) > teleport:
             trusted = False
@@ -691,6 +887,7 @@ def body_collide(
                     search = reach + margin
                     if bound > -margin:
                         search = wp.min(search, 2.0 * margin)
+                    listed = candidates.capacity > 0
             elif far and step_count[0] % refresh == 0 and drift >= reseed_drift:
                 trusted = False
                 # a far particle needs the right vertex only where it can touch or follow the body,
@@ -709,19 +906,41 @@ def body_collide(
                 n = nf
                 depth = margin - best
     else:
-        wp.atomic_add(fallbacks, 0, 1)
         at = xp
         body_motion = 0.0
         measured = search  # nothing within the radius; a particle deeper inside than it is not seen
-        q = wp.mesh_query_point_sign_normal(mesh, xp, search)
-        if q.result:
-            cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
-            nf = wp.mesh_eval_face_normal(mesh, q.face)
-            sd = q.sign * wp.length(xp - cp)
+        found = bool(False)
+        sd = float(0.0)
+        nf = wp.vec3(0.0)
+        corner = int(0)
+        if listed:
+            used = float(1.0e30)  # how far the particle and the body have moved since the gathering
+            if candidates.count[p] >= 0:
+                used = wp.length(xp - candidates.center[p]) + candidates.body_motion[p]
+            valid = used + search <= candidates.radius[p]
+            # a body that moves a quarter of the slack per step would use a new gathering up within
+            # a few steps: the BVH answers instead
+            if (not valid or (step_count[0] % refresh == 0 and used > 0.5 * candidate_slack)) and (
+                    4.0 * body_moved[0] <= candidate_slack):
+                wp.atomic_add(fallbacks, 0, 1)
+                # not valid when more triangles were near than it has room for
+                valid = gather_candidates(xp, search + candidate_slack, mesh, points, indices, p, candidates) >= 0
+            if valid:
+                found, sd, nf, corner = closest_candidate(xp, search, tie, points, p, candidates)
+            else:
+                listed = False
+        if not listed:
+            wp.atomic_add(fallbacks, 0, 1)
+            q = wp.mesh_query_point_sign_normal(mesh, xp, search)
+            if q.result:
+                found = True
+                sd = q.sign * wp.length(xp - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+                nf = wp.mesh_eval_face_normal(mesh, q.face)
+                corner = closest_corner(xp, q.face, points, indices)
+        if found:
             measured = sd
             # restart the cache at the closest corner of the closest face, then settle it locally
-            vtx = walk_to_nearest_vertex(xp, closest_corner(xp, q.face, points, indices), points, vv_start, vv_adj,
-                                         max_steps)
+            vtx = walk_to_nearest_vertex(xp, corner, points, vv_start, vv_adj, max_steps)
             if vtx < 0:
                 vtx = -1 - vtx
             if sd < margin:
