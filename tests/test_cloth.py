@@ -224,10 +224,11 @@ def test_body_clearance_stays_a_lower_bound_of_the_distance_on_a_moving_body():
 
 
 def test_dress_at_rest_skips_the_queries_its_clearance_and_gatherings_rule_out():
-    """On a still body the dress settles with about half the BVH queries of re-seeding every far
-    particle on schedule, and the particles at concave vertices that touch the body test their
-    gathered triangles instead of querying: the queries left wait for the re-seeding steps. The
-    dress lands where querying every time would have put it."""
+    """On a still body the dress settles with under a third of the BVH queries of re-seeding every
+    far particle on schedule (only those that drifted, and could touch the body or follow it), and
+    the particles at concave vertices that touch the body test their gathered triangles instead of
+    querying: the queries left wait for the re-seeding steps. The dress lands where querying every
+    time would have put it."""
     from sim.body import procedural_body
     from sim.garment import fit_dress
 
@@ -257,8 +258,8 @@ def test_dress_at_rest_skips_the_queries_its_clearance_and_gatherings_rule_out()
         queries.append(count)
         off_schedule.append(stray / between)
         assert body.signed_distance(s0.x.numpy()).min() > 0.0
-    assert queries[1] < 0.6 * queries[0], queries
-    assert queries[2] < 0.6 * queries[1], queries
+    assert queries[1] < 0.4 * queries[0], queries
+    assert queries[2] < 0.25 * queries[1], queries
     # the share of the steps between re-seeding ones that query (on a GPU each waits for its slowest query)
     assert off_schedule[1] > 0.9 and off_schedule[2] < 0.1, off_schedule
     np.testing.assert_allclose(finals[1], finals[0], atol=1e-4)

@@ -774,8 +774,10 @@ def body_collide(
     collide, but their walk can stall between limbs; they are re-seeded from the BVH every refresh
     steps, all on the same step (on a GPU a launch lasts as long as its slowest thread, so re-seeds
     staggered over every step would make every launch wait for a query), once they have drifted
-    reseed_drift relative to the body since their last query: a particle that kept still on a body
-    that kept still would find the same vertex again. Near a concave vertex the query is skipped
+    reseed_drift relative to the body since their last query (a particle that kept still on a body
+    that kept still would find the same vertex again), and only where a wrong vertex could matter:
+    where the particle may be within trust_distance of the body, or where the body itself has moved
+    reseed_drift under its follow record. Near a concave vertex the query is skipped
     while the particle's clearance (BodyClearance, a lower bound of its signed distance lowered by
     its own and the body's motion) stays above the margin: it cannot touch the body, which is the
     query's own answer. Where it does need one, it tests the body triangles gathered near it
@@ -888,7 +890,11 @@ def body_collide(
                     if bound > -margin:
                         search = wp.min(search, 2.0 * margin)
                     listed = candidates.capacity > 0
-            elif far and step_count[0] % refresh == 0 and drift >= reseed_drift:
+            elif far and step_count[0] % refresh == 0 and drift >= reseed_drift and (
+                    bound <= trust_distance or body_motion >= reseed_drift):
+                # a wrong vertex matters where the particle may be near enough to touch (its bound
+                # says so) or where the body moves under its follow record; a particle swaying clear of
+                # a still body keeps its walk
                 trusted = False
                 # a far particle needs the right vertex only where it can touch or follow the body,
                 # so its query looks no farther than reseed_radius
