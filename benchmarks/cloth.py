@@ -43,6 +43,7 @@ from sim.scene import Scene, demo_scene, quiet_warp  # noqa: E402
 RACE_DT = 1.0 / 60.0
 DRESS_MEAN_MASS = 3.9e-4  # kg, the paper's dress on the built-in body (332 particles, 0.13 kg)
 PROFILE = False  # --profile
+DRESS_PARAMS = {}  # --dress-params: ClothParams fields of the race dress
 DETAIL_FPS = 30.0
 
 
@@ -90,7 +91,7 @@ def dress_case(device, particles=322, proxy=0.0):
 
     body = procedural_body()
     garment = fit_dress(body, particles=particles)
-    model = ClothModel.from_garment(garment, ClothParams(), device)
+    model = ClothModel.from_garment(garment, ClothParams(**DRESS_PARAMS), device)
     truth = static_collider("body", body.vertices, body.faces, device)
     collider = truth
     if proxy > 0.0:
@@ -185,6 +186,16 @@ def race(devices, grids, frames, peers, ceilings):
     return header, rows, newton_1m
 
 
+def param_setting(text):
+    """'body_candidates=0': a ClothParams field and its value, typed as the field's default."""
+    key, _, value = text.partition("=")
+    defaults = ClothParams()
+    if not hasattr(defaults, key) or not value:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected FIELD=VALUE with a ClothParams field")
+    kind = type(getattr(defaults, key))
+    return key, (value.lower() in ("1", "true", "yes") if kind is bool else kind(value))
+
+
 def detail_spec(text):
     """'322' or '322:60': coarse particles, and the tessellation level (default the paper's 6)."""
     particles, _, level = text.partition(":")
@@ -245,12 +256,15 @@ def main():
     parser.add_argument("--peers", nargs="*", default=["vbd", "xpbd"], choices=["vbd", "xpbd"])
     parser.add_argument("--detail-sizes", type=detail_spec, nargs="*", default=[(322, 6), (322, 60), (28000, 6)],
                         help="coarse particles[:tessellation level] (default level 6, the paper's)")
+    parser.add_argument("--dress-params", type=param_setting, nargs="*", default=[], metavar="FIELD=VALUE",
+                        help="ClothParams of the race dress, e.g. body_candidates=0 reseed_drift=0 (ablations)")
     parser.add_argument("--no-race", action="store_true")
     parser.add_argument("--no-detail", action="store_true")
     parser.add_argument("--profile", action="store_true", help="print per-kernel device time of one frame (CUDA)")
     args = parser.parse_args()
     global PROFILE
     PROFILE = args.profile
+    DRESS_PARAMS.update(args.dress_params)
     quiet_warp()
     wp.init()
     import newton_peers
@@ -258,7 +272,8 @@ def main():
     peers = args.peers if newton_peers.available() else []
     devices = args.device or (["cpu"] + (["cuda"] if wp.is_cuda_available() else []))
     ceilings = {}
-    print(f"# cloth benchmark, commit {commit()}, peer: {'Newton ' + newton_peers.version() if peers else 'none'}")
+    print(f"# cloth benchmark, commit {commit()}, peer: {'Newton ' + newton_peers.version() if peers else 'none'}"
+          + (f", race dress with {DRESS_PARAMS}" if DRESS_PARAMS else ""))
     for device in devices:
         ceilings[device] = copy_bandwidth(device, 1024 if wp.get_device(device).is_cuda else 128)
         print(f"# {device}: {device_name(device)}, copy bandwidth {ceilings[device]:.0f} GB/s (read + write)",
