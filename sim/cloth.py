@@ -95,16 +95,17 @@ def unknown_clearance(count, device):
     return clearance
 
 
-def _no_candidates(device):
-    """A kernels.BodyCandidates with no room: body_collide then queries the BVH."""
+def body_candidates(count, capacity, device):
+    """A kernels.BodyCandidates for `count` particles with room for `capacity` body triangles each,
+    nothing gathered yet; capacity 0 makes body_collide query the BVH instead."""
     c = kernels.BodyCandidates()
-    c.corners = wp.zeros(1, dtype=wp.vec3i, device=device)
-    c.distance = wp.zeros(1, dtype=float, device=device)
-    c.count = wp.full(1, -1, dtype=wp.int32, device=device)
-    c.center = wp.zeros(1, dtype=wp.vec3, device=device)
-    c.radius = wp.zeros(1, dtype=float, device=device)
-    c.body_motion = wp.zeros(1, dtype=float, device=device)
-    c.capacity = 0
+    c.corners = wp.zeros(max(1, count * capacity), dtype=wp.vec3i, device=device)
+    c.distance = wp.zeros(max(1, count * capacity), dtype=float, device=device)
+    c.count = wp.full(max(1, count), -1, dtype=wp.int32, device=device)
+    c.center = wp.zeros(max(1, count), dtype=wp.vec3, device=device)
+    c.radius = wp.zeros(max(1, count), dtype=float, device=device)
+    c.body_motion = wp.zeros(max(1, count), dtype=float, device=device)
+    c.capacity = capacity
     return c
 
 
@@ -307,7 +308,7 @@ class ClothSolver:
         self.step_count = wp.zeros(1, dtype=wp.int32, device=d)  # on the device: captured frames advance it
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=d)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
-        self.candidates = _no_candidates(d)  # kernels.BodyCandidates, allocated for the first body
+        self.candidates = body_candidates(0, 0, d)  # kernels.BodyCandidates, allocated for the first body
         self._candidates_body = None
 
     def _candidates_for(self, body):
@@ -316,17 +317,9 @@ class ClothSolver:
         capacity = self.params.body_candidates
         if body is self._candidates_body or capacity == 0:
             return self.candidates
-        d, n = self.model.device, self.model.num_particles
-        c = kernels.BodyCandidates()
-        c.corners = wp.zeros(n * capacity, dtype=wp.vec3i, device=d)
-        c.distance = wp.zeros(n * capacity, dtype=float, device=d)
-        c.count = wp.full(n, -1, dtype=wp.int32, device=d)
-        c.center = wp.zeros(n, dtype=wp.vec3, device=d)
-        c.radius = wp.zeros(n, dtype=float, device=d)
-        c.body_motion = wp.zeros(n, dtype=float, device=d)
-        c.capacity = capacity
-        self.candidates, self._candidates_body = c, body
-        return c
+        self.candidates = body_candidates(self.model.num_particles, capacity, self.model.device)
+        self._candidates_body = body
+        return self.candidates
 
     def step(self, state_in, state_out, body, dt):
         """One step of dt. `body` (a Collider or None) must be posed for the end of the step."""

@@ -5,7 +5,7 @@ import pytest
 import trimesh
 import warp as wp
 
-from sim.cloth import ClothModel, ClothParams, ClothSolver
+from sim.cloth import ClothModel, ClothParams, ClothSolver, body_candidates
 from sim.collider import UNKNOWN_MOTION, Collider
 from warp_kernels import cloth as kernels
 
@@ -305,12 +305,7 @@ def test_gathered_triangles_answer_as_the_bvh_query_at_concave_vertices():
     step = rng.normal(size=(n, 3))
     step *= (rng.uniform(0.0, slack - motion, (n, 1)) / np.linalg.norm(step, axis=1, keepdims=True))
     capacity = 160
-    candidates = kernels.BodyCandidates()
-    candidates.corners = wp.zeros(n * capacity, dtype=wp.vec3i)
-    candidates.distance = wp.zeros(n * capacity, dtype=float)
-    candidates.count, candidates.radius = wp.zeros(n, dtype=wp.int32), wp.zeros(n, dtype=float)
-    candidates.center, candidates.body_motion = wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=float)
-    candidates.capacity = capacity
+    candidates = body_candidates(n, capacity, "cpu")
     listed, queried, corners = wp.zeros(n, dtype=wp.vec4), wp.zeros(n, dtype=wp.vec4), wp.zeros(n, dtype=wp.vec2i)
     wp.launch(_gathered_against_the_bvh, n,
               [wp.array(centers, dtype=wp.vec3), wp.array(centers + step, dtype=wp.vec3), search + slack, search,
