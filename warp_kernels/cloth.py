@@ -446,8 +446,26 @@ def least_inside_plane(p: wp.vec3, vtx: int, points: wp.array(dtype=wp.vec3), in
 
 
 @wp.func
+def nearest_corner(p: wp.vec3, corners: wp.vec3i, points: wp.array(dtype=wp.vec3)):
+    """The one of a triangle's three body vertices nearest p: where a walk restarts after a query.
+
+    Inputs:
+      p (vec3, m): query point
+      corners (vec3i): the triangle's body vertices
+      points (vec3, per body vertex, m): posed body vertices
+    Returns:
+      int: the body vertex
+    """
+    best = corners[0]
+    for c in range(1, 3):
+        if wp.length_sq(p - points[corners[c]]) < wp.length_sq(p - points[best]):
+            best = corners[c]
+    return best
+
+
+@wp.func
 def closest_corner(p: wp.vec3, face: int, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32)):
-    """The corner of a body triangle nearest p: where a walk restarts after a BVH query.
+    """nearest_corner of body triangle `face`.
 
     Inputs:
       p (vec3, m): query point
@@ -457,12 +475,7 @@ def closest_corner(p: wp.vec3, face: int, points: wp.array(dtype=wp.vec3), indic
     Returns:
       int: the body vertex
     """
-    best = indices[3 * face]
-    for c in range(1, 3):
-        corner = indices[3 * face + c]
-        if wp.length_sq(p - points[corner]) < wp.length_sq(p - points[best]):
-            best = corner
-    return best
+    return nearest_corner(p, wp.vec3i(indices[3 * face], indices[3 * face + 1], indices[3 * face + 2]), points)
 
 
 @wp.func
@@ -712,10 +725,7 @@ def closest_candidate(xp: wp.vec3, max_dist: float, tie: float, points: wp.array
                 found = True
                 closest = q
                 normal = wp.normalize(n)
-                corner = corners[0]
-                for j in range(1, 3):
-                    if wp.length_sq(xp - points[corners[j]]) < wp.length_sq(xp - points[corner]):
-                        corner = corners[j]
+                corner = nearest_corner(xp, corners, points)
     sign = float(-1.0)
     if wp.dot(weighted, xp - closest) > 0.0:
         sign = 1.0
