@@ -80,6 +80,88 @@ def lane_slot(start: int, lane: int, k: int, lanes: int):
     return start + k
 
 
+@wp.func
+def predicted_position(
+    p: wp.vec3,
+    vel: wp.vec3,
+    inv_mass: float,
+    gravity: wp.vec3,
+    wind: wp.vec3,
+    air_drag: float,
+    damping: float,
+    turbulence: float,
+    turbulence_scale: float,
+    turbulence_rate: float,
+    time: float,
+    dt: float,
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    binding: int,
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    frame: wp.mat33,
+    local: wp.vec3,
+    weight: float,
+):
+    """One particle's prediction (predict_positions): a pinned particle with a binding is put on the
+    skin, a free one integrates gravity, drag toward the gusting wind and damping, and either is
+    then pulled `weight` of the way to its groomed position carried by its root's frame.
+
+    Inputs:
+      p (vec3, m): position at the start of the substep
+      vel (vec3, m/s): velocity at the start of the substep
+      inv_mass (float): 0 marks a pinned particle
+      gravity (vec3, m/s^2): acceleration of gravity
+      wind (vec3, m/s): mean air velocity
+      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
+      damping (float, 1/s): rate at which velocity decays
+      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
+      turbulence_scale (float, 1/m): spatial frequency of the gusts
+      turbulence_rate (float, 1/s): how fast the gust pattern changes
+      time (float, s): the gusts' time
+      dt (float, s): substep length
+      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep; read
+          only with a binding
+      mesh_indices (int32, 3 per collider triangle): collider triangles
+      binding (int, index): the pinned particle's binding, -1 for none
+      bind_triangle (int32, per binding): collider triangle of each binding
+      bind_barycentric (vec3, per binding): weights of that triangle's corners
+      bind_local (vec3, per binding, m): offset in that triangle's frame
+      origin (vec3, m): the strand's root position in this pose (root_frames)
+      frame (mat33): the root triangle's frame in this pose (root_frames)
+      local (vec3, m): the particle's groomed offset from the root in that frame
+      weight (float, fraction): share of the way to the groomed position moved; 0 for none
+    Returns:
+      vec3 (m): the predicted position
+      vec3 (m/s): the velocity after forces; a pinned particle keeps its own
+    """
+    if inv_mass == 0.0:
+        if binding >= 0:
+            p = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, binding)
+    else:
+        air = wind
+        if turbulence > 0.0:
+            # gusts: smooth noise in space and time scaled by the mean wind speed
+            q = p * turbulence_scale
+            t = time * turbulence_rate
+            speed = wp.length(wind)
+            state = wp.rand_init(7)
+            gust = wp.vec3(
+                wp.noise(state, wp.vec4(q[0], q[1], q[2], t)),
+                wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], t)),
+                wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], t)),
+            )
+            air = wind + gust * (turbulence * speed)
+        vel = vel + dt * (gravity + air_drag * (air - vel))
+        vel = vel * wp.max(0.0, 1.0 - damping * dt)
+        p = p + dt * vel
+    if weight > 0.0:
+        p = p + weight * (origin + frame * local - p)
+    return p, vel
+
+
 @wp.kernel
 def predict_positions(
     x: wp.array(dtype=wp.vec3),
@@ -172,35 +254,23 @@ def predict_positions(
         # the start positions in the length pass's order, copied here where they are read anyway
         s = particle_strand[i]
         lane_prev[lane_slot(0, order.lane_of[s], i - strand_start[s], order.lanes)] = p
-    vel = v[i]
-    if inv_mass[i] == 0.0:
-        if bound != 0:
-            b = particle_binding[i]
-            if b >= 0:
-                p = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, b)
-    else:
-        air = wind
-        if turbulence > 0.0:
-            # gusts: smooth noise in space and time scaled by the mean wind speed
-            q = p * turbulence_scale
-            time = (clock[0] + time_offset) * turbulence_rate
-            speed = wp.length(wind)
-            state = wp.rand_init(7)
-            gust = wp.vec3(
-                wp.noise(state, wp.vec4(q[0], q[1], q[2], time)),
-                wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], time)),
-                wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], time)),
-            )
-            air = wind + gust * (turbulence * speed)
-        vel = vel + dt * (gravity + air_drag * (air - vel))
-        vel = vel * wp.max(0.0, 1.0 - damping * dt)
-        p = p + dt * vel
+    binding = int(-1)
+    weight = float(0.0)
+    origin = wp.vec3(0.0)
+    frame = wp.mat33(0.0)
+    local = wp.vec3(0.0)
     if bound != 0:
-        w = hold[i] * hold_stiffness
-        if w > 0.0:
+        if inv_mass[i] == 0.0:
+            binding = particle_binding[i]
+        weight = hold[i] * hold_stiffness
+        if weight > 0.0:
             s = particle_strand[i]
-            target = root_origin[s] + root_frame[s] * root_local[i]
-            p = p + w * (target - p)
+            origin = root_origin[s]
+            frame = root_frame[s]
+            local = root_local[i]
+    p, vel = predicted_position(p, v[i], inv_mass[i], gravity, wind, air_drag, damping, turbulence, turbulence_scale,
+                                turbulence_rate, clock[0] + time_offset, dt, mesh_points, mesh_indices, binding,
+                                bind_triangle, bind_barycentric, bind_local, origin, frame, local, weight)
     x_out[i] = p
     v_out[i] = vel
 
@@ -315,20 +385,52 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
 
 
 @wp.func
-def window_centroid(x: wp.array(dtype=wp.vec3), first: int, size: int):
-    """Mean position of the window's particles first .. first + size - 1.
+def window_centroid(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: int):
+    """Mean position of a window's particles, held at first, first + stride, ... (size of them).
 
     Inputs:
-      x (vec3, per particle, m): positions
-      first (int, index): first particle of the window
+      x (vec3, per particle or lane slot, m): positions
+      first (int, index): element of the window's first particle
+      stride (int): elements from one particle of the strand to the next (1 in particle order, the
+          lane count in lane order, see lane_slot)
       size (int): particles in the window
     Returns:
       vec3 (m): centroid
     """
     c = wp.vec3(0.0)
     for k in range(size):
-        c += x[first + k]
+        c += x[first + k * stride]
     return c / float(size)
+
+
+@wp.func
+def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: int,
+                    rest: wp.array(dtype=wp.vec3), base: int, q: wp.quat, exact: int, iterations: int):
+    """A window's optimal rotation of its rest offsets onto its current particles, and its centroid
+    (full variant): solved outright (exact != 0) or refined from q, its last rotation.
+
+    Inputs:
+      x (vec3, per particle or lane slot, m): current positions
+      first (int, index): element of the window's first particle
+      stride (int): elements from one particle to the next (window_centroid)
+      size (int): particles in the window
+      rest (vec3, size per window, m): rest offsets from the window's rest centroid
+      base (int, index): the window's first element of rest (window * size)
+      q (quat): the window's last rotation; read only when exact == 0
+      exact (int, flag): non-zero solves from scratch (float64 SVD)
+      iterations (int): refinement steps when exact == 0
+    Returns:
+      quat: the window's rotation
+      vec3 (m): its centroid
+    """
+    centroid = window_centroid(x, first, stride, size)
+    A = wp.mat33(0.0)
+    for k in range(size):
+        A += wp.outer(x[first + k * stride] - centroid, rest[base + k])
+    A = A / wp.sqrt(wp.max(wp.ddot(A, A), 1.0e-30))  # scale-free, so the 1e-9 guard is relative
+    if exact != 0:
+        return wp.quat_from_matrix(rotation_from_covariance(A)), centroid
+    return refine_rotation(q, A, iterations), centroid
 
 
 @wp.kernel
@@ -364,33 +466,26 @@ def shape_match_rotations(
       centroids (vec3, per window, m): current centroid of each window
     """
     w = wp.tid() + first
-    start = window_first[w]
-    base = w * window_size
-    centroid = window_centroid(x, start, window_size)
+    q, centroid = window_rotation(x, window_first[w], 1, window_size, window_rest, w * window_size, rotations[w],
+                                  exact, iterations)
+    rotations[w] = q
     centroids[w] = centroid
-    A = wp.mat33(0.0)
-    for k in range(window_size):
-        A += wp.outer(x[start + k] - centroid, window_rest[base + k])
-    A = A / wp.sqrt(wp.max(wp.ddot(A, A), 1.0e-30))  # scale-free, so the 1e-9 guard is relative
-    if exact != 0:
-        rotations[w] = wp.quat_from_matrix(rotation_from_covariance(A))
-    else:
-        rotations[w] = refine_rotation(rotations[w], A, iterations)
 
 
 @wp.func
-def window_direction(x: wp.array(dtype=wp.vec3), first: int, size: int):
+def window_direction(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: int):
     """Unit first-to-last direction of a window, the axis of the simplified variant's goals.
 
     Inputs:
-      x (vec3, per particle, m): current positions
-      first (int, index): first particle of the window
+      x (vec3, per particle or lane slot, m): current positions
+      first (int, index): element of the window's first particle
+      stride (int): elements from one particle to the next (window_centroid)
       size (int): particles per window
     Returns:
       vec3: the unit direction (zero when degenerate)
       bool: false when the first and last particles coincide, so there is no direction
     """
-    e = x[first + size - 1] - x[first]
+    e = x[first + (size - 1) * stride] - x[first]
     length = wp.length(e)
     if length < 1.0e-12:
         return wp.vec3(0.0), False
@@ -425,10 +520,10 @@ def window_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, rest:
       vec3 (m): the goal; the particle's own position for a degenerate simplified window
     """
     if variant == SHAPE_SIMPLIFIED:
-        u, straight = window_direction(x, first, size)
+        u, straight = window_direction(x, first, 1, size)
         if not straight:
             return x[first + k]
-        return window_centroid(x, first, size) + offsets[w * size + k] * u
+        return window_centroid(x, first, 1, size) + offsets[w * size + k] * u
     return centroids[w] + wp.quat_rotate(rotations[w], rest[w * size + k])
 
 
@@ -565,8 +660,8 @@ def shape_match_strands(
         w = window_at[j]
         if w >= 0:
             if variant == SHAPE_SIMPLIFIED:
-                u, straight = window_direction(x, j, window_size)
-                centroid = window_centroid(x, j, window_size)
+                u, straight = window_direction(x, j, 1, window_size)
+                centroid = window_centroid(x, j, 1, window_size)
                 for k in range(window_size):
                     if straight:
                         x_out[j + k] = x_out[j + k] + (centroid + window_offsets[w * window_size + k] * u)
@@ -967,6 +1062,111 @@ def list_leaves_ahead(
     beyond[i] = fifth
 
 
+@wp.func
+def follow_leader(
+    parent: wp.vec3,
+    before: wp.vec3,
+    k: int,
+    predicted: wp.vec3,
+    length: float,
+    i: int,
+    start: wp.vec3,
+    collide_mode: int,
+    shape: ColliderShape,
+    margin: float,
+    search: float,
+    use_bounds: int,
+    probe: float,
+    motion: ContactMotion,
+    strand_reach: float,
+    clearance: wp.array(dtype=float),
+    near_leaves: wp.array(dtype=wp.vec4i),
+    beyond: wp.array(dtype=float),
+):
+    """One particle of the length pass (follow_the_leader, step_strands): put at its rest distance
+    from its parent, pushed out of the collider and put back on that sphere, its contact bounds
+    kept or renewed.
+
+    Inputs:
+      parent (vec3, m): the parent's resolved position
+      before (vec3, m): the grandparent's resolved position; read only when k >= 2
+      k (int, index): the particle's place along its strand
+      predicted (vec3, m): where the particle was predicted and shape-matched to
+      length (float, m): its rest distance to the parent
+      i (int, index): its element of the contact-bound arrays (lane_slot)
+      start (vec3, m): its position at the start of the substep, where the bounds hold
+      collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
+      margin (float, m): distance kept outside the collider
+      search (float, m): mesh query radius
+      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      probe (float, m): query radius for particles the bound shows no deeper than probe inside
+      motion (ContactMotion): how the collider moved near the strands (contact_motion)
+      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+    In/out:
+      clearance (float, per element, m): the contact bound, at start in and at the result out;
+          written only when collide_mode != COLLIDE_NONE
+      near_leaves (vec4i, per element): the listed leaf spheres (sphere tree with bounds)
+      beyond (float, per element, m): the bound on every unlisted leaf (sphere tree with bounds)
+    Returns:
+      vec3 (m): the resolved position
+    """
+    d = predicted - parent
+    dist = wp.length(d)
+    if dist < 1.0e-12:
+        d = wp.vec3(0.0, -1.0, 0.0)
+        if k >= 2:
+            d = parent - before
+        dist = wp.length(d)
+    p = parent + d * (length / dist)
+    if collide_mode != 0:
+        bound = float(NO_BOUND)
+        listed = use_bounds != 0 and collide_mode == COLLIDE_SPHERE_TREE
+        leaves = wp.vec4i(-1, -1, -1, -1)
+        unlisted = float(NO_BOUND)
+        if use_bounds != 0:
+            if wp.length(p - motion.center[0]) <= strand_reach:
+                _carried, lowered = bound_lowering(motion, start, p, strand_reach + search)
+                held = clearance[i]
+                bound = held - lowered
+                if listed and held > 0.5 * NO_BOUND:
+                    leaves = near_leaves[i]
+                    unlisted = beyond[i] - lowered
+        origin = p
+        if use_bounds == 0 or bound <= margin + 1.0e-5:
+            # a particle known to be no deeper than probe inside needs only a probe-sized
+            # query: one within probe finds what a search-sized one finds, and one that finds
+            # nothing shows it outside (a query's cost grows fast with its radius)
+            reach = search
+            if use_bounds != 0 and bound > -probe:
+                reach = probe
+            # putting the particle back at rest length can re-enter the collider near a
+            # crease (between two spheres, in a concave corner); a second round settles it
+            queried = p
+            for _round in range(2):
+                queried = p
+                pushed = p
+                if listed:
+                    pushed, bound, leaves, origin, unlisted = collide_point_listed(
+                        p, shape, margin, reach, leaves, origin, unlisted)
+                else:
+                    pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, reach)
+                reach = search
+                if pushed == p:
+                    break
+                p = pushed
+                d = p - parent
+                dist = wp.length(d)
+                if dist > 1.0e-12:
+                    p = parent + d * (length / dist)
+            bound = bound - wp.length(p - queried)
+        clearance[i] = bound
+        if listed:
+            near_leaves[i] = leaves
+            beyond[i] = unlisted - wp.length(p - origin)
+    return p
+
+
 # 178 registers uncapped (CUDA, H100): one 256-thread block per SM, 8 warps to hide the serial loop's
 # latency; capped at 128, two blocks fit and the pass ran 30% faster (100k strands: 10.3 -> 7.3 ms
 # per frame) despite 352 bytes of spills. The CPU ignores the cap.
@@ -1074,77 +1274,28 @@ def follow_the_leader(
         s = order.strand_of[lane]
     start = strand_start[s]
     count = strand_start[s + 1] - start
+    parent = wp.vec3(0.0)  # the last two particles as resolved, carried in registers
+    before = wp.vec3(0.0)
     for k in range(count):
         i = lane_slot(start, lane, k, lanes)
+        p = x[i]
         correction = wp.vec3(0.0)
         if k >= pinned_per_strand:
-            parent = x[lane_slot(start, lane, k - 1, lanes)]
-            predicted = x[i]
-            length = rest_length[i]
-            d = predicted - parent
-            dist = wp.length(d)
-            if dist < 1.0e-12:
-                d = wp.vec3(0.0, -1.0, 0.0)
-                if k >= 2:
-                    d = parent - x[lane_slot(start, lane, k - 2, lanes)]
-                dist = wp.length(d)
-            p = parent + d * (length / dist)
-            if collide_mode != 0:
-                bound = float(NO_BOUND)
-                listed = use_bounds != 0 and collide_mode == COLLIDE_SPHERE_TREE
-                leaves = wp.vec4i(-1, -1, -1, -1)
-                unlisted = float(NO_BOUND)
-                if use_bounds != 0:
-                    if wp.length(p - motion.center[0]) <= strand_reach:
-                        _carried, lowered = bound_lowering(motion, x_prev[i], p, strand_reach + search)
-                        held = clearance[i]
-                        bound = held - lowered
-                        if listed and held > 0.5 * NO_BOUND:
-                            leaves = near_leaves[i]
-                            unlisted = beyond[i] - lowered
-                origin = p
-                if use_bounds == 0 or bound <= margin + 1.0e-5:
-                    # a particle known to be no deeper than probe inside needs only a probe-sized
-                    # query: one within probe finds what a search-sized one finds, and one that finds
-                    # nothing shows it outside (a query's cost grows fast with its radius)
-                    reach = search
-                    if use_bounds != 0 and bound > -probe:
-                        reach = probe
-                    # putting the particle back at rest length can re-enter the collider near a
-                    # crease (between two spheres, in a concave corner); a second round settles it
-                    queried = p
-                    for _round in range(2):
-                        queried = p
-                        pushed = p
-                        if listed:
-                            pushed, bound, leaves, origin, unlisted = collide_point_listed(
-                                p, shape, margin, reach, leaves, origin, unlisted)
-                        else:
-                            pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, reach)
-                        reach = search
-                        if pushed == p:
-                            break
-                        p = pushed
-                        d = p - parent
-                        dist = wp.length(d)
-                        if dist > 1.0e-12:
-                            p = parent + d * (length / dist)
-                    bound = bound - wp.length(p - queried)
-                clearance[i] = bound
-                if listed:
-                    near_leaves[i] = leaves
-                    beyond[i] = unlisted - wp.length(p - origin)
+            predicted = p
+            p = follow_leader(parent, before, k, predicted, rest_length[i], i, x_prev[i], collide_mode, shape, margin,
+                              search, use_bounds, probe, motion, strand_reach, clearance, near_leaves, beyond)
             correction = p - predicted
             x[i] = p
             x_out[start + k] = p
         if k > 0:
             j = lane_slot(start, lane, k - 1, lanes)
-            vel = (x[j] - x_prev[j]) / dt
+            vel = (parent - x_prev[j]) / dt
             if inv_mass[j] > 0.0:
                 vel = vel - (ftl_damping / dt) * correction
             v[start + k - 1] = vel
-    last = lane_slot(start, lane, count - 1, lanes)
-    v[start + count - 1] = (x[last] - x_prev[last]) / dt
+        before = parent
+        parent = p
+    v[start + count - 1] = (parent - x_prev[lane_slot(start, lane, count - 1, lanes)]) / dt
 
 
 @wp.func
