@@ -18,12 +18,15 @@ times each case both ways, the rows with it marked "ahead" (the mesh cases only 
 leaves). The length pass can run in lane order (HairSolver.lanes, on by default on a GPU only, where
 a warp's strands then read consecutive memory); --lanes both marks the rows with it "lanes". Its
 lanes follow the roots (hair_solver.lanes_by_root); --lane-order both also times them in the grown
-order, the rows marked "grown".
+order, the rows marked "grown". A substep can run as one launch per strand range (HairSolver.fused,
+on by default on the CPU only; a sphere tree's walks queued ahead keep the launches apart, so on a
+GPU pair it with --leaves-ahead off); --fused both marks the rows with it "fused".
 
     python benchmarks/hair.py                        # 1k, 10k, 100k strands on cpu (and cuda if present)
     python benchmarks/hair.py --strands 1000 --device cuda --cases full+mesh
     python benchmarks/hair.py --device cuda --leaves-ahead both --lanes both
     python benchmarks/hair.py --device cuda --lane-order both
+    python benchmarks/hair.py --device cuda --leaves-ahead off --fused both
 """
 
 import argparse
@@ -76,15 +79,17 @@ def settle(scene, seconds=0.5):
     return scene.state.x.numpy(), scene.state.v.numpy()
 
 
-def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True):
+def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True, fused=None):
     """(ms/frame, bytes/frame, max stretch) for one solver variant on a built scene, from `settled`;
-    ahead, lanes: HairSolver.leaves_ahead and .lanes, None for the device's default; by_root: lanes
-    that follow the roots (HairSolver.set_lanes)."""
+    ahead, lanes, fused: HairSolver.leaves_ahead, .lanes and .fused, None for the device's default;
+    by_root: lanes that follow the roots (HairSolver.set_lanes)."""
 
     def start(parts):
         scene.solver = HairSolver(scene.model, params, parts=1 if lanes else parts)
         if ahead is not None:
             scene.solver.leaves_ahead = ahead
+        if fused is not None:
+            scene.solver.fused = fused
         if lanes is not None or not by_root:
             scene.solver.set_lanes(scene.solver.lanes if lanes is None else lanes, by_root)
         scene.graphs.clear()
@@ -134,6 +139,8 @@ def main():
                         help="HairSolver.lanes (the length pass in lane order), likewise")
     parser.add_argument("--lane-order", choices=["root", "grown", "both"], default="root",
                         help="the lanes follow the roots (lanes_by_root) or the grown strand order, or both")
+    parser.add_argument("--fused", choices=["auto", "on", "off", "both"], default="auto",
+                        help="HairSolver.fused (a substep in one launch, where no walks are queued ahead), likewise")
     args = parser.parse_args()
     quiet_warp()
     wp.init()
@@ -155,20 +162,21 @@ def main():
             peer_ms, peer_stretch = run_peer(scene, args.substeps, args.frames, settled) if peer_ok else (None, None)
             ways = {"auto": [None], "on": [True], "off": [False], "both": [False, True]}
             orders = {"root": [True], "grown": [False], "both": [True, False]}[args.lane_order]
-            variants = [(n, a, lane, r) for n in args.cases for lane in ways[args.lanes]
-                        for a in ways[args.leaves_ahead]
+            variants = [(n, a, lane, r, f) for n in args.cases for lane in ways[args.lanes]
+                        for a in ways[args.leaves_ahead] for f in ways[args.fused]
                         # the lane order matters only where the lanes are on (auto: on a GPU)
                         for r in (orders if (lane if lane is not None else wp.get_device(device).is_cuda) else [True])
                         if not (a and "mesh" in n and args.leaves_ahead == "both")]  # the mesh has no leaves
-            for name, ahead, lanes, by_root in variants:
+            for name, ahead, lanes, by_root, fused in variants:
                 params = HairParams(substeps=args.substeps, **CASES[name])
                 ms, moved, stretch = run_ours(scene, params, args.frames, settled, args.profile, ahead, lanes,
-                                              by_root)
+                                              by_root, fused)
                 rate = scene.model.num_particles * params.substeps / (ms * 1e-3)
                 gbs = moved / (ms * 1e-3) / 1e9
                 label = (name + (" ahead" if ahead and args.leaves_ahead == "both" else "")
                          + (" lanes" if lanes and args.lanes == "both" else "")
-                         + (" grown" if not by_root and args.lane_order != "root" else ""))
+                         + (" grown" if not by_root and args.lane_order != "root" else "")
+                         + (" fused" if fused and args.fused == "both" else ""))
                 rows.append([label, strands, scene.model.num_particles, device, fmt(ms, 4), fmt(rate),
                              fmt(moved / 1e6), f"{gbs:.0f} ({100 * gbs / ceiling:.0f}%)", fmt(stretch, 2),
                              fmt(peer_ms, 4), fmt(peer_stretch, 2),

@@ -33,33 +33,51 @@ from common import commit, table  # noqa: E402
 STEP, LISTED, WALK = 1.0, 4.0, 85.0
 
 
-def counting_follow_the_leader():
-    """follow_the_leader with one more argument, a float array per lane slot that each particle step
-    adds its work to; compiled from the kernel's own source, so the two cannot drift apart."""
-    from warp_kernels import strands
-
-    src = inspect.getsource(strands.follow_the_leader.func)
-    src = src[src.index("def follow_the_leader("):].replace("def follow_the_leader(", "def follow_the_leader_counted(")
-    edits = [
-        ("    order: LaneOrder,\n    first: int,\n):", "    order: LaneOrder,\n    first: int,\n    work: wp.array(dtype=float),\n):"),
-        ("        correction = wp.vec3(0.0)\n", f"        correction = wp.vec3(0.0)\n        work[i] += {STEP}\n"),
-        ("                        if listed:\n                            pushed, bound, leaves, origin, unlisted = ",
-         "                        if listed:\n"
-         "                            if unlisted - wp.length(p - origin) > margin + 1.0e-5:\n"
-         f"                                work[i] += {LISTED}\n"
-         "                            else:\n"
-         f"                                work[i] += {WALK}\n"
-         "                            pushed, bound, leaves, origin, unlisted = "),
-    ]
+def edited(src, edits):
+    """src with each (old, new) of edits replaced once; every old must be there."""
     for old, new in edits:
         if old not in src:
             raise RuntimeError("follow_the_leader changed: update benchmarks/hair_warps.py's counting edits")
         src = src.replace(old, new, 1)
+    return src
+
+
+def counting_follow_the_leader():
+    """follow_the_leader with one more argument, a float array per lane slot that each particle step
+    adds its work to; compiled from the source of the kernel and of its per-particle function
+    (follow_leader), so the counting copies cannot drift apart from them."""
+    from warp_kernels import strands
+
+    def source(function, name):
+        src = inspect.getsource(function.func)
+        return src[src.index(f"def {name}("):].replace(f"def {name}(", f"def {name}_counted(")
+
+    kernel = source(strands.follow_the_leader, "follow_the_leader")
+    func = source(strands.follow_leader, "follow_leader")
+    kernel_edits = [
+        ("    order: LaneOrder,\n    first: int,\n):",
+         "    order: LaneOrder,\n    first: int,\n    work: wp.array(dtype=float),\n):"),
+        ("        correction = wp.vec3(0.0)\n", f"        correction = wp.vec3(0.0)\n        work[i] += {STEP}\n"),
+        ("p = follow_leader(", "p = follow_leader_counted("),
+        ("clearance, near_leaves, beyond)", "clearance, near_leaves, beyond, work)"),
+    ]
+    func_edits = [
+        ("    beyond: wp.array(dtype=float),\n):",
+         "    beyond: wp.array(dtype=float),\n    work: wp.array(dtype=float),\n):"),
+        ("                if listed:\n                    pushed, bound, leaves, origin, unlisted = ",
+         "                if listed:\n"
+         "                    if unlisted - wp.length(p - origin) > margin + 1.0e-5:\n"
+         f"                        work[i] += {LISTED}\n"
+         "                    else:\n"
+         f"                        work[i] += {WALK}\n"
+         "                    pushed, bound, leaves, origin, unlisted = "),
+    ]
+    kernel, func = edited(kernel, kernel_edits), edited(func, func_edits)
     header = ("import warp as wp\nfrom warp_kernels._options import MODULE_OPTIONS\nwp.set_module_options(MODULE_OPTIONS)\n"
               "from warp_kernels.strands import *  # noqa\nfrom warp_kernels.strands import NO_BOUND, bound_lowering\n"
-              "from warp_kernels.collision import *  # noqa\n\n@wp.kernel\n")
+              "from warp_kernels.collision import *  # noqa\n\n")
     path = Path(tempfile.mkdtemp(prefix="cfx_warps_")) / "counted_ftl.py"
-    path.write_text(header + src)
+    path.write_text(header + "@wp.func(inline=True)\n" + func + "\n\n@wp.kernel\n" + kernel)
     spec = importlib.util.spec_from_file_location("counted_ftl", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)

@@ -170,6 +170,8 @@ class HairSolver:
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
+        # the simplified windows' axes, kept by strands.step_strands
+        self.axes = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
         # contact bounds of the length pass (see strands.follow_the_leader), per particle in the pass's
         # order (set with lanes): clearance (NO_BOUND = unknown, a full query), the sphere tree's four
@@ -184,6 +186,11 @@ class HairSolver:
         # consecutive memory at each step of their serial loops; a CPU thread walks one strand's
         # cache lines and gains nothing from the copies in and out
         self.lanes = wp.get_device(device).is_cuda and len(self.parts) == 1
+        # a whole substep in one launch (strands.step_strands), where no guides pull the strands and no
+        # tree walks are queued ahead (leaves_ahead needs the predicted positions between launches).
+        # On by default on the CPU, where it was measured faster; a GPU keeps the launches apart,
+        # with a thread per particle for the shape passes, until one is measured the other way
+        self.fused = not wp.get_device(device).is_cuda
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
@@ -290,6 +297,9 @@ class HairSolver:
         variant = SHAPE_MATCHING[p.shape_matching]
         win = self.windows
         passes = p.shape_iterations if variant >= 0 and win.count > 0 else 0
+        if self._fuses(collider, guides):
+            self._step_fused(state_in, state_out, collider, dt, offset, variant, passes, part, r)
+            return
         # shape passes ping-pong between two buffers and must end in state_out.x: an odd number of
         # passes starts from the scratch buffer
         predicted, other = (state_out.x, self.shape_scratch) if passes % 2 == 0 else (self.shape_scratch, state_out.x)
@@ -344,16 +354,7 @@ class HairSolver:
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright
         mode = COLLISION[p.collision] if collider is not None else 0
-        motion = self._motion[r]
-        if mode != 0 and self.contact_bounds:
-            adjacency = c.adjacency()
-            wp.launch(strands.anchor_frame, strands.MOTION_GRID ** 3,
-                      [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
-            mesh = mode == COLLISION["mesh"]  # the sphere tree's strands see only its leaves
-            wp.launch(strands.contact_motion, (len(c.points) if mesh else 0) + len(c.sphere_centers),
-                      [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
-                       c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
-                       r.reach, p.collision_search, motion], device=dev)
+        motion = self._measure_motion(c, mode, r)
         x, x_prev, inv_mass, rest = state_out.x, state_in.x, m.inv_mass, m.rest_length
         if lanes:
             if passes == 0:
@@ -378,10 +379,71 @@ class HairSolver:
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
                    p.ftl_damping, dt, state_out.x, state_out.v, order, r.first_strand], device=dev)
+        self._comb(state_in, state_out, c, mode, dt, offset, order, r)
+
+    def _fuses(self, collider, guides):
+        """Whether step() is one launch (strands.step_strands): fused, no guides, no walks ahead."""
+        p = self.params
+        if not self.fused or (guides is not None and p.guide_stiffness > 0.0):
+            return False
+        ahead = (self.leaves_ahead and self.contact_bounds and collider is not None
+                 and COLLISION[p.collision] == COLLISION["sphere_tree"])
+        return not ahead
+
+    def _measure_motion(self, c, mode, r):
+        """How the collider moved near range r this substep (strands.contact_motion), for the contact
+        bounds of the length pass: the range's ContactMotion."""
+        m, p, dev = self.model, self.params, self.model.device
+        motion = self._motion[r]
+        if mode != 0 and self.contact_bounds:
+            adjacency = c.adjacency()
+            wp.launch(strands.anchor_frame, strands.MOTION_GRID ** 3,
+                      [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
+            mesh = mode == COLLISION["mesh"]  # the sphere tree's strands see only its leaves
+            wp.launch(strands.contact_motion, (len(c.points) if mesh else 0) + len(c.sphere_centers),
+                      [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
+                       c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
+                       r.reach, p.collision_search, motion], device=dev)
+        return motion
+
+    def _comb(self, state_in, state_out, c, mode, dt, offset, order, r):
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
+            p = self.params
             blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
-            self.comb.launch(m, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
+            self.comb.launch(self.model, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
                              p.collision_margin, p.collision_search, self.clearance, order, r)
+
+    def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r):
+        """step() as one launch per range (strands.step_strands), after the collider's motion."""
+        m, p, dev = self.model, self.params, self.model.device
+        mode = COLLISION[p.collision] if c is not None else 0
+        motion = self._measure_motion(c, mode, r)
+        bound = m.bind_particle is not None and c is not None
+        hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
+        lane = self._lanes
+        order = lane.order if lane is not None else self._particle_order
+        # the last pass reads `shaped`; in particle order that is state_out.x itself, which the length
+        # pass overwrites behind its windows
+        shaped, spare = (lane.x, lane.prev) if lane is not None else (state_out.x, self.shape_scratch)
+        probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
+        wp.launch(strands.step_strands, r.strands,
+                  [state_in.x, state_in.v, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand,
+                   wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag, p.damping, p.wind_turbulence,
+                   p.wind_turbulence_scale, p.wind_turbulence_rate, self.clock, offset, dt, int(bound),
+                   c.points if bound else None, c.indices if bound else None,
+                   m.particle_binding if bound else None, m.bind_triangle if bound else None,
+                   m.bind_barycentric if bound else None, m.bind_local if bound else None,
+                   m.root_binding if bound else None, m.root_local if bound else None, self.hold,
+                   hold if bound else 0.0, self.windows.at, self.windows.size, self.windows.rest,
+                   self.windows.offsets, variant, passes, p.shape_stiffness, int(self._rotations_exact),
+                   p.rotation_iterations, self.rotations, self.centroids, self.axes, mode,
+                   c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
+                   int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
+                   p.ftl_damping, shaped, spare, state_out.x, state_out.v, order,
+                   0 if lane is not None else r.first_strand], device=dev)
+        if variant == SHAPE_MATCHING["full"] and passes > 0 and (part is None or part is self.parts[-1]):
+            self._rotations_exact = False
+        self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
     def contact_motion(self, part=None):
         """What the last substep measured of the collider's motion near a range of strands (the whole

@@ -13,6 +13,10 @@ Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launche
 In lane order (lane_slot, a GPU's) predict_positions and the last shape pass also leave the length
 pass's inputs in that order, and follow_the_leader writes its results back in particle order.
 
+step_strands is the whole sequence from root_frames to follow_the_leader in one launch, a thread per
+strand (after anchor_frame and contact_motion), with the same strands bit for bit; the launches apart
+serve guides and the tree walks queued ahead.
+
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
 (window goals, root positions, FTL corrections) is recomputed or carried in registers instead,
 because on a GPU the bytes moved, not the arithmetic, set the cost.
@@ -80,7 +84,7 @@ def lane_slot(start: int, lane: int, k: int, lanes: int):
     return start + k
 
 
-@wp.func
+@wp.func(inline=True)
 def predicted_position(
     p: wp.vec3,
     vel: wp.vec3,
@@ -1062,7 +1066,7 @@ def list_leaves_ahead(
     beyond[i] = fifth
 
 
-@wp.func
+@wp.func(inline=True)
 def follow_leader(
     parent: wp.vec3,
     before: wp.vec3,
@@ -1296,6 +1300,468 @@ def follow_the_leader(
         before = parent
         parent = p
     v[start + count - 1] = (parent - x_prev[lane_slot(start, lane, count - 1, lanes)]) / dt
+
+
+@wp.func(inline=True)
+def update_window(
+    x: wp.array(dtype=wp.vec3),
+    start: int,
+    slot: int,
+    stride: int,
+    k: int,
+    window_at: wp.array(dtype=wp.int32),
+    window_size: int,
+    window_rest: wp.array(dtype=wp.vec3),
+    variant: int,
+    exact: int,
+    iterations: int,
+    rotations: wp.array(dtype=wp.quat),
+    centroids: wp.array(dtype=wp.vec3),
+    axes: wp.array(dtype=wp.vec3),
+):
+    """Solve the window that starts at particle k of a strand, if one does, and keep what its goals
+    need: its centroid, and its axis (simplified variant, zero when degenerate) or its rotation
+    (full variant, as shape_match_rotations).
+
+    Inputs:
+      x (vec3, per particle or lane slot, m): positions before the shape pass
+      start (int, index): the strand's first particle
+      slot (int, index): the element of x that holds particle k
+      stride (int): elements from one particle to the next (window_centroid)
+      k (int, index): the particle's place along the strand
+      window_at (int32, per particle): window starting at each particle, -1 when none
+      window_size (int): particles per window
+      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
+      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
+      exact (int, flag): non-zero solves a rotation from scratch (full)
+      iterations (int): rotation refinement steps when exact == 0 (full)
+    In/out:
+      rotations (quat, per window): the window's last rotation in, its new one out (full)
+    Outputs:
+      centroids (vec3, per window, m): the window's centroid
+      axes (vec3, per window): the window's unit first-to-last axis, zero when degenerate (simplified)
+    """
+    w = window_at[start + k]
+    if w >= 0:
+        if variant == SHAPE_SIMPLIFIED:
+            u, _straight = window_direction(x, slot, stride, window_size)
+            centroids[w] = window_centroid(x, slot, stride, window_size)
+            axes[w] = u
+        else:
+            q, c = window_rotation(x, slot, stride, window_size, window_rest, w * window_size, rotations[w], exact,
+                                   iterations)
+            rotations[w] = q
+            centroids[w] = c
+
+
+@wp.func(inline=True)
+def shaped_position(
+    p: wp.vec3,
+    inv_mass: float,
+    start: int,
+    k: int,
+    window_at: wp.array(dtype=wp.int32),
+    window_size: int,
+    window_rest: wp.array(dtype=wp.vec3),
+    window_offsets: wp.array(dtype=float),
+    variant: int,
+    stiffness: float,
+    rotations: wp.array(dtype=wp.quat),
+    centroids: wp.array(dtype=wp.vec3),
+    axes: wp.array(dtype=wp.vec3),
+):
+    """Particle k of a strand moved toward the mean goal of the windows that hold it, once those are
+    solved (update_window): the goals and their order of shape_match_step.
+
+    Inputs:
+      p (vec3, m): the particle's position before the pass
+      inv_mass (float): 0 marks a pinned particle, which stays where it is
+      start (int, index): the strand's first particle
+      k (int, index): the particle's place along the strand
+      window_at (int32, per particle): window starting at each particle, -1 when none
+      window_size (int): particles per window
+      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
+      window_offsets (float, window_size per window, m): rest offsets along the rest axis (simplified)
+      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
+      stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
+      rotations (quat, per window): window rotations (full)
+      centroids (vec3, per window, m): window centroids
+      axes (vec3, per window): window axes, zero when degenerate (simplified)
+    Returns:
+      vec3 (m): the particle's position after the pass
+    """
+    if inv_mass == 0.0:
+        return p
+    goal = wp.vec3(0.0)
+    count = float(0.0)
+    for j in range(window_size):
+        if k - j >= 0:
+            w = window_at[start + k - j]
+            if w >= 0:
+                if variant == SHAPE_SIMPLIFIED:
+                    u = axes[w]
+                    if u == wp.vec3(0.0):
+                        goal += p  # a degenerate window holds its particles where they are
+                    else:
+                        goal += centroids[w] + window_offsets[w * window_size + j] * u
+                else:
+                    goal += centroids[w] + wp.quat_rotate(rotations[w], window_rest[w * window_size + j])
+                count += 1.0
+    if count > 0.0:
+        p = p + stiffness * (goal / count - p)
+    return p
+
+
+@wp.func
+def shape_strand(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    start: int,
+    first: int,
+    stride: int,
+    count: int,
+    window_at: wp.array(dtype=wp.int32),
+    window_size: int,
+    window_rest: wp.array(dtype=wp.vec3),
+    window_offsets: wp.array(dtype=float),
+    variant: int,
+    stiffness: float,
+    exact: int,
+    iterations: int,
+    rotations: wp.array(dtype=wp.quat),
+    centroids: wp.array(dtype=wp.vec3),
+    axes: wp.array(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """One shape-matching pass over one strand (step_strands' passes before its last): the windows
+    solved in order from the root, each particle moved once every window holding it is.
+
+    Inputs:
+      x (vec3, per particle or lane slot, m): positions before the pass
+      inv_mass (float, per particle): 0 marks pinned particles, copied through
+      start (int, index): the strand's first particle
+      first (int, index): the element of x and x_out that holds the strand's first particle
+      stride (int): elements from one particle to the next (window_centroid)
+      count (int): the strand's particles
+      window_at (int32, per particle): window starting at each particle, -1 when none
+      window_size (int): particles per window
+      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
+      window_offsets (float, window_size per window, m): rest offsets along the rest axis (simplified)
+      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
+      stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
+      exact (int, flag): non-zero solves the rotations from scratch (full)
+      iterations (int): rotation refinement steps when exact == 0 (full)
+    In/out:
+      rotations (quat, per window): the strand's window rotations (full)
+    Outputs:
+      centroids (vec3, per window, m): the strand's window centroids
+      axes (vec3, per window): the strand's window axes (simplified)
+      x_out (vec3, per particle or lane slot, m): positions after the pass; must not alias x
+    """
+    for k in range(count):
+        slot = first + k * stride
+        update_window(x, start, slot, stride, k, window_at, window_size, window_rest, variant, exact, iterations,
+                      rotations, centroids, axes)
+        x_out[slot] = shaped_position(x[slot], inv_mass[start + k], start, k, window_at, window_size, window_rest,
+                                      window_offsets, variant, stiffness, rotations, centroids, axes)
+
+
+@wp.func
+def predict_strand(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    start: int,
+    first: int,
+    stride: int,
+    count: int,
+    gravity: wp.vec3,
+    wind: wp.vec3,
+    air_drag: float,
+    damping: float,
+    turbulence: float,
+    turbulence_scale: float,
+    turbulence_rate: float,
+    time: float,
+    dt: float,
+    bound: int,
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    particle_binding: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+    origin: wp.vec3,
+    frame: wp.mat33,
+    root_local: wp.array(dtype=wp.vec3),
+    hold: wp.array(dtype=float),
+    hold_stiffness: float,
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """predict_positions for one strand, whose root frame the caller has (root_frames).
+
+    Inputs:
+      x (vec3, per particle, m): positions at the start of the substep
+      v (vec3, per particle, m/s): velocities at the start of the substep
+      inv_mass (float, per particle): 0 marks pinned particles
+      start (int, index): the strand's first particle
+      first (int, index): the element of x_out that holds the strand's first particle
+      stride (int): elements of x_out from one particle to the next (window_centroid)
+      count (int): the strand's particles
+      gravity (vec3, m/s^2): acceleration of gravity
+      wind (vec3, m/s): mean air velocity
+      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
+      damping (float, 1/s): rate at which velocity decays
+      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
+      turbulence_scale (float, 1/m): spatial frequency of the gusts
+      turbulence_rate (float, 1/s): how fast the gust pattern changes
+      time (float, s): the gusts' time
+      dt (float, s): substep length
+      bound (int, flag): non-zero when the strand is bound to the collider
+      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
+      mesh_indices (int32, 3 per collider triangle): collider triangles
+      particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
+      bind_triangle (int32, per binding): collider triangle of each binding
+      bind_barycentric (vec3, per binding): weights of that triangle's corners
+      bind_local (vec3, per binding, m): offset in that triangle's frame
+      origin (vec3, m): the root's position in this pose
+      frame (mat33): the root triangle's frame in this pose
+      root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
+      hold (float, per particle): root-hold weight
+      hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+    Outputs:
+      x_out (vec3, per particle or lane slot, m): the strand's predicted positions
+    """
+    for k in range(count):
+        i = start + k
+        binding = int(-1)
+        weight = float(0.0)
+        local = wp.vec3(0.0)
+        if bound != 0:
+            if inv_mass[i] == 0.0:
+                binding = particle_binding[i]
+            weight = hold[i] * hold_stiffness
+            if weight > 0.0:
+                local = root_local[i]
+        p, _vel = predicted_position(x[i], v[i], inv_mass[i], gravity, wind, air_drag, damping, turbulence,
+                                     turbulence_scale, turbulence_rate, time, dt, mesh_points, mesh_indices, binding,
+                                     bind_triangle, bind_barycentric, bind_local, origin, frame, local, weight)
+        x_out[first + k * stride] = p
+
+
+@wp.kernel(cuda_max_registers=128)
+def step_strands(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    strand_start: wp.array(dtype=wp.int32),
+    rest_length: wp.array(dtype=float),
+    pinned_per_strand: int,
+    gravity: wp.vec3,
+    wind: wp.vec3,
+    air_drag: float,
+    damping: float,
+    turbulence: float,
+    turbulence_scale: float,
+    turbulence_rate: float,
+    clock: wp.array(dtype=float),
+    time_offset: float,
+    dt: float,
+    bound: int,
+    mesh_points: wp.array(dtype=wp.vec3),
+    mesh_indices: wp.array(dtype=wp.int32),
+    particle_binding: wp.array(dtype=wp.int32),
+    bind_triangle: wp.array(dtype=wp.int32),
+    bind_barycentric: wp.array(dtype=wp.vec3),
+    bind_local: wp.array(dtype=wp.vec3),
+    root_binding: wp.array(dtype=wp.int32),
+    root_local: wp.array(dtype=wp.vec3),
+    hold: wp.array(dtype=float),
+    hold_stiffness: float,
+    window_at: wp.array(dtype=wp.int32),
+    window_size: int,
+    window_rest: wp.array(dtype=wp.vec3),
+    window_offsets: wp.array(dtype=float),
+    variant: int,
+    passes: int,
+    stiffness: float,
+    exact: int,
+    rotation_iterations: int,
+    rotations: wp.array(dtype=wp.quat),
+    centroids: wp.array(dtype=wp.vec3),
+    axes: wp.array(dtype=wp.vec3),
+    collide_mode: int,
+    shape: ColliderShape,
+    margin: float,
+    search: float,
+    use_bounds: int,
+    probe: float,
+    motion: ContactMotion,
+    strand_reach: float,
+    clearance: wp.array(dtype=float),
+    near_leaves: wp.array(dtype=wp.vec4i),
+    beyond: wp.array(dtype=float),
+    ftl_damping: float,
+    shaped: wp.array(dtype=wp.vec3),
+    spare: wp.array(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+    v_out: wp.array(dtype=wp.vec3),
+    order: LaneOrder,
+    first: int,
+):
+    """A whole hair substep in one launch, a thread per strand: root frame, prediction, shape
+    matching and the length pass with its collisions and velocities, the same strands as the
+    launches from root_frames to follow_the_leader (without guides).
+
+    Those launches each read and write every particle once; here a strand stays with one thread
+    from start to end, so its particles are read once and written once, the predicted and the
+    shape-matched positions stay in that thread's cache, and no launch waits for another. The
+    last shape pass is folded into the length pass: the window starting at each particle is solved
+    just before the particle is placed, from positions no particle of it has left yet, so that pass
+    needs no buffer of its own and each particle is read once more, not twice.
+
+    contact_motion (and anchor_frame) must run first, as for follow_the_leader.
+
+    Launch: one thread per strand of a range of strands (dim = strands in the range), or in lane
+    order one per lane (then first is 0).
+    Inputs:
+      x (vec3, per particle, m): positions at the start of the substep (where the bounds hold)
+      v (vec3, per particle, m/s): velocities at the start of the substep
+      inv_mass (float, per particle): 0 marks pinned particles
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+      rest_length (float, per particle, m): rest distance to the previous particle
+      pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
+      gravity (vec3, m/s^2): acceleration of gravity
+      wind (vec3, m/s): mean air velocity
+      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
+      damping (float, 1/s): rate at which velocity decays
+      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
+      turbulence_scale (float, 1/m): spatial frequency of the gusts
+      turbulence_rate (float, 1/s): how fast the gust pattern changes
+      clock (float, 1 element, s): device clock
+      time_offset (float, s): time of this substep relative to clock[0]
+      dt (float, s): substep length
+      bound (int, flag): non-zero when the strands are bound to the collider (the arrays below are
+          read only then)
+      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
+      mesh_indices (int32, 3 per collider triangle): collider triangles
+      particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
+      bind_triangle (int32, per binding): collider triangle of each binding
+      bind_barycentric (vec3, per binding): weights of that triangle's corners
+      bind_local (vec3, per binding, m): offset in that triangle's frame
+      root_binding (int32, per strand): binding of the strand's root particle (read when
+          hold_stiffness > 0)
+      root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
+      hold (float, per particle): root-hold weight, 1 at the root falling to 0 along the strand
+      hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+      window_at (int32, per particle): window starting at each particle, -1 when none
+      window_size (int): particles per window
+      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
+      window_offsets (float, window_size per window, m): rest offsets along the rest axis (simplified)
+      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
+      passes (int): shape-matching passes, 0 for none
+      stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+      exact (int, flag): non-zero solves the first pass's rotations from scratch (full)
+      rotation_iterations (int): rotation refinement steps per pass otherwise (full)
+      collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
+      margin (float, m): distance kept outside the collider
+      search (float, m): mesh query radius
+      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      probe (float, m): query radius for particles the bound shows no deeper than probe inside
+      motion (ContactMotion): how the collider moved near these strands (contact_motion)
+      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+      ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+      order (LaneOrder): particle order, or the lane order: then shaped, spare and the contact
+          bounds are in lane order (lane_slot)
+      first (int, index): the range's first strand; thread t works on strand first + t
+    In/out:
+      rotations (quat, per window): window rotations, refined from their last values (full)
+      clearance (float, per particle, m): contact bounds at x in, at x_out out (follow_the_leader)
+      near_leaves (vec4i, per particle): listed leaf spheres (follow_the_leader)
+      beyond (float, per particle, m): bound on every unlisted leaf (follow_the_leader)
+    Outputs:
+      centroids (vec3, per window, m): window centroids of the last pass
+      axes (vec3, per window): window axes of the last pass (simplified)
+      shaped (vec3, per particle or lane slot, m): scratch, the last pass's input; may be x_out
+          itself in particle order
+      spare (vec3, per particle or lane slot, m): scratch for two passes or more; None otherwise
+      x_out (vec3, per particle, m): positions at the end of the substep
+      v_out (vec3, per particle, m/s): velocities at the end of the substep
+    """
+    s = wp.tid() + first
+    lane = s
+    lanes = order.lanes
+    stride = int(1)
+    if lanes > 0:
+        s = order.strand_of[lane]
+        stride = lanes
+    start = strand_start[s]
+    count = strand_start[s + 1] - start
+    base = lane_slot(start, lane, 0, lanes)
+    origin = wp.vec3(0.0)
+    frame = wp.mat33(0.0)
+    if bound != 0:
+        if hold_stiffness > 0.0:
+            rb = root_binding[s]
+            origin = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
+            frame = face_frame(mesh_points, mesh_indices, bind_triangle[rb])
+    time = clock[0] + time_offset
+    # every pass but the last ping-pongs between spare and shaped, ending in shaped
+    inner = wp.max(passes - 1, 0)
+    if inner % 2 == 0:
+        predict_strand(x, v, inv_mass, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
+                       turbulence_scale, turbulence_rate, time, dt, bound, mesh_points, mesh_indices,
+                       particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, root_local, hold,
+                       hold_stiffness, shaped)
+    else:
+        predict_strand(x, v, inv_mass, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
+                       turbulence_scale, turbulence_rate, time, dt, bound, mesh_points, mesh_indices,
+                       particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, root_local, hold,
+                       hold_stiffness, spare)
+    for n in range(inner):
+        solve = int(0)
+        if n == 0:
+            solve = exact
+        if (inner - 1 - n) % 2 == 0:
+            shape_strand(spare, inv_mass, start, base, stride, count, window_at, window_size, window_rest,
+                         window_offsets, variant, stiffness, solve, rotation_iterations, rotations, centroids, axes,
+                         shaped)
+        else:
+            shape_strand(shaped, inv_mass, start, base, stride, count, window_at, window_size, window_rest,
+                         window_offsets, variant, stiffness, solve, rotation_iterations, rotations, centroids, axes,
+                         spare)
+    last_exact = int(0)
+    if inner == 0:
+        last_exact = exact
+    # the last pass and the length pass, root to tip; x_out may be shaped itself, so each window is
+    # solved before its first particle is placed
+    parent = wp.vec3(0.0)
+    before = wp.vec3(0.0)
+    for k in range(count):
+        i = base + k * stride
+        p = shaped[i]
+        if passes > 0:
+            update_window(shaped, start, i, stride, k, window_at, window_size, window_rest, variant, last_exact,
+                          rotation_iterations, rotations, centroids, axes)
+            p = shaped_position(p, inv_mass[start + k], start, k, window_at, window_size, window_rest,
+                                window_offsets, variant, stiffness, rotations, centroids, axes)
+        correction = wp.vec3(0.0)
+        if k >= pinned_per_strand:
+            predicted = p
+            p = follow_leader(parent, before, k, predicted, rest_length[start + k], i, x[start + k], collide_mode,
+                              shape, margin, search, use_bounds, probe, motion, strand_reach, clearance, near_leaves,
+                              beyond)
+            correction = p - predicted
+        x_out[start + k] = p
+        if k > 0:
+            vel = (parent - x[start + k - 1]) / dt
+            if inv_mass[start + k - 1] > 0.0:
+                vel = vel - (ftl_damping / dt) * correction
+            v_out[start + k - 1] = vel
+        before = parent
+        parent = p
+    v_out[start + count - 1] = (parent - x[start + count - 1]) / dt
 
 
 @wp.func
