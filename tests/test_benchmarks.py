@@ -66,3 +66,43 @@ def test_warp_model_takes_each_steps_slowest_lane_and_counts_the_real_pass():
     steps = counts[counts > 0]
     assert len(steps) == 10 * model.num_particles  # every particle step counted once ...
     assert np.all(steps >= 1.0) and np.any(steps >= 5.0)  # ... and some of them queried the head
+
+
+_PTXAS_LOG = """ptxas info    : 0 bytes gmem
+ptxas info    : Compiling entry function 'follow_the_leader_bce2c61e_cuda_kernel_forward' for 'sm_90'
+ptxas info    : Function properties for follow_the_leader_bce2c61e_cuda_kernel_forward
+    240 bytes stack frame, 112 bytes spill stores, 136 bytes spill loads
+ptxas info    : Used 128 registers, used 0 barriers, 240 bytes cumulative stack size, 1024 bytes smem
+ptxas info    : Compiling entry function 'to_lanes_52729374_cuda_kernel_forward' for 'sm_90'
+ptxas info    : Function properties for to_lanes_52729374_cuda_kernel_forward
+    0 bytes stack frame, 0 bytes spill stores, 0 bytes spill loads
+ptxas info    : Used 18 registers, used 0 barriers, 1024 bytes smem
+"""
+
+
+def test_cuda_resources_reads_each_kernels_registers_spills_and_cap():
+    """benchmarks/cuda_resources.py: ptxas -v's report parsed per kernel, with the .maxnreg cap from the
+    PTX; where this machine has ptxas, the hair kernels compiled for sm_90 with NVRTC (no GPU needed):
+    the two serial per-strand kernels hold their 128-register cap."""
+    import cuda_resources
+
+    ptx = ".visible .entry follow_the_leader_bce2c61e_cuda_kernel_forward(\n .param .u64 a\n)\n.maxnreg 128\n{\n}\n" \
+          ".visible .entry to_lanes_52729374_cuda_kernel_forward(\n .param .u64 a\n)\n{\n}\n"
+    found = cuda_resources.parse_ptxas(_PTXAS_LOG, cuda_resources.register_caps(ptx))
+    assert [(k.kernel, k.registers, k.cap, k.stack, k.spill_stores, k.spill_loads) for k in found] == [
+        ("follow_the_leader", 128, 128, 240, 112, 136), ("to_lanes", 18, None, 0, 0, 0)]
+
+    ptxas = cuda_resources.find_ptxas()
+    if ptxas is None or 90 not in cuda_resources.nvrtc_archs():
+        return  # the parsing above is the whole check on a machine without a CUDA toolkit or NVRTC
+    import tempfile
+
+    from warp_kernels import strands
+
+    with tempfile.TemporaryDirectory() as workdir:
+        found, _note = cuda_resources.module_resources(strands, 90, ptxas, cuda_resources.ptxas_isa(ptxas), workdir)
+    by_name = {k.kernel: k for k in found}
+    assert {"step_strands", "follow_the_leader", "predict_positions", "shape_match_step"} <= set(by_name)
+    for name in ("step_strands", "follow_the_leader"):
+        assert by_name[name].cap == 128 and 64 < by_name[name].registers <= 128
+    assert by_name["to_lanes"].registers < 64 and by_name["to_lanes"].spill_stores == 0

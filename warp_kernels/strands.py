@@ -104,9 +104,7 @@ def predicted_position(
     bind_triangle: wp.array(dtype=wp.int32),
     bind_barycentric: wp.array(dtype=wp.vec3),
     bind_local: wp.array(dtype=wp.vec3),
-    origin: wp.vec3,
-    frame: wp.mat33,
-    local: wp.vec3,
+    target: wp.vec3,
     weight: float,
 ):
     """One particle's prediction (predict_positions): a pinned particle with a binding is put on the
@@ -133,10 +131,9 @@ def predicted_position(
       bind_triangle (int32, per binding): collider triangle of each binding
       bind_barycentric (vec3, per binding): weights of that triangle's corners
       bind_local (vec3, per binding, m): offset in that triangle's frame
-      origin (vec3, m): the strand's root position in this pose (root_frames)
-      frame (mat33): the root triangle's frame in this pose (root_frames)
-      local (vec3, m): the particle's groomed offset from the root in that frame
-      weight (float, fraction): share of the way to the groomed position moved; 0 for none
+      target (vec3, m): the particle's groomed position carried by its root's frame in this pose
+          (root origin + root frame * groomed offset); read only when weight > 0
+      weight (float, fraction): share of the way to target moved; 0 for none
     Returns:
       vec3 (m): the predicted position
       vec3 (m/s): the velocity after forces; a pinned particle keeps its own
@@ -162,7 +159,7 @@ def predicted_position(
         vel = vel * wp.max(0.0, 1.0 - damping * dt)
         p = p + dt * vel
     if weight > 0.0:
-        p = p + weight * (origin + frame * local - p)
+        p = p + weight * (target - p)
     return p, vel
 
 
@@ -260,21 +257,17 @@ def predict_positions(
         lane_prev[lane_slot(0, order.lane_of[s], i - strand_start[s], order.lanes)] = p
     binding = int(-1)
     weight = float(0.0)
-    origin = wp.vec3(0.0)
-    frame = wp.mat33(0.0)
-    local = wp.vec3(0.0)
+    target = wp.vec3(0.0)
     if bound != 0:
         if inv_mass[i] == 0.0:
             binding = particle_binding[i]
         weight = hold[i] * hold_stiffness
         if weight > 0.0:
             s = particle_strand[i]
-            origin = root_origin[s]
-            frame = root_frame[s]
-            local = root_local[i]
+            target = root_origin[s] + root_frame[s] * root_local[i]
     p, vel = predicted_position(p, v[i], inv_mass[i], gravity, wind, air_drag, damping, turbulence, turbulence_scale,
                                 turbulence_rate, clock[0] + time_offset, dt, mesh_points, mesh_indices, binding,
-                                bind_triangle, bind_barycentric, bind_local, origin, frame, local, weight)
+                                bind_triangle, bind_barycentric, bind_local, target, weight)
     x_out[i] = p
     v_out[i] = vel
 
@@ -1536,16 +1529,16 @@ def predict_strand(
         i = start + k
         binding = int(-1)
         weight = float(0.0)
-        local = wp.vec3(0.0)
+        target = wp.vec3(0.0)
         if bound != 0:
             if inv_mass[i] == 0.0:
                 binding = particle_binding[i]
             weight = hold[i] * hold_stiffness
             if weight > 0.0:
-                local = root_local[i]
+                target = origin + frame * root_local[i]
         p, _vel = predicted_position(x[i], v[i], inv_mass[i], gravity, wind, air_drag, damping, turbulence,
                                      turbulence_scale, turbulence_rate, time, dt, mesh_points, mesh_indices, binding,
-                                     bind_triangle, bind_barycentric, bind_local, origin, frame, local, weight)
+                                     bind_triangle, bind_barycentric, bind_local, target, weight)
         x_out[first + k * stride] = p
 
 

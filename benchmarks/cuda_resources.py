@@ -1,0 +1,175 @@
+"""Registers, spills and stack of every CUDA kernel of warp_kernels, without a GPU.
+
+A kernel that runs one long serial loop per thread (the hair's length pass, step_strands) is bound
+by how many warps an SM holds, and that is set by its registers; spills to local memory cost
+loads in the loop. Both come from the compiler, not the device: Warp compiles each module to PTX
+with NVRTC (no driver needed) and ptxas -v reports what each kernel uses on the target
+architecture. So a session without a GPU can still see what a change does to a kernel's fit.
+
+ptxas comes from a CUDA toolkit (PATH, $CUDA_HOME/bin or /usr/local/cuda*/bin). When Warp's NVRTC
+writes a newer PTX ISA version than that ptxas reads, the version line is lowered to the ptxas's
+own; the report says so. Kernels that use an instruction only the newer ISA has would then fail to
+assemble, and are reported as such.
+
+    python benchmarks/cuda_resources.py                       # every module, sm_90 (H100, H200)
+    python benchmarks/cuda_resources.py --modules strands --arch 90
+"""
+
+import argparse
+import importlib
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import commit, table  # noqa: E402
+
+MODULES = ["strands", "cloth", "collision", "detail", "skinning"]
+HEADER = ["module", "kernel", "registers", "cap", "stack B", "spill stores B", "spill loads B"]
+
+
+@dataclass
+class KernelResources:
+    kernel: str
+    registers: int
+    cap: int | None  # the kernel's register cap (.maxnreg), None for the compiler's choice
+    stack: int
+    spill_stores: int
+    spill_loads: int
+
+
+def find_ptxas():
+    """The ptxas executable of a CUDA toolkit, or None."""
+    import os
+
+    found = shutil.which("ptxas")
+    if found:
+        return found
+    roots = [os.environ.get("CUDA_HOME", ""), os.environ.get("CUDA_PATH", "")]
+    roots += sorted((str(p) for p in Path("/usr/local").glob("cuda*")), reverse=True)
+    for root in roots:
+        candidate = Path(root) / "bin" / "ptxas"
+        if root and candidate.exists():
+            return str(candidate)
+    return None
+
+
+def nvrtc_archs():
+    """The architectures Warp's NVRTC compiles for (empty without a CUDA-enabled Warp). Warp keeps
+    them on its runtime, which it does not export; read with a fallback so a change there reads as
+    "none" rather than an error."""
+    import warp as wp
+
+    wp.init()
+    runtime = getattr(getattr(getattr(wp, "_src", None), "context", None), "runtime", None)
+    if runtime is None or not getattr(runtime, "is_cuda_enabled", False):
+        return []
+    return list(getattr(runtime, "nvrtc_supported_archs", None) or [])
+
+
+def ptxas_isa(ptxas):
+    """The newest PTX ISA version (e.g. '9.0') this ptxas assembles, from an empty module it rejects."""
+    with tempfile.TemporaryDirectory() as tmp:
+        probe = Path(tmp) / "probe.ptx"
+        probe.write_text(".version 99.9\n.target sm_90\n.address_size 64\n")
+        out = subprocess.run([ptxas, "-arch=sm_90", str(probe), "-o", str(Path(tmp) / "probe.cubin")],
+                             capture_output=True, text=True)
+    match = re.search(r"current version is '([0-9.]+)'", out.stderr + out.stdout)
+    return match.group(1) if match else None
+
+
+def kernel_name(entry):
+    """follow_the_leader from follow_the_leader_bce2c61e_cuda_kernel_forward."""
+    return re.sub(r"_[0-9a-f]{8}_cuda_kernel_forward$", "", entry)
+
+
+def parse_ptxas(log, caps):
+    """KernelResources per kernel entry from ptxas -v output; caps: entry -> .maxnreg."""
+    found, entry, props = [], None, None
+    for line in log.splitlines():
+        start = re.search(r"Compiling entry function '([^']+)'", line)
+        if start:
+            entry, props = start.group(1), None
+            continue
+        spill = re.search(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads", line)
+        if spill and entry:
+            props = tuple(int(g) for g in spill.groups())
+            continue
+        used = re.search(r"Used (\d+) registers", line)
+        if used and entry and entry.endswith("_cuda_kernel_forward"):
+            stack, stores, loads = props or (0, 0, 0)
+            found.append(KernelResources(kernel_name(entry), int(used.group(1)), caps.get(entry), stack, stores, loads))
+            entry = None
+    return found
+
+
+def register_caps(ptx):
+    """entry -> the .maxnreg of that entry in a PTX module."""
+    caps = {}
+    for match in re.finditer(r"\.entry\s+(\w+)\s*\((.*?)\)\s*(\.maxnreg\s+(\d+))?", ptx, re.S):
+        if match.group(4):
+            caps[match.group(1)] = int(match.group(4))
+    return caps
+
+
+def module_resources(module, arch, ptxas, isa, workdir):
+    """(KernelResources list, note) for one imported Warp module compiled for sm_<arch>."""
+    import warp as wp
+
+    [ptx_path] = wp.compile_aot_module(module, arch=arch, module_dir=workdir, use_ptx=True)
+    ptx = Path(ptx_path).read_text(errors="replace").replace("\0", "")
+    note = ""
+    version = re.search(r"^\.version ([0-9.]+)", ptx, re.M)
+    if isa and version and tuple(map(int, version.group(1).split("."))) > tuple(map(int, isa.split("."))):
+        ptx = ptx.replace(version.group(0), f".version {isa}", 1)
+        note = f"PTX {version.group(1)} assembled as {isa}"
+    source = Path(workdir) / f"{module.__name__}.sm{arch}.ptx"
+    source.write_text(ptx)
+    out = subprocess.run([ptxas, f"-arch=sm_{arch}", "-v", str(source), "-o", str(source.with_suffix(".cubin"))],
+                         capture_output=True, text=True)
+    if out.returncode != 0:
+        raise RuntimeError(f"ptxas failed on {module.__name__}: {(out.stderr or out.stdout).strip()[:300]}")
+    return parse_ptxas(out.stderr + out.stdout, register_caps(ptx)), note
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--modules", nargs="*", default=MODULES, choices=MODULES)
+    parser.add_argument("--arch", type=int, default=90, help="SM architecture (90: H100 and H200)")
+    args = parser.parse_args()
+    import warp as wp
+
+    from sim.scene import quiet_warp
+
+    quiet_warp()
+    wp.init()
+    ptxas = find_ptxas()
+    if ptxas is None:
+        print("cuda_resources: no ptxas found (install a CUDA toolkit or set CUDA_HOME)", file=sys.stderr)
+        sys.exit(2)
+    if args.arch not in nvrtc_archs():
+        print(f"cuda_resources: this Warp's NVRTC does not compile for sm_{args.arch} (it does: {nvrtc_archs()})",
+              file=sys.stderr)
+        sys.exit(2)
+    isa = ptxas_isa(ptxas)
+    print(f"# CUDA kernel resources for sm_{args.arch}, commit {commit()}, Warp {wp.config.version}, {ptxas} "
+          f"(PTX ISA {isa})")
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="cfx_ptx_") as workdir:
+        for name in args.modules:
+            module = importlib.import_module(f"warp_kernels.{name}")
+            found, note = module_resources(module, args.arch, ptxas, isa, workdir)
+            if note:
+                print(f"# {name}: {note}")
+            for k in sorted(found, key=lambda k: k.kernel):
+                rows.append([name, k.kernel, k.registers, k.cap or "-", k.stack, k.spill_stores, k.spill_loads])
+    print(table(HEADER, rows))
+
+
+if __name__ == "__main__":
+    main()
