@@ -19,14 +19,14 @@ leaves). The length pass can run in lane order (HairSolver.lanes, on by default 
 a warp's strands then read consecutive memory); --lanes both marks the rows with it "lanes". Its
 lanes follow the roots (hair_solver.lanes_by_root); --lane-order both also times them in the grown
 order, the rows marked "grown". A substep can run as one launch per strand range (HairSolver.fused,
-on by default on the CPU only; a sphere tree's walks queued ahead keep the launches apart, so on a
-GPU pair it with --leaves-ahead off); --fused both marks the rows with it "fused".
+on by default on the CPU only; the sphere tree's walks are then queued ahead from the start
+positions); --fused both marks the rows with it "fused".
 
     python benchmarks/hair.py                        # 1k, 10k, 100k strands on cpu (and cuda if present)
     python benchmarks/hair.py --strands 1000 --device cuda --cases full+mesh
     python benchmarks/hair.py --device cuda --leaves-ahead both --lanes both
     python benchmarks/hair.py --device cuda --lane-order both
-    python benchmarks/hair.py --device cuda --leaves-ahead off --fused both
+    python benchmarks/hair.py --device cuda --fused both
 """
 
 import argparse
@@ -140,7 +140,7 @@ def main():
     parser.add_argument("--lane-order", choices=["root", "grown", "both"], default="root",
                         help="the lanes follow the roots (lanes_by_root) or the grown strand order, or both")
     parser.add_argument("--fused", choices=["auto", "on", "off", "both"], default="auto",
-                        help="HairSolver.fused (a substep in one launch, where no walks are queued ahead), likewise")
+                        help="HairSolver.fused (a substep in one launch), likewise")
     args = parser.parse_args()
     quiet_warp()
     wp.init()

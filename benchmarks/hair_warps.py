@@ -95,6 +95,7 @@ def count_work(strands, frames, counted):
     scene.solver = HairSolver(scene.model, HairParams(substeps=10, **hair.CASES["simplified1+spheres"]), parts=1)
     scene.solver.leaves_ahead = True
     scene.solver.lanes = True
+    scene.solver.fused = False  # the launches apart: the counting copy is follow_the_leader's
     scene.graphs.enabled = False
     scene.state.x.assign(settled[0])
     scene.state.v.assign(settled[1])

@@ -3,8 +3,8 @@
 #   bash benchmarks/run_gpu.sh tests    # graph checks on cuda and cpu (tests/test_graphs.py)
 #   bash benchmarks/run_gpu.sh hair     # benchmarks/hair.py on cuda with Newton chains (HAIR_ARGS: its
 #                                       # options, by default each case with lanes by root and as grown)
-#   bash benchmarks/run_gpu.sh fused    # the hair's substep as one launch (HairSolver.fused, walks not queued
-#                                       # ahead) against the launches apart, 1k to 100k strands, no peer
+#   bash benchmarks/run_gpu.sh fused    # the hair's substep as one launch (HairSolver.fused) against the
+#                                       # launches apart, 1k to 100k strands, no peer
 #   bash benchmarks/run_gpu.sh cloth    # benchmarks/cloth.py on cuda with Newton VBD and XPBD
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 # Logs go to $OUT (or ./out/gpu); warp-lang, newton, usd-core and trimesh must be importable.
@@ -17,8 +17,8 @@ for part in "$@"; do
     tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_comb.py 2>&1 | tee "$out/tests.log" ;;
     hair) timeout ${HAIR_TIMEOUT:-540} python3 benchmarks/hair.py --device cuda ${HAIR_ARGS:---lane-order both} 2>&1 |
         tee "$out/hair.log" ;;
-    fused) for way in "--fused off" "--leaves-ahead off --fused on"; do
-          timeout 270 python3 benchmarks/hair.py --device cuda --no-peer --cases simplified1 simplified1+spheres full+mesh \
+    fused) for way in "--fused off" "--fused on" "--fused on --leaves-ahead off"; do
+          timeout 180 python3 benchmarks/hair.py --device cuda --no-peer --cases simplified1 simplified1+spheres full+mesh \
               $way 2>&1 | tee -a "$out/fused.log"
         done ;;
     cloth) timeout ${CLOTH_TIMEOUT:-540} python3 benchmarks/cloth.py --device cuda ${CLOTH_ARGS:-} 2>&1 | tee "$out/cloth.log" ;;

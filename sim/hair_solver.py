@@ -20,6 +20,9 @@ COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
 PROBE = 0.01
 # find_short_lists queues for listing afresh the particles whose bounds come within this of the margin
 LIST_SLACK = 0.0005
+# the same before strands.step_strands, which queues from the start positions: also covers how far a
+# particle travels in the substep (1k strands on the turning head: 1.5 mm at the 99th percentile)
+FUSED_LIST_SLACK = 0.002
 MAX_PARTS = 8  # strand ranges stepped side by side on the CPU
 
 
@@ -186,10 +189,10 @@ class HairSolver:
         # consecutive memory at each step of their serial loops; a CPU thread walks one strand's
         # cache lines and gains nothing from the copies in and out
         self.lanes = wp.get_device(device).is_cuda and len(self.parts) == 1
-        # a whole substep in one launch (strands.step_strands), where no guides pull the strands and no
-        # tree walks are queued ahead (leaves_ahead needs the predicted positions between launches).
-        # On by default on the CPU, where it was measured faster; a GPU keeps the launches apart,
-        # with a thread per particle for the shape passes, until one is measured the other way
+        # a whole substep in one launch (strands.step_strands), where no guides pull the strands; with
+        # leaves_ahead the walks are queued from the start positions. On by default on the CPU, where
+        # it was measured faster; a GPU keeps the launches apart, with a thread per particle for the
+        # shape passes, until one is measured the other way
         self.fused = not wp.get_device(device).is_cuda
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
@@ -297,7 +300,7 @@ class HairSolver:
         variant = SHAPE_MATCHING[p.shape_matching]
         win = self.windows
         passes = p.shape_iterations if variant >= 0 and win.count > 0 else 0
-        if self._fuses(collider, guides):
+        if self._fuses(guides):
             self._step_fused(state_in, state_out, collider, dt, offset, variant, passes, part, r)
             return
         # shape passes ping-pong between two buffers and must end in state_out.x: an odd number of
@@ -367,11 +370,11 @@ class HairSolver:
             count.zero_()
             wp.launch(strands.find_short_lists, dim,
                       [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, p.collision_margin,
-                       p.collision_search, LIST_SLACK, motion, r.reach, self.clearance, self.beyond, order, first,
+                       p.collision_search, LIST_SLACK, motion, r.reach, self.clearance, self.beyond, order, 0, first,
                        count, self._short], device=dev)
             wp.launch(strands.list_leaves_ahead, dim,
-                      [x_prev, c.shape, p.collision_search, motion, count, self._short, first, self.clearance,
-                       self.near_leaves, self.beyond], device=dev)
+                      [x_prev, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start, order,
+                       0, self.clearance, self.near_leaves, self.beyond], device=dev)
         # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.follow_the_leader, r.strands,
@@ -381,14 +384,9 @@ class HairSolver:
                    p.ftl_damping, dt, state_out.x, state_out.v, order, r.first_strand], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
-    def _fuses(self, collider, guides):
-        """Whether step() is one launch (strands.step_strands): fused, no guides, no walks ahead."""
-        p = self.params
-        if not self.fused or (guides is not None and p.guide_stiffness > 0.0):
-            return False
-        ahead = (self.leaves_ahead and self.contact_bounds and collider is not None
-                 and COLLISION[p.collision] == COLLISION["sphere_tree"])
-        return not ahead
+    def _fuses(self, guides):
+        """Whether step() is one launch (strands.step_strands): fused, and no guides."""
+        return self.fused and (guides is None or self.params.guide_stiffness <= 0.0)
 
     def _measure_motion(self, c, mode, r):
         """How the collider moved near range r this substep (strands.contact_motion), for the contact
@@ -425,6 +423,18 @@ class HairSolver:
         # the last pass reads `shaped`; in particle order that is state_out.x itself, which the length
         # pass overwrites behind its windows
         shaped, spare = (lane.x, lane.prev) if lane is not None else (state_out.x, self.shape_scratch)
+        if mode == COLLISION["sphere_tree"] and self.contact_bounds and self.leaves_ahead:
+            # the walks of the lists that would run short, queued from the start positions
+            dim, first = (lane.strands * lane.longest, 0) if lane is not None else (r.particles, r.first_particle)
+            count = self._short_count[r]
+            count.zero_()
+            wp.launch(strands.find_short_lists, dim,
+                      [state_in.x, state_in.x, m.particle_strand, m.strand_start, m.pinned_per_strand,
+                       p.collision_margin, p.collision_search, FUSED_LIST_SLACK, motion, r.reach, self.clearance,
+                       self.beyond, order, 1, first, count, self._short], device=dev)
+            wp.launch(strands.list_leaves_ahead, dim,
+                      [state_in.x, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start,
+                       order, 1, self.clearance, self.near_leaves, self.beyond], device=dev)
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.step_strands, r.strands,
                   [state_in.x, state_in.v, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand,

@@ -224,21 +224,22 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
 
 @pytest.mark.parametrize("collision,shape_matching,passes,order", [
     ("sphere_tree", "simplified", 1, "parts"), ("mesh", "full", 2, "parts"), ("none", "simplified", 2, "parts"),
-    ("sphere_tree", "full", 3, "lanes"), ("mesh", "none", 1, "lanes")])
+    ("sphere_tree", "full", 3, "lanes"), ("mesh", "none", 1, "lanes"), ("sphere_tree", "simplified", 1, "lanes ahead")])
 def test_one_launch_substep_gives_the_same_strands_as_the_launches_apart(head, collision, shape_matching, passes,
                                                                         order):
     """strands.step_strands (HairSolver.fused) against root_frames, predict_positions, the shape passes
     and follow_the_leader launched apart, in gusting wind on a turning head: every substep's x and v
-    bit for bit, the full variant's warm-started rotations too, over two strand ranges or in lane order."""
+    bit for bit, the full variant's warm-started rotations too, over two strand ranges or in lane order,
+    and with the tree walks queued ahead (a GPU's way: from the start positions when fused)."""
     substeps, dt = 30, 1.0 / 240.0
     moving, model, pts = _hair_on_a_turning_head(head, 256, substeps, dt, 40, 11)
     params = HairParams(collision=collision, shape_matching=shape_matching, shape_iterations=passes,
                         wind=(1.5, 0.0, 0.5), wind_turbulence=0.6)
     runs = []
     for fused in (False, True):
-        solver = HairSolver(model, params, parts=1 if order == "lanes" else 2)
-        solver.leaves_ahead = False
-        solver.lanes = order == "lanes"
+        solver = HairSolver(model, params, parts=1 if order.startswith("lanes") else 2)
+        solver.leaves_ahead = order.endswith("ahead")
+        solver.lanes = order.startswith("lanes")
         solver.fused = fused
         s0, s1 = model.state(), model.state()
         moving.apply_pose(0)
@@ -294,13 +295,14 @@ def test_lane_order_gives_the_same_strands_and_velocities(head, shape_matching, 
     assert np.abs(x - pts).max() > 0.01 and np.abs(v).max() > 0.1  # the hair swung
 
 
-@pytest.mark.parametrize("lanes", [False, True])
-def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch, lanes):
+@pytest.mark.parametrize("lanes,fused", [(False, False), (True, False), (False, True), (True, True)])
+def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch, lanes, fused):
     """find_short_lists and list_leaves_ahead, caught around their launches on a turning head: a particle whose bounds,
     lowered as follow_the_leader lowers them (a NumPy reference of the motion grid), come within
     slack of the margin at its predicted position gets the four leaves nearest its start position
     carried into the new pose, and that point's distances as its bounds (a float64 reference over all
-    leaves); every other particle keeps its bounds and list. lanes: the same in lane order."""
+    leaves); every other particle keeps its bounds and list. lanes: the same in lane order. fused:
+    before strands.step_strands, from the start positions (in particle order) with the wider slack."""
     import warp as wp
 
     from sim import hair_solver
@@ -311,15 +313,18 @@ def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_s
     solver = HairSolver(model, params, parts=1)
     solver.leaves_ahead = True
     solver.lanes = lanes
+    solver.fused = fused
     seen, launch = [], wp.launch
     order = solver._lanes.slot if lanes else np.arange(model.num_particles)  # each particle's element
+    positions = np.arange(model.num_particles) if fused else order  # ... of the positions queued from
 
     queued = []
 
     def spy(kernel, dim, inputs=(), *args, **kwargs):
         if kernel is strand_kernels.find_short_lists:
             # copies: on the CPU numpy() views the array, which the length pass goes on to change
-            queued.append((inputs[0].numpy()[order].astype(np.float64), inputs[1].numpy()[order].astype(np.float64),
+            queued.append((inputs[0].numpy()[positions].astype(np.float64),
+                           inputs[1].numpy()[positions].astype(np.float64),
                            [solver.clearance.numpy()[order], solver.near_leaves.numpy()[order],
                             solver.beyond.numpy()[order]]))
         if kernel is not strand_kernels.list_leaves_ahead:
@@ -342,7 +347,8 @@ def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_s
     radii = moving.sphere_radii.numpy().astype(np.float64)
     leaf = np.flatnonzero(moving.tree.is_leaf == 1)
     free = np.arange(model.num_particles) - model.strand_start_np[model.particle_strand_np] >= model.pinned_per_strand
-    margin, search, slack = params.collision_margin, params.collision_search, hair_solver.LIST_SLACK
+    margin, search = params.collision_margin, params.collision_search
+    slack = hair_solver.FUSED_LIST_SLACK if fused else hair_solver.LIST_SLACK
     reach, grid = solver.whole.reach, strand_kernels.MOTION_GRID
     half = reach + search
     listed_total = 0

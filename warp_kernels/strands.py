@@ -14,8 +14,8 @@ In lane order (lane_slot, a GPU's) predict_positions and the last shape pass als
 pass's inputs in that order, and follow_the_leader writes its results back in particle order.
 
 step_strands is the whole sequence from root_frames to follow_the_leader in one launch, a thread per
-strand (after anchor_frame and contact_motion), with the same strands bit for bit; the launches apart
-serve guides and the tree walks queued ahead.
+strand (after anchor_frame and contact_motion, and the tree walks queued ahead from the start
+positions), with the same strands bit for bit; the launches apart serve guides.
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
 (window goals, root positions, FTL corrections) is recomputed or carried in registers instead,
@@ -950,6 +950,7 @@ def find_short_lists(
     clearance: wp.array(dtype=float),
     beyond: wp.array(dtype=float),
     order: LaneOrder,
+    by_particle: int,
     first: int,
     short_count: wp.array(dtype=wp.int32),
     queue: wp.array(dtype=wp.int32),
@@ -968,7 +969,9 @@ def find_short_lists(
     sphere-tree collision with contact bounds only. The per-particle arrays are in the order
     follow_the_leader reads them (lane_slot).
     Inputs:
-      x (vec3, per particle, m): predicted positions (those follow_the_leader starts from)
+      x (vec3, per particle, m): predicted positions (those follow_the_leader starts from); before
+          step_strands, which predicts them itself, the start positions, with slack covering how far
+          a particle travels in the substep
       x_prev (vec3, per particle, m): positions at the start of the substep, where the bounds hold
       particle_strand (int32, per particle): the strand of each particle (particle order only)
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
@@ -981,6 +984,8 @@ def find_short_lists(
       clearance (float, per particle, m): contact bounds (NO_BOUND: unknown), anchored at x_prev
       beyond (float, per particle, m): bound of the distance to every unlisted leaf
       order (LaneOrder): particle order, or the lane order (then first is 0)
+      by_particle (int, flag): non-zero: x and x_prev are in particle order even in lane order (the
+          state step_strands starts from)
       first (int, index): the range's first particle; thread t works on particle first + t
     In/out:
       short_count (int32, 1 element): particles queued, zero before the launch
@@ -990,19 +995,22 @@ def find_short_lists(
     """
     i = wp.tid() + first
     k = int(0)
+    j = i  # the particle's element of x and x_prev
     if order.lanes > 0:
         k = i / order.lanes
         s = order.strand_of[i - k * order.lanes]
         if k >= strand_start[s + 1] - strand_start[s]:
             return  # a slot past the strand's tip
+        if by_particle != 0:
+            j = strand_start[s] + k
     else:
         k = i - strand_start[particle_strand[i]]
     if k < pinned_per_strand:
         return
-    p = x[i]
+    p = x[j]
     if wp.length(p - motion.center[0]) > strand_reach:
         return  # follow_the_leader queries such a particle outright
-    _carried, lowered = bound_lowering(motion, x_prev[i], p, strand_reach + search)
+    _carried, lowered = bound_lowering(motion, x_prev[j], p, strand_reach + search)
     bound = float(NO_BOUND)
     unlisted = float(NO_BOUND)
     held = clearance[i]
@@ -1022,6 +1030,9 @@ def list_leaves_ahead(
     short_count: wp.array(dtype=wp.int32),
     queue: wp.array(dtype=wp.int32),
     first: int,
+    strand_start: wp.array(dtype=wp.int32),
+    order: LaneOrder,
+    by_particle: int,
     clearance: wp.array(dtype=float),
     near_leaves: wp.array(dtype=wp.vec4i),
     beyond: wp.array(dtype=float),
@@ -1043,6 +1054,10 @@ def list_leaves_ahead(
       short_count (int32, 1 element): particles queued
       queue (int32, per particle of the range): the queued particles, from element first
       first (int, index): the range's first particle
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count;
+          read only with by_particle in lane order
+      order (LaneOrder): the order of the queue and the bounds (find_short_lists')
+      by_particle (int, flag): non-zero: x_prev is in particle order even in lane order
     In/out:
       clearance (float, per particle, m): the queued particles' nearest leaf distance out
       near_leaves (vec4i, per particle): the queued particles' four nearest leaves out
@@ -1052,7 +1067,11 @@ def list_leaves_ahead(
     if t >= short_count[0]:
         return
     i = queue[first + t]
-    carried = wp.transform_point(motion.rigid[0], x_prev[i])
+    j = i  # the particle's element of x_prev
+    if by_particle != 0 and order.lanes > 0:
+        k = i / order.lanes
+        j = strand_start[order.strand_of[i - k * order.lanes]] + k
+    carried = wp.transform_point(motion.rigid[0], x_prev[j])
     leaves, nearest, fifth = sphere_tree_nearest(carried, shape, search)
     near_leaves[i] = leaves
     clearance[i] = nearest
