@@ -36,16 +36,32 @@ def device_name(device):
     return d.name if d.is_cuda else f"cpu ({platform.processor() or platform.machine()})"
 
 
+def launch_arrays(values):
+    """The distinct arrays among launch arguments, those inside @wp.struct arguments included."""
+    found = {}
+
+    def visit(value):
+        if isinstance(value, wp.array):
+            found.setdefault(id(value), value)
+        elif hasattr(value, "_cls") and hasattr(value._cls, "vars"):  # a @wp.struct instance
+            for name in value._cls.vars:
+                visit(getattr(value, name))
+
+    for value in values:
+        visit(value)
+    return list(found.values())
+
+
 @contextlib.contextmanager
 def counting_launch_bytes():
-    """Count the bytes of every array passed to wp.launch inside the block: yields a one-element list."""
+    """Count the bytes of every array passed to wp.launch inside the block, once per launch however
+    often it is passed (inside structs too): yields a one-element list."""
     total = [0]
     launch = wp.launch
 
     def counted(kernel, dim, inputs=(), outputs=(), *args, **kwargs):
-        for a in list(inputs or ()) + list(outputs or ()):
-            if isinstance(a, wp.array):
-                total[0] += a.capacity
+        for a in launch_arrays(list(inputs or ()) + list(outputs or ())):
+            total[0] += a.capacity
         return launch(kernel, dim, inputs, outputs, *args, **kwargs)
 
     copy = wp.copy

@@ -163,6 +163,7 @@ class HairSolver:
         self.whole = StrandRange(0, model.num_strands, 0, model.num_particles, 0, self.windows.count,
                                  model.reach(0, model.num_strands))
         self._lanes = None
+        self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
         self._particle_order = strands.LaneOrder()  # lanes = 0: the length pass's arrays in particle order
         if parts is None:
             parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
@@ -173,8 +174,6 @@ class HairSolver:
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
-        # the simplified windows' axes, kept by strands.step_strands
-        self.axes = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
         # contact bounds of the length pass (see strands.follow_the_leader), per particle in the pass's
         # order (set with lanes): clearance (NO_BOUND = unknown, a full query), the sphere tree's four
@@ -196,7 +195,6 @@ class HairSolver:
         self.fused = not wp.get_device(device).is_cuda
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
-        self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
         # each strand's root position and frame in the substep's pose (strands.root_frames)
         self.root_origin = wp.zeros(model.num_strands, dtype=wp.vec3, device=device)
         self.root_frame = wp.zeros(model.num_strands, dtype=wp.mat33, device=device)
@@ -256,10 +254,41 @@ class HairSolver:
             self._lanes = _Lanes(m.num_strands, longest, order, slot, wp.zeros(slots, dtype=wp.vec3, device=dev),
                                  wp.zeros(slots, dtype=wp.vec3, device=dev), in_lanes(m.inv_mass.numpy()),
                                  in_lanes(m.rest_length_np))
+        self._slots = self._strand_slots(self._lanes.slot if on else np.arange(m.num_particles), slots)
         self.clearance = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
         self.near_leaves = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=dev)
         self.beyond = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
         self._short = wp.zeros(slots, dtype=wp.int32, device=dev)  # strands.find_short_lists' queue
+
+    def _strand_slots(self, slot, slots):
+        """strands.StrandSlots with each particle's values at slot[particle], of `slots` elements."""
+        m, dev, win = self.model, self.model.device, self.windows
+
+        def arranged(values, dtype, fill=0):
+            values = np.asarray(values)
+            out = np.full((slots,) + values.shape[1:], fill, values.dtype)
+            out[slot] = values
+            return wp.array(out, dtype=dtype, device=dev)
+
+        per = strands.StrandSlots()
+        per.slots = slots
+        per.inv_mass = arranged(m.inv_mass.numpy(), float)
+        per.rest_length = arranged(m.rest_length_np, float)
+        per.hold = arranged(self.hold.numpy(), float)
+        local = m.root_local.numpy() if getattr(m, "root_local", None) is not None else np.zeros((m.num_particles, 3))
+        per.root_local = arranged(local.astype(np.float32), wp.vec3)
+        per.window_at = arranged(win.at_np.astype(np.int32), wp.int32, fill=-1)
+        # each window's size values at the slot of its first particle, the k-th at k * slots + that slot
+        offsets = np.zeros((win.size, slots), np.float32)
+        rest = np.zeros((win.size, slots, 3), np.float32)
+        starts = slot[win.first_np]
+        offsets[:, starts] = win.offsets_np.reshape(-1, win.size).T
+        rest[:, starts] = win.rest_np.reshape(-1, win.size, 3).transpose(1, 0, 2)
+        per.offsets = wp.array(offsets.reshape(-1), dtype=float, device=dev)
+        per.rest = wp.array(rest.reshape(-1, 3), dtype=wp.vec3, device=dev)
+        per.centroids = wp.zeros(slots, dtype=wp.vec3, device=dev)
+        per.axes = wp.zeros(slots, dtype=wp.vec3, device=dev)
+        return per
 
     def particle_bounds(self):
         """The length pass's contact bounds in particle order, as NumPy: (clearance [m], the four listed
@@ -437,16 +466,14 @@ class HairSolver:
                        order, 1, self.clearance, self.near_leaves, self.beyond], device=dev)
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.step_strands, r.strands,
-                  [state_in.x, state_in.v, m.inv_mass, m.strand_start, m.rest_length, m.pinned_per_strand,
-                   wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag, p.damping, p.wind_turbulence,
-                   p.wind_turbulence_scale, p.wind_turbulence_rate, self.clock, offset, dt, int(bound),
-                   c.points if bound else None, c.indices if bound else None,
-                   m.particle_binding if bound else None, m.bind_triangle if bound else None,
-                   m.bind_barycentric if bound else None, m.bind_local if bound else None,
-                   m.root_binding if bound else None, m.root_local if bound else None, self.hold,
-                   hold if bound else 0.0, self.windows.at, self.windows.size, self.windows.rest,
-                   self.windows.offsets, variant, passes, p.shape_stiffness, int(self._rotations_exact),
-                   p.rotation_iterations, self.rotations, self.centroids, self.axes, mode,
+                  [state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, wp.vec3(*p.gravity),
+                   wp.vec3(*p.wind), p.air_drag, p.damping, p.wind_turbulence, p.wind_turbulence_scale,
+                   p.wind_turbulence_rate, self.clock, offset, dt, int(bound), c.points if bound else None,
+                   c.indices if bound else None, m.particle_binding if bound else None,
+                   m.bind_triangle if bound else None, m.bind_barycentric if bound else None,
+                   m.bind_local if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
+                   self.windows.size, variant, passes, p.shape_stiffness, int(self._rotations_exact),
+                   p.rotation_iterations, self.rotations, self._slots, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
                    p.ftl_damping, shaped, spare, state_out.x, state_out.v, order,

@@ -30,6 +30,18 @@ def test_launch_bytes_count_every_array_once_and_copies_twice():
     assert wp.launch is not None and wp.launch.__name__ == "launch"  # restored afterwards
 
 
+def test_launch_bytes_count_the_arrays_inside_structs_once_per_launch():
+    from warp_kernels import strands
+
+    order = strands.LaneOrder()
+    order.lanes = 4
+    order.lane_of = wp.zeros(10, dtype=wp.int32)
+    order.strand_of = order.lane_of  # the same array twice: counted once
+    x = wp.zeros(7, dtype=wp.vec3)
+    arrays = common.launch_arrays([x, order, 2.0, x])
+    assert sorted(a.capacity for a in arrays) == [40, 84]
+
+
 def test_plot_reads_the_recorded_h100_logs(tmp_path):
     logs = [BENCH / "results" / "h100-50cb389-hair.log", BENCH / "results" / "h100-f3d4cbe-hair.log",
             BENCH / "results" / "h100-f3d4cbe-cloth.log"]

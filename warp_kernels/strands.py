@@ -402,7 +402,8 @@ def window_centroid(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: i
 
 @wp.func
 def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: int,
-                    rest: wp.array(dtype=wp.vec3), base: int, q: wp.quat, exact: int, iterations: int):
+                    rest: wp.array(dtype=wp.vec3), base: int, rest_stride: int, q: wp.quat, exact: int,
+                    iterations: int):
     """A window's optimal rotation of its rest offsets onto its current particles, and its centroid
     (full variant): solved outright (exact != 0) or refined from q, its last rotation.
 
@@ -413,6 +414,8 @@ def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: i
       size (int): particles in the window
       rest (vec3, size per window, m): rest offsets from the window's rest centroid
       base (int, index): the window's first element of rest (window * size)
+      rest_stride (int): elements of rest from one of the window's offsets to the next (1 for
+          ShapeWindows.rest; StrandSlots.rest keeps them per slot)
       q (quat): the window's last rotation; read only when exact == 0
       exact (int, flag): non-zero solves from scratch (float64 SVD)
       iterations (int): refinement steps when exact == 0
@@ -423,7 +426,7 @@ def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: i
     centroid = window_centroid(x, first, stride, size)
     A = wp.mat33(0.0)
     for k in range(size):
-        A += wp.outer(x[first + k * stride] - centroid, rest[base + k])
+        A += wp.outer(x[first + k * stride] - centroid, rest[base + k * rest_stride])
     A = A / wp.sqrt(wp.max(wp.ddot(A, A), 1.0e-30))  # scale-free, so the 1e-9 guard is relative
     if exact != 0:
         return wp.quat_from_matrix(rotation_from_covariance(A)), centroid
@@ -463,8 +466,8 @@ def shape_match_rotations(
       centroids (vec3, per window, m): current centroid of each window
     """
     w = wp.tid() + first
-    q, centroid = window_rotation(x, window_first[w], 1, window_size, window_rest, w * window_size, rotations[w],
-                                  exact, iterations)
+    q, centroid = window_rotation(x, window_first[w], 1, window_size, window_rest, w * window_size, 1,
+                                  rotations[w], exact, iterations)
     rotations[w] = q
     centroids[w] = centroid
 
@@ -1314,110 +1317,127 @@ def follow_the_leader(
     v[start + count - 1] = (parent - x_prev[lane_slot(start, lane, count - 1, lanes)]) / dt
 
 
+@wp.struct
+class StrandSlots:
+    """What step_strands reads per particle and per shape window, in the order of its contact bounds
+    (particle order, or lane order, lane_slot): slot-ordered arrays let a warp's threads, each walking
+    one strand, read side by side in lane order. The windows' data sit at the slot of the window's
+    first particle, the k-th of `size` values of a window at k * slots + its slot.
+
+    Fields:
+      slots (int): elements per array (particles, or lanes * the longest strand)
+      inv_mass (float, per slot): 0 marks pinned particles
+      rest_length (float, per slot, m): rest distance to the previous particle
+      hold (float, per slot): root-hold weight
+      root_local (vec3, per slot, m): groomed offset from the root in the root triangle's frame; read
+          only for bound strands with a root hold
+      window_at (int32, per slot): the window starting at the slot's particle, -1 for none (or past a
+          strand's tip)
+      offsets (float, window_size * slots, m): rest offsets along the rest axis (simplified variant)
+      rest (vec3, window_size * slots, m): rest offsets from the rest centroid (full variant)
+      centroids (vec3, per slot, m): scratch, the centroid of the window starting at the slot
+      axes (vec3, per slot): scratch, that window's axis, zero when degenerate (simplified variant)
+    """
+
+    slots: int
+    inv_mass: wp.array(dtype=float)
+    rest_length: wp.array(dtype=float)
+    hold: wp.array(dtype=float)
+    root_local: wp.array(dtype=wp.vec3)
+    window_at: wp.array(dtype=wp.int32)
+    offsets: wp.array(dtype=float)
+    rest: wp.array(dtype=wp.vec3)
+    centroids: wp.array(dtype=wp.vec3)
+    axes: wp.array(dtype=wp.vec3)
+
+
 @wp.func(inline=True)
 def update_window(
     x: wp.array(dtype=wp.vec3),
-    start: int,
     slot: int,
     stride: int,
-    k: int,
-    window_at: wp.array(dtype=wp.int32),
     window_size: int,
-    window_rest: wp.array(dtype=wp.vec3),
     variant: int,
     exact: int,
     iterations: int,
     rotations: wp.array(dtype=wp.quat),
-    centroids: wp.array(dtype=wp.vec3),
-    axes: wp.array(dtype=wp.vec3),
+    per: StrandSlots,
 ):
-    """Solve the window that starts at particle k of a strand, if one does, and keep what its goals
-    need: its centroid, and its axis (simplified variant, zero when degenerate) or its rotation
-    (full variant, as shape_match_rotations).
+    """Solve the window that starts at the particle in `slot`, if one does, and keep what its goals
+    need at that slot: its centroid, and its axis (simplified variant, zero when degenerate) or its
+    rotation (full variant, as shape_match_rotations, kept per window for the next warm start).
 
     Inputs:
-      x (vec3, per particle or lane slot, m): positions before the shape pass
-      start (int, index): the strand's first particle
-      slot (int, index): the element of x that holds particle k
-      stride (int): elements from one particle to the next (window_centroid)
-      k (int, index): the particle's place along the strand
-      window_at (int32, per particle): window starting at each particle, -1 when none
+      x (vec3, per slot, m): positions before the shape pass
+      slot (int, index): the slot of the window's first particle
+      stride (int): slots from one particle of a strand to the next (window_centroid)
       window_size (int): particles per window
-      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       exact (int, flag): non-zero solves a rotation from scratch (full)
       iterations (int): rotation refinement steps when exact == 0 (full)
     In/out:
       rotations (quat, per window): the window's last rotation in, its new one out (full)
     Outputs:
-      centroids (vec3, per window, m): the window's centroid
-      axes (vec3, per window): the window's unit first-to-last axis, zero when degenerate (simplified)
+      per (StrandSlots): the window's centroid and axis, written at the slot (its windows read)
     """
-    w = window_at[start + k]
+    w = per.window_at[slot]
     if w >= 0:
         if variant == SHAPE_SIMPLIFIED:
             u, _straight = window_direction(x, slot, stride, window_size)
-            centroids[w] = window_centroid(x, slot, stride, window_size)
-            axes[w] = u
+            per.centroids[slot] = window_centroid(x, slot, stride, window_size)
+            per.axes[slot] = u
         else:
-            q, c = window_rotation(x, slot, stride, window_size, window_rest, w * window_size, rotations[w], exact,
+            q, c = window_rotation(x, slot, stride, window_size, per.rest, slot, per.slots, rotations[w], exact,
                                    iterations)
             rotations[w] = q
-            centroids[w] = c
+            per.centroids[slot] = c
 
 
 @wp.func(inline=True)
 def shaped_position(
     p: wp.vec3,
-    inv_mass: float,
-    start: int,
+    slot: int,
+    stride: int,
     k: int,
-    window_at: wp.array(dtype=wp.int32),
     window_size: int,
-    window_rest: wp.array(dtype=wp.vec3),
-    window_offsets: wp.array(dtype=float),
     variant: int,
     stiffness: float,
     rotations: wp.array(dtype=wp.quat),
-    centroids: wp.array(dtype=wp.vec3),
-    axes: wp.array(dtype=wp.vec3),
+    per: StrandSlots,
 ):
-    """Particle k of a strand moved toward the mean goal of the windows that hold it, once those are
-    solved (update_window): the goals and their order of shape_match_step.
+    """The particle in `slot`, k-th of its strand, moved toward the mean goal of the windows that hold
+    it, once those are solved (update_window): the goals and their order of shape_match_step.
 
     Inputs:
       p (vec3, m): the particle's position before the pass
-      inv_mass (float): 0 marks a pinned particle, which stays where it is
-      start (int, index): the strand's first particle
-      k (int, index): the particle's place along the strand
-      window_at (int32, per particle): window starting at each particle, -1 when none
+      slot (int, index): its slot
+      stride (int): slots from one particle of a strand to the next (window_centroid)
+      k (int, index): its place along the strand
       window_size (int): particles per window
-      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
-      window_offsets (float, window_size per window, m): rest offsets along the rest axis (simplified)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
       rotations (quat, per window): window rotations (full)
-      centroids (vec3, per window, m): window centroids
-      axes (vec3, per window): window axes, zero when degenerate (simplified)
+      per (StrandSlots): inverse masses, the windows and their centroids and axes
     Returns:
-      vec3 (m): the particle's position after the pass
+      vec3 (m): the particle's position after the pass; a pinned particle's stays where it was
     """
-    if inv_mass == 0.0:
+    if per.inv_mass[slot] == 0.0:
         return p
     goal = wp.vec3(0.0)
     count = float(0.0)
     for j in range(window_size):
         if k - j >= 0:
-            w = window_at[start + k - j]
+            first = slot - j * stride
+            w = per.window_at[first]
             if w >= 0:
                 if variant == SHAPE_SIMPLIFIED:
-                    u = axes[w]
+                    u = per.axes[first]
                     if u == wp.vec3(0.0):
                         goal += p  # a degenerate window holds its particles where they are
                     else:
-                        goal += centroids[w] + window_offsets[w * window_size + j] * u
+                        goal += per.centroids[first] + per.offsets[j * per.slots + first] * u
                 else:
-                    goal += centroids[w] + wp.quat_rotate(rotations[w], window_rest[w * window_size + j])
+                    goal += per.centroids[first] + wp.quat_rotate(rotations[w], per.rest[j * per.slots + first])
                 count += 1.0
     if count > 0.0:
         p = p + stiffness * (goal / count - p)
@@ -1427,62 +1447,47 @@ def shaped_position(
 @wp.func
 def shape_strand(
     x: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    start: int,
     first: int,
     stride: int,
     count: int,
-    window_at: wp.array(dtype=wp.int32),
     window_size: int,
-    window_rest: wp.array(dtype=wp.vec3),
-    window_offsets: wp.array(dtype=float),
     variant: int,
     stiffness: float,
     exact: int,
     iterations: int,
     rotations: wp.array(dtype=wp.quat),
-    centroids: wp.array(dtype=wp.vec3),
-    axes: wp.array(dtype=wp.vec3),
+    per: StrandSlots,
     x_out: wp.array(dtype=wp.vec3),
 ):
     """One shape-matching pass over one strand (step_strands' passes before its last): the windows
     solved in order from the root, each particle moved once every window holding it is.
 
     Inputs:
-      x (vec3, per particle or lane slot, m): positions before the pass
-      inv_mass (float, per particle): 0 marks pinned particles, copied through
-      start (int, index): the strand's first particle
-      first (int, index): the element of x and x_out that holds the strand's first particle
-      stride (int): elements from one particle to the next (window_centroid)
+      x (vec3, per slot, m): positions before the pass
+      first (int, index): the slot of the strand's first particle
+      stride (int): slots from one particle to the next (window_centroid)
       count (int): the strand's particles
-      window_at (int32, per particle): window starting at each particle, -1 when none
       window_size (int): particles per window
-      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
-      window_offsets (float, window_size per window, m): rest offsets along the rest axis (simplified)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
       exact (int, flag): non-zero solves the rotations from scratch (full)
       iterations (int): rotation refinement steps when exact == 0 (full)
     In/out:
       rotations (quat, per window): the strand's window rotations (full)
+      per (StrandSlots): the windows; their centroids and axes written
     Outputs:
-      centroids (vec3, per window, m): the strand's window centroids
-      axes (vec3, per window): the strand's window axes (simplified)
-      x_out (vec3, per particle or lane slot, m): positions after the pass; must not alias x
+      x_out (vec3, per slot, m): positions after the pass; must not alias x
     """
     for k in range(count):
         slot = first + k * stride
-        update_window(x, start, slot, stride, k, window_at, window_size, window_rest, variant, exact, iterations,
-                      rotations, centroids, axes)
-        x_out[slot] = shaped_position(x[slot], inv_mass[start + k], start, k, window_at, window_size, window_rest,
-                                      window_offsets, variant, stiffness, rotations, centroids, axes)
+        update_window(x, slot, stride, window_size, variant, exact, iterations, rotations, per)
+        x_out[slot] = shaped_position(x[slot], slot, stride, k, window_size, variant, stiffness, rotations, per)
 
 
 @wp.func
 def predict_strand(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
     start: int,
     first: int,
     stride: int,
@@ -1505,9 +1510,8 @@ def predict_strand(
     bind_local: wp.array(dtype=wp.vec3),
     origin: wp.vec3,
     frame: wp.mat33,
-    root_local: wp.array(dtype=wp.vec3),
-    hold: wp.array(dtype=float),
     hold_stiffness: float,
+    per: StrandSlots,
     x_out: wp.array(dtype=wp.vec3),
 ):
     """predict_positions for one strand, whose root frame the caller has (root_frames).
@@ -1515,10 +1519,9 @@ def predict_strand(
     Inputs:
       x (vec3, per particle, m): positions at the start of the substep
       v (vec3, per particle, m/s): velocities at the start of the substep
-      inv_mass (float, per particle): 0 marks pinned particles
       start (int, index): the strand's first particle
-      first (int, index): the element of x_out that holds the strand's first particle
-      stride (int): elements of x_out from one particle to the next (window_centroid)
+      first (int, index): the slot of the strand's first particle
+      stride (int): slots from one particle to the next (window_centroid)
       count (int): the strand's particles
       gravity (vec3, m/s^2): acceleration of gravity
       wind (vec3, m/s): mean air velocity
@@ -1538,36 +1541,35 @@ def predict_strand(
       bind_local (vec3, per binding, m): offset in that triangle's frame
       origin (vec3, m): the root's position in this pose
       frame (mat33): the root triangle's frame in this pose
-      root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
-      hold (float, per particle): root-hold weight
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+      per (StrandSlots): inverse masses, root-hold weights and groomed offsets
     Outputs:
-      x_out (vec3, per particle or lane slot, m): the strand's predicted positions
+      x_out (vec3, per slot, m): the strand's predicted positions
     """
     for k in range(count):
         i = start + k
+        slot = first + k * stride
+        inv_mass = per.inv_mass[slot]
         binding = int(-1)
         weight = float(0.0)
         target = wp.vec3(0.0)
         if bound != 0:
-            if inv_mass[i] == 0.0:
+            if inv_mass == 0.0:
                 binding = particle_binding[i]
-            weight = hold[i] * hold_stiffness
+            weight = per.hold[slot] * hold_stiffness
             if weight > 0.0:
-                target = origin + frame * root_local[i]
-        p, _vel = predicted_position(x[i], v[i], inv_mass[i], gravity, wind, air_drag, damping, turbulence,
+                target = origin + frame * per.root_local[slot]
+        p, _vel = predicted_position(x[i], v[i], inv_mass, gravity, wind, air_drag, damping, turbulence,
                                      turbulence_scale, turbulence_rate, time, dt, mesh_points, mesh_indices, binding,
                                      bind_triangle, bind_barycentric, bind_local, target, weight)
-        x_out[first + k * stride] = p
+        x_out[slot] = p
 
 
 @wp.kernel(cuda_max_registers=128)
 def step_strands(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
     strand_start: wp.array(dtype=wp.int32),
-    rest_length: wp.array(dtype=float),
     pinned_per_strand: int,
     gravity: wp.vec3,
     wind: wp.vec3,
@@ -1587,21 +1589,15 @@ def step_strands(
     bind_barycentric: wp.array(dtype=wp.vec3),
     bind_local: wp.array(dtype=wp.vec3),
     root_binding: wp.array(dtype=wp.int32),
-    root_local: wp.array(dtype=wp.vec3),
-    hold: wp.array(dtype=float),
     hold_stiffness: float,
-    window_at: wp.array(dtype=wp.int32),
     window_size: int,
-    window_rest: wp.array(dtype=wp.vec3),
-    window_offsets: wp.array(dtype=float),
     variant: int,
     passes: int,
     stiffness: float,
     exact: int,
     rotation_iterations: int,
     rotations: wp.array(dtype=wp.quat),
-    centroids: wp.array(dtype=wp.vec3),
-    axes: wp.array(dtype=wp.vec3),
+    per: StrandSlots,
     collide_mode: int,
     shape: ColliderShape,
     margin: float,
@@ -1630,18 +1626,19 @@ def step_strands(
     shape-matched positions stay in that thread's cache, and no launch waits for another. The
     last shape pass is folded into the length pass: the window starting at each particle is solved
     just before the particle is placed, from positions no particle of it has left yet, so that pass
-    needs no buffer of its own and each particle is read once more, not twice.
+    needs no buffer of its own and each particle is read once more, not twice. Everything but the
+    state (x, v and the results) is read per slot (StrandSlots), so in lane order a warp's threads
+    read side by side.
 
-    contact_motion (and anchor_frame) must run first, as for follow_the_leader.
+    contact_motion (and anchor_frame) must run first, as for follow_the_leader; find_short_lists and
+    list_leaves_ahead may, from the start positions.
 
     Launch: one thread per strand of a range of strands (dim = strands in the range), or in lane
     order one per lane (then first is 0).
     Inputs:
       x (vec3, per particle, m): positions at the start of the substep (where the bounds hold)
       v (vec3, per particle, m/s): velocities at the start of the substep
-      inv_mass (float, per particle): 0 marks pinned particles
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-      rest_length (float, per particle, m): rest distance to the previous particle
       pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
       gravity (vec3, m/s^2): acceleration of gravity
       wind (vec3, m/s): mean air velocity
@@ -1663,13 +1660,8 @@ def step_strands(
       bind_local (vec3, per binding, m): offset in that triangle's frame
       root_binding (int32, per strand): binding of the strand's root particle (read when
           hold_stiffness > 0)
-      root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
-      hold (float, per particle): root-hold weight, 1 at the root falling to 0 along the strand
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
-      window_at (int32, per particle): window starting at each particle, -1 when none
       window_size (int): particles per window
-      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
-      window_offsets (float, window_size per window, m): rest offsets along the rest axis (simplified)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       passes (int): shape-matching passes, 0 for none
       stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
@@ -1684,20 +1676,18 @@ def step_strands(
       motion (ContactMotion): how the collider moved near these strands (contact_motion)
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
       ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
-      order (LaneOrder): particle order, or the lane order: then shaped, spare and the contact
-          bounds are in lane order (lane_slot)
+      order (LaneOrder): particle order, or the lane order: the order of the slots (per, shaped,
+          spare and the contact bounds)
       first (int, index): the range's first strand; thread t works on strand first + t
     In/out:
       rotations (quat, per window): window rotations, refined from their last values (full)
-      clearance (float, per particle, m): contact bounds at x in, at x_out out (follow_the_leader)
-      near_leaves (vec4i, per particle): listed leaf spheres (follow_the_leader)
-      beyond (float, per particle, m): bound on every unlisted leaf (follow_the_leader)
+      per (StrandSlots): the particles and windows per slot; the windows' centroids and axes written
+      clearance (float, per slot, m): contact bounds at x in, at x_out out (follow_the_leader)
+      near_leaves (vec4i, per slot): listed leaf spheres (follow_the_leader)
+      beyond (float, per slot, m): bound on every unlisted leaf (follow_the_leader)
     Outputs:
-      centroids (vec3, per window, m): window centroids of the last pass
-      axes (vec3, per window): window axes of the last pass (simplified)
-      shaped (vec3, per particle or lane slot, m): scratch, the last pass's input; may be x_out
-          itself in particle order
-      spare (vec3, per particle or lane slot, m): scratch for two passes or more; None otherwise
+      shaped (vec3, per slot, m): scratch, the last pass's input; may be x_out itself in particle order
+      spare (vec3, per slot, m): scratch for two passes or more; None otherwise
       x_out (vec3, per particle, m): positions at the end of the substep
       v_out (vec3, per particle, m/s): velocities at the end of the substep
     """
@@ -1722,27 +1712,25 @@ def step_strands(
     # every pass but the last ping-pongs between spare and shaped, ending in shaped
     inner = wp.max(passes - 1, 0)
     if inner % 2 == 0:
-        predict_strand(x, v, inv_mass, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
+        predict_strand(x, v, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
                        turbulence_scale, turbulence_rate, time, dt, bound, mesh_points, mesh_indices,
-                       particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, root_local, hold,
-                       hold_stiffness, shaped)
+                       particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
+                       per, shaped)
     else:
-        predict_strand(x, v, inv_mass, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
+        predict_strand(x, v, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
                        turbulence_scale, turbulence_rate, time, dt, bound, mesh_points, mesh_indices,
-                       particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, root_local, hold,
-                       hold_stiffness, spare)
+                       particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
+                       per, spare)
     for n in range(inner):
         solve = int(0)
         if n == 0:
             solve = exact
         if (inner - 1 - n) % 2 == 0:
-            shape_strand(spare, inv_mass, start, base, stride, count, window_at, window_size, window_rest,
-                         window_offsets, variant, stiffness, solve, rotation_iterations, rotations, centroids, axes,
-                         shaped)
+            shape_strand(spare, base, stride, count, window_size, variant, stiffness, solve, rotation_iterations,
+                         rotations, per, shaped)
         else:
-            shape_strand(shaped, inv_mass, start, base, stride, count, window_at, window_size, window_rest,
-                         window_offsets, variant, stiffness, solve, rotation_iterations, rotations, centroids, axes,
-                         spare)
+            shape_strand(shaped, base, stride, count, window_size, variant, stiffness, solve, rotation_iterations,
+                         rotations, per, spare)
     last_exact = int(0)
     if inner == 0:
         last_exact = exact
@@ -1754,21 +1742,18 @@ def step_strands(
         i = base + k * stride
         p = shaped[i]
         if passes > 0:
-            update_window(shaped, start, i, stride, k, window_at, window_size, window_rest, variant, last_exact,
-                          rotation_iterations, rotations, centroids, axes)
-            p = shaped_position(p, inv_mass[start + k], start, k, window_at, window_size, window_rest,
-                                window_offsets, variant, stiffness, rotations, centroids, axes)
+            update_window(shaped, i, stride, window_size, variant, last_exact, rotation_iterations, rotations, per)
+            p = shaped_position(p, i, stride, k, window_size, variant, stiffness, rotations, per)
         correction = wp.vec3(0.0)
         if k >= pinned_per_strand:
             predicted = p
-            p = follow_leader(parent, before, k, predicted, rest_length[start + k], i, x[start + k], collide_mode,
-                              shape, margin, search, use_bounds, probe, motion, strand_reach, clearance, near_leaves,
-                              beyond)
+            p = follow_leader(parent, before, k, predicted, per.rest_length[i], i, x[start + k], collide_mode, shape,
+                              margin, search, use_bounds, probe, motion, strand_reach, clearance, near_leaves, beyond)
             correction = p - predicted
         x_out[start + k] = p
         if k > 0:
             vel = (parent - x[start + k - 1]) / dt
-            if inv_mass[start + k - 1] > 0.0:
+            if per.inv_mass[i - stride] > 0.0:
                 vel = vel - (ftl_damping / dt) * correction
             v_out[start + k - 1] = vel
         before = parent
