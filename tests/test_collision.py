@@ -129,9 +129,10 @@ def test_refitted_sphere_tree_bounds_each_subtree_exactly(head):
         assert abs(radii[i] - expected) < 1e-6
 
 
-def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed):
+def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed, ragged=False):
     """A head turning and nodding fast (a quarter turn in 0.25 s) posed for substeps of dt, and wavy
-    hair grown on it: (collider at pose 0, strand model, the grown points)."""
+    hair grown on it: (collider at pose 0, strand model, the grown points). ragged: strands cut to
+    5 to 12 particles, as a haircut leaves them."""
     moving = Collider("head", head.vertices, head.faces, head.skin_indices, head.skin_weights, head.num_bones, "cpu",
                       sphere_leaves=sphere_leaves)
     anim = HeadAnimation(turn_degrees=45.0, turn_period=1.0, nod_degrees=15.0, nod_period=0.8, ease_in=0.0)
@@ -140,6 +141,11 @@ def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed):
     roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, strands, seed=seed)
     pts, counts, widths = grow_hairstyle(HairstyleParams(style="wavy", vertices=12, length=0.2), roots, normals,
                                          moving.push_out)
+    if ragged:
+        keep = np.random.default_rng(seed).integers(5, 13, len(counts))
+        starts = np.r_[0, np.cumsum(counts)[:-1]]
+        rows = np.concatenate([start + np.arange(n) for start, n in zip(starts, keep, strict=True)])
+        pts, counts, widths = pts[rows], keep, widths[rows]
     model = StrandBuilder().add_strands(pts, counts, widths).finalize("cpu").bind_to_mesh(moving.posed_points(),
                                                                                           head.faces)
     return moving, model, pts
@@ -224,15 +230,19 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
 
 @pytest.mark.parametrize("collision,shape_matching,passes,order", [
     ("sphere_tree", "simplified", 1, "parts"), ("mesh", "full", 2, "parts"), ("none", "simplified", 2, "parts"),
-    ("sphere_tree", "full", 3, "lanes"), ("mesh", "none", 1, "lanes"), ("sphere_tree", "simplified", 1, "lanes ahead")])
+    ("sphere_tree", "full", 3, "lanes"), ("mesh", "none", 1, "lanes"), ("sphere_tree", "simplified", 1, "lanes ahead"),
+    ("mesh", "full", 2, "lanes ragged")])
 def test_one_launch_substep_gives_the_same_strands_as_the_launches_apart(head, collision, shape_matching, passes,
                                                                         order):
     """strands.step_strands (HairSolver.fused) against root_frames, predict_positions, the shape passes
     and follow_the_leader launched apart, in gusting wind on a turning head: every substep's x and v
     bit for bit, the full variant's warm-started rotations too, over two strand ranges or in lane order,
-    and with the tree walks queued ahead (a GPU's way: from the start positions when fused)."""
+    and with the tree walks queued ahead (a GPU's way: from the start positions when fused), and on
+    strands of different lengths (lane slots past a strand's tip)."""
     substeps, dt = 30, 1.0 / 240.0
-    moving, model, pts = _hair_on_a_turning_head(head, 256, substeps, dt, 40, 11)
+    moving, model, pts = _hair_on_a_turning_head(head, 256, substeps, dt, 40, 11, ragged=order.endswith("ragged"))
+    if order.endswith("ragged"):
+        assert len(set(np.diff(model.strand_start_np))) > 3
     params = HairParams(collision=collision, shape_matching=shape_matching, shape_iterations=passes,
                         wind=(1.5, 0.0, 0.5), wind_turbulence=0.6)
     runs = []
