@@ -394,3 +394,25 @@ def test_cuda_frames_follow_cpu_frames(make):
     for key in out[0]:
         assert np.isfinite(out[1][key]).all(), key
         np.testing.assert_allclose(out[1][key], out[0][key], atol=2e-3, err_msg=key)
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("make", [lambda device: _hair_config(device, True), _fast_hair_config],
+                         ids=["hair-mesh", "hair-spheres"])
+def test_fused_hair_frames_follow_the_launches_apart(make, device):
+    """strands.step_strands (HairSolver.fused; off on CUDA by default) captured in the frame's graph,
+    with the device's defaults (on CUDA lane order and the sphere tree's walks queued ahead): the
+    frames of the launches apart, to float32 rounding (bit for bit on the CPU)."""
+    out = []
+    for fused in (False, True):
+        scene = Scene(make(device))
+        scene.solver.fused = fused
+        start = scene.state.x.numpy().copy()
+        for _ in range(4):
+            scene.advance(1.0 / scene.config.timing.fps)
+        out.append(scene.state.x.numpy())
+        assert np.abs(out[-1] - start).max() > 0.01  # the frames moved the hair
+    assert np.isfinite(out[1]).all()
+    np.testing.assert_allclose(out[1], out[0], atol=1e-4)
+    if device == "cpu":
+        np.testing.assert_array_equal(out[1], out[0])
