@@ -11,6 +11,8 @@ import numpy as np
 import warp as wp
 from scipy.spatial import cKDTree
 
+from warp_kernels import strands
+
 
 class GuideTargets:
     """guide_frames (F, G, M, 3) sampled at `fps` from time 0; each guide resampled to M evenly
@@ -49,6 +51,16 @@ class GuideTargets:
         # nothing is uploaded per substep and a captured frame replays at any time
         self.num_frames = len(self.frames)
         self.frame_points = wp.array(self.frames.reshape(-1, 3).astype(np.float32), dtype=wp.vec3, device=device)
+
+    def pull(self, stiffness):
+        """These guides as the kernels take them (strands.GuidePull), pulling `stiffness` of the way
+        to their targets per substep."""
+        pull = strands.GuidePull()
+        pull.strand_guides, pull.weights = self.strand_guides, self.strand_guide_weights
+        pull.param = self.particle_param
+        pull.points, pull.frames, pull.guides = self.frame_points, self.num_frames, self.num_guides
+        pull.vertices, pull.fps, pull.stiffness = self.vertices, self.fps, float(stiffness)
+        return pull
 
 
 def _even(polylines, count):

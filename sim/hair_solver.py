@@ -188,10 +188,10 @@ class HairSolver:
         # consecutive memory at each step of their serial loops; a CPU thread walks one strand's
         # cache lines and gains nothing from the copies in and out
         self.lanes = wp.get_device(device).is_cuda and len(self.parts) == 1
-        # a whole substep in one launch (strands.step_strands), where no guides pull the strands; with
-        # leaves_ahead the walks are queued from the start positions. On by default on the CPU, where
-        # it was measured faster; a GPU keeps the launches apart, with a thread per particle for the
-        # shape passes, until one is measured the other way
+        # a whole substep in one launch (strands.step_strands); with leaves_ahead the walks are queued
+        # from the start positions. On by default on the CPU, where it was measured faster; a GPU keeps
+        # the launches apart, with a thread per particle for the shape passes, until one is measured
+        # the other way
         self.fused = not wp.get_device(device).is_cuda
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
@@ -206,6 +206,7 @@ class HairSolver:
         self.clock = wp.zeros(1, dtype=float, device=device)
         self._clock_time = 0.0
         self.comb = None  # a sim.comb.CombGrip holding strands, or None
+        self._pulls = {}  # the last strands.GuidePull made (_pull)
 
     @property
     def lanes(self):
@@ -329,8 +330,8 @@ class HairSolver:
         variant = SHAPE_MATCHING[p.shape_matching]
         win = self.windows
         passes = p.shape_iterations if variant >= 0 and win.count > 0 else 0
-        if self._fuses(guides):
-            self._step_fused(state_in, state_out, collider, dt, offset, variant, passes, part, r)
+        if self.fused:
+            self._step_fused(state_in, state_out, collider, dt, offset, variant, passes, part, r, guides)
             return
         # shape passes ping-pong between two buffers and must end in state_out.x: an odd number of
         # passes starts from the scratch buffer
@@ -358,10 +359,8 @@ class HairSolver:
                   device=dev)
         if guides is not None and p.guide_stiffness > 0.0:
             wp.launch(strands.follow_guides, r.particles,
-                      [predicted, m.inv_mass, m.particle_strand, m.strand_start, guides.strand_guides,
-                       guides.strand_guide_weights, guides.particle_param, guides.frame_points,
-                       guides.num_frames, guides.num_guides, guides.vertices, guides.fps, self.clock, offset,
-                       float(1.0 - np.exp(-p.guide_stiffness * dt)), r.first_particle], device=dev)
+                      [predicted, m.inv_mass, m.particle_strand, m.strand_start, self._pull(guides, dt), self.clock,
+                       offset, r.first_particle], device=dev)
         src, dst = predicted, other
         exact = int(self._rotations_exact)  # the first pass after a reset solves outright, later ones refine
         for n in range(passes):
@@ -413,9 +412,14 @@ class HairSolver:
                    p.ftl_damping, dt, state_out.x, state_out.v, order, r.first_strand], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
-    def _fuses(self, guides):
-        """Whether step() is one launch (strands.step_strands): fused, and no guides."""
-        return self.fused and (guides is None or self.params.guide_stiffness <= 0.0)
+    def _pull(self, guides, dt):
+        """The guides' strands.GuidePull for substeps of dt (stiffness 0: none), kept per guides and dt."""
+        rate = self.params.guide_stiffness if guides is not None else 0.0
+        key = (id(guides), dt)
+        if self._pulls.get("key") != key:
+            pull = guides.pull(1.0 - np.exp(-rate * dt)) if rate > 0.0 else strands.GuidePull()
+            self._pulls = {"key": key, "pull": pull, "guides": guides}
+        return self._pulls["pull"]
 
     def _measure_motion(self, c, mode, r):
         """How the collider moved near range r this substep (strands.contact_motion), for the contact
@@ -440,7 +444,7 @@ class HairSolver:
             self.comb.launch(self.model, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
                              p.collision_margin, p.collision_search, self.clearance, order, r)
 
-    def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r):
+    def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r, guides):
         """step() as one launch per range (strands.step_strands), after the collider's motion."""
         m, p, dev = self.model, self.params, self.model.device
         mode = COLLISION[p.collision] if c is not None else 0
@@ -472,8 +476,8 @@ class HairSolver:
                    c.indices if bound else None, m.particle_binding if bound else None,
                    m.bind_triangle if bound else None, m.bind_barycentric if bound else None,
                    m.bind_local if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
-                   self.windows.size, variant, passes, p.shape_stiffness, int(self._rotations_exact),
-                   p.rotation_iterations, self.rotations, self._slots, mode,
+                   self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
+                   int(self._rotations_exact), p.rotation_iterations, self.rotations, self._slots, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
                    p.ftl_damping, shaped, spare, state_out.x, state_out.v, order,

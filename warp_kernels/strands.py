@@ -1317,6 +1317,103 @@ def follow_the_leader(
     v[start + count - 1] = (parent - x_prev[lane_slot(start, lane, count - 1, lanes)]) / dt
 
 
+@wp.func
+def guide_point(guide_points: wp.array(dtype=wp.vec3), g: int, count: int, s: float):
+    """Point at normalised arc parameter s along guide g, linear between its vertices.
+
+    Inputs:
+      guide_points (vec3, count per guide, m): guide polylines back to back
+      g (int, index): the guide's block in guide_points (frame * num_guides + guide for follow_guides)
+      count (int): vertices per guide, evenly spaced along the arc; at least 2
+      s (float): arc parameter, 0 at the root and 1 at the tip; clamped to [0, 1]
+    Returns:
+      vec3 (m): the point
+    """
+    u = wp.clamp(s, 0.0, 1.0) * float(count - 1)
+    k = wp.min(int(u), count - 2)
+    t = u - float(k)
+    return (1.0 - t) * guide_points[g * count + k] + t * guide_points[g * count + k + 1]
+
+
+@wp.struct
+class GuidePull:
+    """Captured guides that pull a hair substep's strands (sim.guides.GuideTargets.pull): each free
+    particle moves toward its strand's root plus the weighted guides' offsets from their roots at the
+    particle's normalised arc position, the guides linear between captured frames (held past the
+    ends), so captured motion drives the shape while each strand stays on its own root.
+
+    Fields:
+      strand_guides (vec3i, per strand): up to three guide indices
+      weights (vec3, per strand): weight of each guide, summing to 1; 0 skips a slot
+      param (float, per particle): normalised arc length from the root (0) to the tip (1)
+      points (vec3, frames * guides * vertices, m): captured guides, frame-major
+      frames (int): captured frames
+      guides (int): guides per frame
+      vertices (int): vertices per guide, evenly spaced along its arc; at least 2
+      fps (float, 1/s): frames per second of the capture, which starts at time 0
+      stiffness (float, fraction per substep): share of the way to the target moved, e.g.
+          1 - exp(-rate * dt); 0 for no pull (the arrays are then not read)
+    """
+
+    strand_guides: wp.array(dtype=wp.vec3i)
+    weights: wp.array(dtype=wp.vec3)
+    param: wp.array(dtype=float)
+    points: wp.array(dtype=wp.vec3)
+    frames: int
+    guides: int
+    vertices: int
+    fps: float
+    stiffness: float
+
+
+@wp.func
+def guide_frames(pull: GuidePull, time: float):
+    """The two captured frames around `time` and the weight of the second.
+
+    Inputs:
+      pull (GuidePull): the guides
+      time (float, s): the substep's time
+    Returns:
+      int (index): the earlier frame
+      int (index): the later frame
+      float: the later frame's weight, in [0, 1]
+    """
+    u = wp.clamp(time * pull.fps, 0.0, float(pull.frames - 1))
+    f = wp.min(int(u), wp.max(pull.frames - 2, 0))
+    t = wp.min(u - float(f), 1.0)
+    return f, wp.min(f + 1, pull.frames - 1), t
+
+
+@wp.func(inline=True)
+def guided_position(pull: GuidePull, p: wp.vec3, root: wp.vec3, strand: int, i: int, f: int, f1: int, t: float):
+    """A free particle moved `pull.stiffness` of the way toward its guided position.
+
+    Inputs:
+      pull (GuidePull): the guides
+      p (vec3, m): the particle's position
+      root (vec3, m): its strand's root (pinned, so no thread moves it)
+      strand (int, index): its strand
+      i (int, index): the particle
+      f (int, index): the earlier captured frame (guide_frames)
+      f1 (int, index): the later captured frame
+      t (float): the later frame's weight
+    Returns:
+      vec3 (m): the pulled position
+    """
+    g = pull.strand_guides[strand]
+    w = pull.weights[strand]
+    s = pull.param[i]
+    offset = wp.vec3(0.0)
+    for k in range(3):
+        if w[k] > 0.0:
+            a = f * pull.guides + g[k]
+            b = f1 * pull.guides + g[k]
+            shape = (1.0 - t) * (guide_point(pull.points, a, pull.vertices, s) - pull.points[a * pull.vertices])
+            shape += t * (guide_point(pull.points, b, pull.vertices, s) - pull.points[b * pull.vertices])
+            offset += w[k] * shape
+    return p + pull.stiffness * (root + offset - p)
+
+
 @wp.struct
 class StrandSlots:
     """What step_strands reads per particle and per shape window, in the order of its contact bounds
@@ -1512,9 +1609,15 @@ def predict_strand(
     frame: wp.mat33,
     hold_stiffness: float,
     per: StrandSlots,
+    pull: GuidePull,
+    strand: int,
+    guide_frame: int,
+    guide_next: int,
+    guide_weight: float,
     x_out: wp.array(dtype=wp.vec3),
 ):
-    """predict_positions for one strand, whose root frame the caller has (root_frames).
+    """predict_positions and follow_guides for one strand, whose root frame the caller has
+    (root_frames).
 
     Inputs:
       x (vec3, per particle, m): positions at the start of the substep
@@ -1543,9 +1646,15 @@ def predict_strand(
       frame (mat33): the root triangle's frame in this pose
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
       per (StrandSlots): inverse masses, root-hold weights and groomed offsets
+      pull (GuidePull): captured guides; pull.stiffness 0 for none
+      strand (int, index): the strand
+      guide_frame (int, index): the guides' earlier captured frame (guide_frames)
+      guide_next (int, index): their later captured frame
+      guide_weight (float): the later frame's weight
     Outputs:
       x_out (vec3, per slot, m): the strand's predicted positions
     """
+    root = wp.vec3(0.0)  # the strand's predicted root, which the guides' targets hang from
     for k in range(count):
         i = start + k
         slot = first + k * stride
@@ -1562,6 +1671,11 @@ def predict_strand(
         p, _vel = predicted_position(x[i], v[i], inv_mass, gravity, wind, air_drag, damping, turbulence,
                                      turbulence_scale, turbulence_rate, time, dt, mesh_points, mesh_indices, binding,
                                      bind_triangle, bind_barycentric, bind_local, target, weight)
+        if k == 0:
+            root = p
+        if pull.stiffness > 0.0:
+            if inv_mass != 0.0:
+                p = guided_position(pull, p, root, strand, i, guide_frame, guide_next, guide_weight)
         x_out[slot] = p
 
 
@@ -1590,6 +1704,7 @@ def step_strands(
     bind_local: wp.array(dtype=wp.vec3),
     root_binding: wp.array(dtype=wp.int32),
     hold_stiffness: float,
+    pull: GuidePull,
     window_size: int,
     variant: int,
     passes: int,
@@ -1617,9 +1732,9 @@ def step_strands(
     order: LaneOrder,
     first: int,
 ):
-    """A whole hair substep in one launch, a thread per strand: root frame, prediction, shape
-    matching and the length pass with its collisions and velocities, the same strands as the
-    launches from root_frames to follow_the_leader (without guides).
+    """A whole hair substep in one launch, a thread per strand: root frame, prediction, the guides'
+    pull, shape matching and the length pass with its collisions and velocities, the same strands
+    as the launches from root_frames to follow_the_leader.
 
     Those launches each read and write every particle once; here a strand stays with one thread
     from start to end, so its particles are read once and written once, the predicted and the
@@ -1661,6 +1776,8 @@ def step_strands(
       root_binding (int32, per strand): binding of the strand's root particle (read when
           hold_stiffness > 0)
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+      pull (GuidePull): captured guides the predicted strands are pulled toward; pull.stiffness 0
+          for none
       window_size (int): particles per window
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       passes (int): shape-matching passes, 0 for none
@@ -1709,18 +1826,21 @@ def step_strands(
             origin = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
             frame = face_frame(mesh_points, mesh_indices, bind_triangle[rb])
     time = clock[0] + time_offset
+    guide_frame, guide_next, guide_weight = int(0), int(0), float(0.0)
+    if pull.stiffness > 0.0:
+        guide_frame, guide_next, guide_weight = guide_frames(pull, time)
     # every pass but the last ping-pongs between spare and shaped, ending in shaped
     inner = wp.max(passes - 1, 0)
     if inner % 2 == 0:
         predict_strand(x, v, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
                        turbulence_scale, turbulence_rate, time, dt, bound, mesh_points, mesh_indices,
                        particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
-                       per, shaped)
+                       per, pull, s, guide_frame, guide_next, guide_weight, shaped)
     else:
         predict_strand(x, v, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
                        turbulence_scale, turbulence_rate, time, dt, bound, mesh_points, mesh_indices,
                        particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
-                       per, spare)
+                       per, pull, s, guide_frame, guide_next, guide_weight, spare)
     for n in range(inner):
         solve = int(0)
         if n == 0:
@@ -1933,68 +2053,30 @@ def count_unhealthy(
         wp.atomic_min(first_bad, 0, i)
 
 
-@wp.func
-def guide_point(guide_points: wp.array(dtype=wp.vec3), g: int, count: int, s: float):
-    """Point at normalised arc parameter s along guide g, linear between its vertices.
-
-    Inputs:
-      guide_points (vec3, count per guide, m): guide polylines back to back
-      g (int, index): the guide's block in guide_points (frame * num_guides + guide for follow_guides)
-      count (int): vertices per guide, evenly spaced along the arc; at least 2
-      s (float): arc parameter, 0 at the root and 1 at the tip; clamped to [0, 1]
-    Returns:
-      vec3 (m): the point
-    """
-    u = wp.clamp(s, 0.0, 1.0) * float(count - 1)
-    k = wp.min(int(u), count - 2)
-    t = u - float(k)
-    return (1.0 - t) * guide_points[g * count + k] + t * guide_points[g * count + k + 1]
-
-
 @wp.kernel
 def follow_guides(
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     particle_strand: wp.array(dtype=wp.int32),
     strand_start: wp.array(dtype=wp.int32),
-    strand_guides: wp.array(dtype=wp.vec3i),
-    strand_guide_weights: wp.array(dtype=wp.vec3),
-    particle_param: wp.array(dtype=float),
-    guide_frames: wp.array(dtype=wp.vec3),
-    num_frames: int,
-    num_guides: int,
-    guide_vertices: int,
-    guide_fps: float,
+    pull: GuidePull,
     clock: wp.array(dtype=float),
     time_offset: float,
-    stiffness: float,
     first: int,
 ):
-    """Pull each free particle toward the shape of its captured guides.
+    """Pull each free particle toward the shape of its captured guides (GuidePull).
 
-    The target is the strand's own root plus the weighted guides' offsets from their roots at the
-    particle's normalised arc position, so captured motion drives the shape while the strand stays
-    on its own root. The guides are linear between captured frames (held past the ends) at time
-    clock[0] + time_offset. x is updated in place: the strand's root must be pinned (inv_mass 0),
-    since other threads read it while they write.
+    x is updated in place: the strand's root must be pinned (inv_mass 0), since other threads read
+    it while they write.
 
     Launch: one thread per particle of a range of whole strands (dim = particles in the range).
     Inputs:
       inv_mass (float, per particle): 0 marks pinned particles, which are left alone
       particle_strand (int32, per particle): strand of each particle
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-      strand_guides (vec3i, per strand): up to three guide indices
-      strand_guide_weights (vec3, per strand): weight of each guide, summing to 1; 0 skips a slot
-      particle_param (float, per particle): normalised arc length from the root (0) to the tip (1)
-      guide_frames (vec3, num_frames * num_guides * guide_vertices, m): captured guides, frame-major
-      num_frames (int): captured frames
-      num_guides (int): guides per frame
-      guide_vertices (int): vertices per guide, evenly spaced along its arc; at least 2
-      guide_fps (float, 1/s): frames per second of the capture, which starts at time 0
+      pull (GuidePull): the guides and how hard they pull
       clock (float, 1 element, s): device clock
       time_offset (float, s): time of this substep relative to clock[0]
-      stiffness (float, fraction per substep): share of the way to the target moved, e.g.
-          1 - exp(-rate * dt)
       first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): positions, moved toward the targets
@@ -2002,21 +2084,6 @@ def follow_guides(
     i = wp.tid() + first
     if inv_mass[i] == 0.0:
         return
-    u = wp.clamp((clock[0] + time_offset) * guide_fps, 0.0, float(num_frames - 1))
-    f = wp.min(int(u), wp.max(num_frames - 2, 0))
-    t = wp.min(u - float(f), 1.0)
-    f1 = wp.min(f + 1, num_frames - 1)
+    f, f1, t = guide_frames(pull, clock[0] + time_offset)
     strand = particle_strand[i]
-    g = strand_guides[strand]
-    w = strand_guide_weights[strand]
-    s = particle_param[i]
-    offset = wp.vec3(0.0)
-    for k in range(3):
-        if w[k] > 0.0:
-            a = f * num_guides + g[k]
-            b = f1 * num_guides + g[k]
-            shape = (1.0 - t) * (guide_point(guide_frames, a, guide_vertices, s) - guide_frames[a * guide_vertices])
-            shape += t * (guide_point(guide_frames, b, guide_vertices, s) - guide_frames[b * guide_vertices])
-            offset += w[k] * shape
-    target = x[strand_start[strand]] + offset
-    x[i] = x[i] + stiffness * (target - x[i])
+    x[i] = guided_position(pull, x[i], x[strand_start[strand]], strand, i, f, f1, t)
