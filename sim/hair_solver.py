@@ -168,9 +168,6 @@ class HairSolver:
         if parts is None:
             parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
         self.set_parts(parts)
-        # a CPU thread per strand computes each shape window once (shape_match_strands); a GPU keeps
-        # one thread per particle
-        self.per_strand = not wp.get_device(device).is_cuda
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
@@ -255,7 +252,8 @@ class HairSolver:
             self._lanes = _Lanes(m.num_strands, longest, order, slot, wp.zeros(slots, dtype=wp.vec3, device=dev),
                                  wp.zeros(slots, dtype=wp.vec3, device=dev), in_lanes(m.inv_mass.numpy()),
                                  in_lanes(m.rest_length_np))
-        self._slots = self._strand_slots(self._lanes.slot if on else np.arange(m.num_particles), slots)
+        # what strands.step_strands reads per particle and per window, in the length pass's order
+        self.slots = self._strand_slots(self._lanes.slot if on else np.arange(m.num_particles), slots)
         self.clearance = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
         self.near_leaves = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=dev)
         self.beyond = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
@@ -371,16 +369,10 @@ class HairSolver:
                           [src, win.first, win.size, win.rest, exact, p.rotation_iterations, self.rotations,
                            self.centroids, r.first_window], device=dev)
                 exact = 0
-            if self.per_strand:
-                wp.launch(strands.shape_match_strands, r.strands,
-                          [src, m.inv_mass, m.strand_start, win.at, win.size, win.rest, win.offsets, self.rotations,
-                           self.centroids, variant, p.shape_stiffness, dst, lane_x, lane_order, r.first_strand],
-                          device=dev)
-            else:
-                wp.launch(strands.shape_match_step, r.particles,
-                          [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets,
-                           self.rotations, self.centroids, variant, p.shape_stiffness, m.strand_start, dst, lane_x,
-                           lane_order, r.first_particle], device=dev)
+            wp.launch(strands.shape_match_step, r.particles,
+                      [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets, self.rotations,
+                       self.centroids, variant, p.shape_stiffness, m.strand_start, dst, lane_x, lane_order,
+                       r.first_particle], device=dev)
             src, dst = dst, src
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright
@@ -477,7 +469,7 @@ class HairSolver:
                    m.bind_triangle if bound else None, m.bind_barycentric if bound else None,
                    m.bind_local if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
                    self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
-                   int(self._rotations_exact), p.rotation_iterations, self.rotations, self._slots, mode,
+                   int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
                    p.ftl_damping, shaped, spare, state_out.x, state_out.v, order,

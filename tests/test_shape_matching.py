@@ -56,10 +56,12 @@ def groom(rng):
 
 def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1, rotations=None, refine=True,
                 per_strand=False, lane_x=None, order=None):
-    """One shape_match_step (shape_match_strands with per_strand) over positions x (after
-    shape_match_rotations unless refine=False): (moved positions, rotations). With lane_x (a vec3
-    array of num_strands x longest strand slots) and order (a strands.LaneOrder) the pass also
-    writes its result there in lane order."""
+    """One shape_match_step over positions x (after shape_match_rotations unless refine=False):
+    (moved positions, rotations). With lane_x (a vec3 array of num_strands x longest strand slots)
+    and order (a strands.LaneOrder) the pass also writes its result there in lane order. per_strand:
+    the same pass inside strands.step_strands instead (fused_pass)."""
+    if per_strand:
+        return fused_pass(x, model, win.size, variant, stiffness), None
     order = order if order is not None else kernels.LaneOrder()
     if rotations is None:
         rotations = wp.zeros(win.count, dtype=wp.quat)
@@ -72,18 +74,39 @@ def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1,
     if refine:
         rotations = refined
     out = wp.zeros_like(xs)
-    if per_strand:
-        wp.launch(kernels.shape_match_strands, model.num_strands,
-                  [xs, model.inv_mass, model.strand_start, win.at, win.size, win.rest, win.offsets, rotations,
-                   centroids, variant, stiffness, out, lane_x, order, 0])
-    else:
-        wp.launch(kernels.shape_match_step, model.num_particles,
-                  [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations,
-                   centroids, variant, stiffness, model.strand_start, out, lane_x, order, 0])
+    wp.launch(kernels.shape_match_step, model.num_particles,
+              [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations,
+               centroids, variant, stiffness, model.strand_start, out, lane_x, order, 0])
     return out.numpy(), rotations
 
 
-@pytest.mark.parametrize("per_strand", [False, True], ids=["per particle", "per strand"])
+def fused_pass(x, model, size, variant, stiffness, lanes=False):
+    """The shape pass of strands.step_strands alone, a thread per strand (the CPU's): a substep that
+    neither moves x (no forces, dt irrelevant) nor lets its length pass touch it (every particle
+    counted as pinned there), with the rotations solved outright; in lane order with lanes."""
+    from sim.hair_solver import HairParams, HairSolver
+    from warp_kernels import collision
+
+    params = HairParams(shape_matching=["simplified", "full"][variant], shape_window=size, shape_stiffness=stiffness,
+                        collision="none")
+    solver = HairSolver(model, params, parts=1)
+    solver.lanes = lanes
+    lane = solver._lanes
+    slots = lane.x.shape[0] if lanes else model.num_particles
+    order = lane.order if lanes else kernels.LaneOrder()
+    xs, zero = wp.array(x, dtype=wp.vec3), wp.zeros(model.num_particles, dtype=wp.vec3)
+    out, v = wp.zeros_like(xs), wp.zeros_like(xs)
+    shaped = wp.zeros(slots, dtype=wp.vec3)
+    wp.launch(kernels.step_strands, model.num_strands,
+              [xs, zero, model.strand_start, 1 << 20, wp.vec3(0.0), wp.vec3(0.0), 0.0, 0.0, 0.0, 1.0, 1.0,
+               wp.zeros(1, dtype=float), 0.0, 1.0, 0, None, None, None, None, None, None, None, 0.0,
+               kernels.GuidePull(), size, variant, 1, stiffness, 1, 1, solver.rotations, solver.slots, 0,
+               collision.ColliderShape(), 0.0, 0.0, 0, 0.0, solver._motion[solver.whole], 0.0, solver.clearance,
+               solver.near_leaves, solver.beyond, 0.0, shaped, None, out, v, order, 0])
+    return out.numpy()
+
+
+@pytest.mark.parametrize("per_strand", [False, True], ids=["per particle", "in step_strands"])
 @pytest.mark.parametrize("variant,size", [(0, 3), (1, 3), (1, 4), (1, 6), (0, 4)])
 def test_pass_matches_float64_reference(variant, size, per_strand):
     rng = np.random.default_rng(3)
@@ -97,23 +120,25 @@ def test_pass_matches_float64_reference(variant, size, per_strand):
     assert np.abs(moved - x).max() > 1e-4  # the pass did move the perturbed strands
 
 
-@pytest.mark.parametrize("variant,size", [(0, 3), (1, 4), (0, 5)])
-def test_one_thread_per_strand_gives_the_per_particle_pass(variant, size):
-    """shape_match_strands (the CPU's) sums the same goals in the same order as shape_match_step,
-    pinned particles, strand ends and a window whose ends coincide (no direction) included."""
+@pytest.mark.parametrize("lanes", [False, True], ids=["particle order", "lane order"])
+@pytest.mark.parametrize("variant,size", [(0, 3), (1, 4), (0, 5), (1, 6)])
+def test_one_thread_per_strand_gives_the_per_particle_pass(variant, size, lanes):
+    """The shape pass inside strands.step_strands (a thread per strand, its windows solved in order
+    from the root) gives shape_match_step's result bit for bit, pinned particles, strand ends, a
+    window whose ends coincide (no direction) and strands of different lengths in lane order included."""
     rng = np.random.default_rng(11)
     model, x = groom(rng)
     x = x.copy()
     x[14] = x[12]  # the wavy strand's window from particle 12 folds back onto its start
     win = model.shape_windows(size)
     per_particle, _ = launch_pass(x, model, win, variant, stiffness=0.7)
-    per_strand, _ = launch_pass(x, model, win, variant, stiffness=0.7, per_strand=True)
-    np.testing.assert_allclose(per_strand, per_particle, rtol=0, atol=2e-7)
+    per_strand = fused_pass(x, model, size, variant, 0.7, lanes=lanes)
+    np.testing.assert_array_equal(per_strand, per_particle)
     np.testing.assert_array_equal(per_strand[model.inv_mass_np == 0], x[model.inv_mass_np == 0])
+    assert np.abs(per_strand - x).max() > 1e-4
 
 
-@pytest.mark.parametrize("per_strand", [False, True], ids=["per particle", "per strand"])
-def test_the_pass_writes_lane_order_for_the_length_pass(per_strand):
+def test_the_pass_writes_lane_order_for_the_length_pass():
     """In lane order the pass also leaves its result where follow_the_leader reads it: particle k of
     the strand in lane l at k * strands + l (strands of different lengths and out of their order,
     pinned particles included), and the slots past a strand's tip untouched."""
@@ -129,8 +154,8 @@ def test_the_pass_writes_lane_order_for_the_length_pass(per_strand):
     order = kernels.LaneOrder()
     order.lanes = model.num_strands
     order.strand_of, order.lane_of = wp.array(strand_of, dtype=wp.int32), wp.array(lane_of, dtype=wp.int32)
-    moved, _ = launch_pass(x, model, win, 1, stiffness=0.6, per_strand=per_strand, lane_x=lane_x, order=order)
-    plain, _ = launch_pass(x, model, win, 1, stiffness=0.6, per_strand=per_strand)
+    moved, _ = launch_pass(x, model, win, 1, stiffness=0.6, lane_x=lane_x, order=order)
+    plain, _ = launch_pass(x, model, win, 1, stiffness=0.6)
     np.testing.assert_array_equal(moved, plain)
     strand = model.particle_strand_np
     slot = (np.arange(model.num_particles) - model.strand_start_np[strand]) * model.num_strands + lane_of[strand]
