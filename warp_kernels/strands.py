@@ -13,9 +13,9 @@ Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launche
 In lane order (lane_slot, a GPU's) predict_positions and the last shape pass also leave the length
 pass's inputs in that order, and follow_the_leader writes its results back in particle order.
 
-step_strands is the whole sequence from root_frames to follow_the_leader in one launch, a thread per
-strand (after anchor_frame and contact_motion, and the tree walks queued ahead from the start
-positions), with the same strands bit for bit; the launches apart serve guides.
+step_strands is the whole sequence from root_frames to follow_the_leader in one launch, guides
+included, a thread per strand (after anchor_frame and contact_motion, and the tree walks queued ahead
+from the start positions), with the same strands bit for bit.
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
 (window goals, root positions, FTL corrections) is recomputed or carried in registers instead,
