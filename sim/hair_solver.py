@@ -321,7 +321,10 @@ class HairSolver:
 
         part: one of self.parts (a StrandRange) steps only those strands; every launch touches only
         their particles and windows, so the parts of one substep may run at the same time (on the
-        CPU's cores: sim.graphs.FrameGraphs.parallel). Each substep must step every part."""
+        CPU's cores: sim.graphs.FrameGraphs.parallel). Each substep must step every part.
+
+        With self.fused (the CPU's default) the substep is one launch per part after the collider's
+        motion (strands.step_strands), with the same strands bit for bit as the launches below."""
         m, p, dev = self.model, self.params, self.model.device
         r = part if part is not None else self.whole
         offset = float(time - self._clock_time)
