@@ -203,7 +203,7 @@ class HairSolver:
         self.clock = wp.zeros(1, dtype=float, device=device)
         self._clock_time = 0.0
         self.comb = None  # a sim.comb.CombGrip holding strands, or None
-        self._pulls = {}  # the last strands.GuidePull made (_pull)
+        self._pulled = None  # (guides, dt, rate, strands.GuidePull) last made by _pull
 
     @property
     def lanes(self):
@@ -253,15 +253,20 @@ class HairSolver:
                                  wp.zeros(slots, dtype=wp.vec3, device=dev), in_lanes(m.inv_mass.numpy()),
                                  in_lanes(m.rest_length_np))
         # what strands.step_strands reads per particle and per window, in the length pass's order
-        self.slots = self._strand_slots(self._lanes.slot if on else np.arange(m.num_particles), slots)
+        self._slot_of = (self._lanes.slot if on else np.arange(m.num_particles), slots)
+        self.slots = self._strand_slots()
         self.clearance = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
         self.near_leaves = wp.full(slots, wp.vec4i(-1, -1, -1, -1), dtype=wp.vec4i, device=dev)
         self.beyond = wp.full(slots, strands.NO_BOUND, dtype=float, device=dev)
         self._short = wp.zeros(slots, dtype=wp.int32, device=dev)  # strands.find_short_lists' queue
 
-    def _strand_slots(self, slot, slots):
-        """strands.StrandSlots with each particle's values at slot[particle], of `slots` elements."""
+    def _strand_slots(self):
+        """strands.StrandSlots with each particle's values at its slot (self._slot_of: each particle's
+        slot, and the number of slots). The groomed offsets are the model's at this call
+        (self._slots_root_local): a later bind_to_mesh makes _step_fused build them again."""
         m, dev, win = self.model, self.model.device, self.windows
+        slot, slots = self._slot_of
+        self._slots_root_local = getattr(m, "root_local", None)
 
         def arranged(values, dtype, fill=0):
             values = np.asarray(values)
@@ -274,7 +279,7 @@ class HairSolver:
         per.inv_mass = arranged(m.inv_mass.numpy(), float)
         per.rest_length = arranged(m.rest_length_np, float)
         per.hold = arranged(self.hold.numpy(), float)
-        local = m.root_local.numpy() if getattr(m, "root_local", None) is not None else np.zeros((m.num_particles, 3))
+        local = self._slots_root_local.numpy() if self._slots_root_local is not None else np.zeros((m.num_particles, 3))
         per.root_local = arranged(local.astype(np.float32), wp.vec3)
         per.window_at = arranged(win.at_np.astype(np.int32), wp.int32, fill=-1)
         # each window's size values at the slot of its first particle, the k-th at k * slots + that slot
@@ -350,10 +355,9 @@ class HairSolver:
                       [c.points, c.indices, m.bind_triangle, m.bind_barycentric, m.bind_local, m.root_binding,
                        self.root_origin, self.root_frame, r.first_strand], device=dev)
         wp.launch(strands.predict_positions, r.particles,
-                  [state_in.x, state_in.v, m.inv_mass, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.air_drag,
-                   p.damping, p.wind_turbulence, p.wind_turbulence_scale, p.wind_turbulence_rate, self.clock,
-                   offset, dt, int(bound), c.points if bound else None, c.indices if bound else None,
-                   m.particle_binding if bound else None, m.bind_triangle if bound else None,
+                  [state_in.x, state_in.v, m.inv_mass, self._forces(), self.clock, offset, dt, int(bound),
+                   c.points if bound else None, c.indices if bound else None, m.particle_binding if bound else None,
+                   m.bind_triangle if bound else None,
                    m.bind_barycentric if bound else None, m.bind_local if bound else None, m.particle_strand,
                    self.root_origin, self.root_frame, m.root_local if bound else None, self.hold, hold,
                    m.strand_start, predicted, state_out.v, lane.prev if lanes else None, order, r.first_particle],
@@ -407,14 +411,24 @@ class HairSolver:
                    p.ftl_damping, dt, state_out.x, state_out.v, order, r.first_strand], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
+    def _forces(self):
+        """The parameters' forces as the kernels take them (strands.StrandForces)."""
+        p = self.params
+        forces = strands.StrandForces()
+        forces.gravity, forces.wind = wp.vec3(*p.gravity), wp.vec3(*p.wind)
+        forces.air_drag, forces.damping = p.air_drag, p.damping
+        forces.turbulence, forces.turbulence_scale = p.wind_turbulence, p.wind_turbulence_scale
+        forces.turbulence_rate = p.wind_turbulence_rate
+        return forces
+
     def _pull(self, guides, dt):
-        """The guides' strands.GuidePull for substeps of dt (stiffness 0: none), kept per guides and dt."""
+        """The guides' strands.GuidePull for substeps of dt (stiffness 0: none), kept for the last
+        guides, dt and rate asked for."""
         rate = self.params.guide_stiffness if guides is not None else 0.0
-        key = (id(guides), dt)
-        if self._pulls.get("key") != key:
+        if self._pulled is None or self._pulled[:3] != (guides, dt, rate):
             pull = guides.pull(1.0 - np.exp(-rate * dt)) if rate > 0.0 else strands.GuidePull()
-            self._pulls = {"key": key, "pull": pull, "guides": guides}
-        return self._pulls["pull"]
+            self._pulled = (guides, dt, rate, pull)
+        return self._pulled[3]
 
     def _measure_motion(self, c, mode, r):
         """How the collider moved near range r this substep (strands.contact_motion), for the contact
@@ -446,6 +460,8 @@ class HairSolver:
         motion = self._measure_motion(c, mode, r)
         bound = m.bind_particle is not None and c is not None
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
+        if getattr(m, "root_local", None) is not self._slots_root_local:
+            self.slots = self._strand_slots()  # bound to a mesh since the slots were made
         lane = self._lanes
         order = lane.order if lane is not None else self._particle_order
         # the last pass reads `shaped`; in particle order that is state_out.x itself, which the length
@@ -465,9 +481,8 @@ class HairSolver:
                        order, 1, self.clearance, self.near_leaves, self.beyond], device=dev)
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.step_strands, r.strands,
-                  [state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, wp.vec3(*p.gravity),
-                   wp.vec3(*p.wind), p.air_drag, p.damping, p.wind_turbulence, p.wind_turbulence_scale,
-                   p.wind_turbulence_rate, self.clock, offset, dt, int(bound), c.points if bound else None,
+                  [state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(), self.clock,
+                   offset, dt, int(bound), c.points if bound else None,
                    c.indices if bound else None, m.particle_binding if bound else None,
                    m.bind_triangle if bound else None, m.bind_barycentric if bound else None,
                    m.bind_local if bound else None, m.root_binding if bound else None, hold if bound else 0.0,

@@ -98,8 +98,8 @@ def fused_pass(x, model, size, variant, stiffness, lanes=False):
     out, v = wp.zeros_like(xs), wp.zeros_like(xs)
     shaped = wp.zeros(slots, dtype=wp.vec3)
     wp.launch(kernels.step_strands, model.num_strands,
-              [xs, zero, model.strand_start, 1 << 20, wp.vec3(0.0), wp.vec3(0.0), 0.0, 0.0, 0.0, 1.0, 1.0,
-               wp.zeros(1, dtype=float), 0.0, 1.0, 0, None, None, None, None, None, None, None, 0.0,
+              [xs, zero, model.strand_start, 1 << 20, kernels.StrandForces(), wp.zeros(1, dtype=float), 0.0, 1.0, 0,
+               None, None, None, None, None, None, None, 0.0,
                kernels.GuidePull(), size, variant, 1, stiffness, 1, 1, solver.rotations, solver.slots, 0,
                collision.ColliderShape(), 0.0, 0.0, 0, 0.0, solver._motion[solver.whole], 0.0, solver.clearance,
                solver.near_leaves, solver.beyond, 0.0, shaped, None, out, v, order, 0])

@@ -84,18 +84,36 @@ def lane_slot(start: int, lane: int, k: int, lanes: int):
     return start + k
 
 
+@wp.struct
+class StrandForces:
+    """What moves free hair particles in the prediction (predicted_position): gravity, air drag
+    toward a wind with optional gusts of smooth noise in space and time, and damping.
+
+    Fields:
+      gravity (vec3, m/s^2): acceleration of gravity, e.g. (0, -9.81, 0)
+      wind (vec3, m/s): mean air velocity
+      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
+      damping (float, 1/s): rate at which velocity decays
+      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
+      turbulence_scale (float, 1/m): spatial frequency of the gusts
+      turbulence_rate (float, 1/s): how fast the gust pattern changes
+    """
+
+    gravity: wp.vec3
+    wind: wp.vec3
+    air_drag: float
+    damping: float
+    turbulence: float
+    turbulence_scale: float
+    turbulence_rate: float
+
+
 @wp.func(inline=True)
 def predicted_position(
     p: wp.vec3,
     vel: wp.vec3,
     inv_mass: float,
-    gravity: wp.vec3,
-    wind: wp.vec3,
-    air_drag: float,
-    damping: float,
-    turbulence: float,
-    turbulence_scale: float,
-    turbulence_rate: float,
+    forces: StrandForces,
     time: float,
     dt: float,
     mesh_points: wp.array(dtype=wp.vec3),
@@ -115,13 +133,7 @@ def predicted_position(
       p (vec3, m): position at the start of the substep
       vel (vec3, m/s): velocity at the start of the substep
       inv_mass (float): 0 marks a pinned particle
-      gravity (vec3, m/s^2): acceleration of gravity
-      wind (vec3, m/s): mean air velocity
-      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
-      damping (float, 1/s): rate at which velocity decays
-      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
-      turbulence_scale (float, 1/m): spatial frequency of the gusts
-      turbulence_rate (float, 1/s): how fast the gust pattern changes
+      forces (StrandForces): gravity, wind with its gusts, drag and damping
       time (float, s): the gusts' time
       dt (float, s): substep length
       mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep; read
@@ -142,21 +154,21 @@ def predicted_position(
         if binding >= 0:
             p = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, binding)
     else:
-        air = wind
-        if turbulence > 0.0:
+        air = forces.wind
+        if forces.turbulence > 0.0:
             # gusts: smooth noise in space and time scaled by the mean wind speed
-            q = p * turbulence_scale
-            t = time * turbulence_rate
-            speed = wp.length(wind)
+            q = p * forces.turbulence_scale
+            t = time * forces.turbulence_rate
+            speed = wp.length(forces.wind)
             state = wp.rand_init(7)
             gust = wp.vec3(
                 wp.noise(state, wp.vec4(q[0], q[1], q[2], t)),
                 wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], t)),
                 wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], t)),
             )
-            air = wind + gust * (turbulence * speed)
-        vel = vel + dt * (gravity + air_drag * (air - vel))
-        vel = vel * wp.max(0.0, 1.0 - damping * dt)
+            air = forces.wind + gust * (forces.turbulence * speed)
+        vel = vel + dt * (forces.gravity + forces.air_drag * (air - vel))
+        vel = vel * wp.max(0.0, 1.0 - forces.damping * dt)
         p = p + dt * vel
     if weight > 0.0:
         p = p + weight * (target - p)
@@ -168,13 +180,7 @@ def predict_positions(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
-    gravity: wp.vec3,
-    wind: wp.vec3,
-    air_drag: float,
-    damping: float,
-    turbulence: float,
-    turbulence_scale: float,
-    turbulence_rate: float,
+    forces: StrandForces,
     clock: wp.array(dtype=float),
     time_offset: float,
     dt: float,
@@ -216,13 +222,7 @@ def predict_positions(
       x (vec3, per particle, m): positions at the start of the substep
       v (vec3, per particle, m/s): velocities at the start of the substep
       inv_mass (float, per particle): 0 marks pinned particles; other values are not used as masses
-      gravity (vec3, m/s^2): acceleration of gravity, e.g. (0, -9.81, 0)
-      wind (vec3, m/s): mean air velocity
-      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
-      damping (float, 1/s): rate at which velocity decays
-      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
-      turbulence_scale (float, 1/m): spatial frequency of the gusts
-      turbulence_rate (float, 1/s): how fast the gust pattern changes
+      forces (StrandForces): gravity, wind with its gusts, drag and damping
       clock (float, 1 element, s): device clock
       time_offset (float, s): time of this substep relative to clock[0]
       dt (float, s): substep length
@@ -265,8 +265,7 @@ def predict_positions(
         if weight > 0.0:
             s = particle_strand[i]
             target = root_origin[s] + root_frame[s] * root_local[i]
-    p, vel = predicted_position(p, v[i], inv_mass[i], gravity, wind, air_drag, damping, turbulence, turbulence_scale,
-                                turbulence_rate, clock[0] + time_offset, dt, mesh_points, mesh_indices, binding,
+    p, vel = predicted_position(p, v[i], inv_mass[i], forces, clock[0] + time_offset, dt, mesh_points, mesh_indices, binding,
                                 bind_triangle, bind_barycentric, bind_local, target, weight)
     x_out[i] = p
     v_out[i] = vel
@@ -1506,13 +1505,7 @@ def predict_strand(
     first: int,
     stride: int,
     count: int,
-    gravity: wp.vec3,
-    wind: wp.vec3,
-    air_drag: float,
-    damping: float,
-    turbulence: float,
-    turbulence_scale: float,
-    turbulence_rate: float,
+    forces: StrandForces,
     time: float,
     dt: float,
     bound: int,
@@ -1543,13 +1536,7 @@ def predict_strand(
       first (int, index): the slot of the strand's first particle
       stride (int): slots from one particle to the next (window_centroid)
       count (int): the strand's particles
-      gravity (vec3, m/s^2): acceleration of gravity
-      wind (vec3, m/s): mean air velocity
-      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
-      damping (float, 1/s): rate at which velocity decays
-      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
-      turbulence_scale (float, 1/m): spatial frequency of the gusts
-      turbulence_rate (float, 1/s): how fast the gust pattern changes
+      forces (StrandForces): gravity, wind with its gusts, drag and damping
       time (float, s): the gusts' time
       dt (float, s): substep length
       bound (int, flag): non-zero when the strand is bound to the collider
@@ -1585,8 +1572,7 @@ def predict_strand(
             weight = per.hold[slot] * hold_stiffness
             if weight > 0.0:
                 target = origin + frame * per.root_local[slot]
-        p, _vel = predicted_position(x[i], v[i], inv_mass, gravity, wind, air_drag, damping, turbulence,
-                                     turbulence_scale, turbulence_rate, time, dt, mesh_points, mesh_indices, binding,
+        p, _vel = predicted_position(x[i], v[i], inv_mass, forces, time, dt, mesh_points, mesh_indices, binding,
                                      bind_triangle, bind_barycentric, bind_local, target, weight)
         if k == 0:
             root = p
@@ -1602,13 +1588,7 @@ def step_strands(
     v: wp.array(dtype=wp.vec3),
     strand_start: wp.array(dtype=wp.int32),
     pinned_per_strand: int,
-    gravity: wp.vec3,
-    wind: wp.vec3,
-    air_drag: float,
-    damping: float,
-    turbulence: float,
-    turbulence_scale: float,
-    turbulence_rate: float,
+    forces: StrandForces,
     clock: wp.array(dtype=float),
     time_offset: float,
     dt: float,
@@ -1672,13 +1652,7 @@ def step_strands(
       v (vec3, per particle, m/s): velocities at the start of the substep
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
-      gravity (vec3, m/s^2): acceleration of gravity
-      wind (vec3, m/s): mean air velocity
-      air_drag (float, 1/s): rate at which velocity is pulled toward the local wind
-      damping (float, 1/s): rate at which velocity decays
-      turbulence (float, fraction of the wind speed): gust strength; 0 turns gusts off
-      turbulence_scale (float, 1/m): spatial frequency of the gusts
-      turbulence_rate (float, 1/s): how fast the gust pattern changes
+      forces (StrandForces): gravity, wind with its gusts, drag and damping
       clock (float, 1 element, s): device clock
       time_offset (float, s): time of this substep relative to clock[0]
       dt (float, s): substep length
@@ -1749,13 +1723,11 @@ def step_strands(
     # every pass but the last ping-pongs between spare and shaped, ending in shaped
     inner = wp.max(passes - 1, 0)
     if inner % 2 == 0:
-        predict_strand(x, v, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
-                       turbulence_scale, turbulence_rate, time, dt, bound, mesh_points, mesh_indices,
+        predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
                        particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
                        per, pull, s, guide_frame, guide_next, guide_weight, shaped)
     else:
-        predict_strand(x, v, start, base, stride, count, gravity, wind, air_drag, damping, turbulence,
-                       turbulence_scale, turbulence_rate, time, dt, bound, mesh_points, mesh_indices,
+        predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
                        particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
                        per, pull, s, guide_frame, guide_next, guide_weight, spare)
     for n in range(inner):
