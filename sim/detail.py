@@ -11,13 +11,19 @@ holds it on the device and evaluates it each frame with three launches.
 """
 
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 import warp as wp
 
 from warp_kernels import detail as kernels
 
+from .graphs import cpu_cores, run_parallel
+
 KIND_VERTEX, KIND_EDGE, KIND_INTERIOR = 0, 1, 2
+# a level of the lift with at least this many samples per CPU core is split among the cores: smaller
+# ones cost less than handing work to another thread
+SPLIT_SAMPLES = 1024
 # coarser samples whose clearances bound a detail sample's (the lift's gate; a wp.vec4i each)
 BOUNDED_BY = 4
 
@@ -290,6 +296,7 @@ class ClothDetail:
         self.coarser = arr(top.coarser.astype(np.int32), wp.vec4i)
         self.levels = [arr(top.level_order[top.level_start[k]:top.level_start[k + 1]].astype(np.int32), wp.int32)
                        for k in range(len(top.level_steps))]
+        self.split_levels(1 if wp.get_device(device).is_cuda else cpu_cores())
         start, adj = top.detail_vertex_neighbours()
         self.nbr_start, self.nbr = arr(start.astype(np.int32), wp.int32), arr(adj.astype(np.int32), wp.int32)
         t = top.triangles.reshape(-1)
@@ -348,7 +355,19 @@ class ClothDetail:
         self.side = 1.0  # +1 when the garment's winding faces away from the body, -1 when it faces it
         self._side_known = False
         self.uncompressed = z(nt, wp.int32)
-        self.queries = z(2, wp.int32)  # samples tested, BVH queries among them
+
+    def split_levels(self, parts, min_samples=SPLIT_SAMPLES):
+        """Split each level of the lift into up to `parts` runs of at least min_samples samples
+        (self.level_parts), which a captured CPU frame replays on as many cores at once (a level's
+        samples read only coarser levels' results). One part on a GPU, where a launch fills the device."""
+        self.level_parts = []
+        for level in self.levels:
+            edges = np.linspace(0, len(level), max(1, min(parts, len(level) // max(min_samples, 1))) + 1)
+            edges = edges.round().astype(int)
+            self.level_parts.append([level[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)])
+        # samples tested and BVH queries among them, a pair per part (parts on different cores would
+        # lose each other's counts in one pair)
+        self.queries = wp.zeros(2 * max(len(p) for p in self.level_parts), dtype=wp.int32, device=self.device)
 
     @staticmethod
     def _polyline_lengths(p, grid, edge_face, edge_side, n):
@@ -380,14 +399,15 @@ class ClothDetail:
             self._side_known = True
         if body is not None:
             adj, walk = body.adjacency(), cloth_model.params
-            for level, spread in zip(self.levels, self.level_spread, strict=True):
+            for parts, spread in zip(self.level_parts, self.level_spread, strict=True):
                 reach = p.margin + max(p.band, 1.25 * spread)
-                wp.launch(kernels.lift_out_of_body, len(level),
-                          [base, pn_normals, level, self.coarser, body.mesh.id,
-                           body.points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face,
-                           adj.concave, walk.walk_steps, walk.teleport, walk.walk_trust_distance, self.side, p.margin,
-                           reach, self.height, self.clearance, self.body_vertex, self.probe_point, self.queries],
-                          device=dev)
+                run_parallel([partial(wp.launch, kernels.lift_out_of_body, len(part),
+                                      [base, pn_normals, part, self.coarser, body.mesh.id,
+                                       body.points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face,
+                                       adj.concave, walk.walk_steps, walk.teleport, walk.walk_trust_distance,
+                                       self.side, p.margin, reach, self.height, self.clearance, self.body_vertex,
+                                       self.probe_point, self.queries[2 * k:2 * k + 2]], device=dev)
+                              for k, part in enumerate(parts)])
         wp.launch(kernels.displace_along_directions, nv, [base, pn_normals, self.side, self.height, self.positions],
                   device=dev)
         wp.launch(kernels.surface_vertex_normals, nv,
@@ -440,12 +460,17 @@ class ClothDetail:
                                                   self.height, self.height_tmp], device=dev)
         wp.copy(self.height, self.height_tmp)
 
+    def query_counts(self):
+        """(samples tested, BVH queries among them) in the last update, summed over the parts."""
+        counts = self.queries.numpy()
+        return int(counts[0::2].sum()), int(counts[1::2].sum())
+
     def query_fraction(self):
         """Share of detail vertices the hierarchical penetration test tested in the last update."""
-        return int(self.queries.numpy()[0]) / max(1, self.surface.topology.num_vertices)
+        return self.query_counts()[0] / max(1, self.surface.topology.num_vertices)
 
     def bvh_fraction(self):
         """Share of the last update's tested detail vertices that the body's BVH decided (the rest
         walked over its vertices)."""
-        tested, bvh = self.queries.numpy()
-        return int(bvh) / max(1, int(tested))
+        tested, bvh = self.query_counts()
+        return bvh / max(1, tested)

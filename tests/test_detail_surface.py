@@ -4,6 +4,7 @@ import numpy as np
 
 from sim.cloth import ClothModel, ClothParams, ClothSolver
 from sim.detail import ClothDetail, DetailParams
+from sim.graphs import FrameGraphs
 from test_cloth import grid, sphere_body
 
 
@@ -75,6 +76,28 @@ def test_detail_surface_ends_outside_the_body_and_the_hierarchy_saves_queries():
     np.testing.assert_allclose(np.linalg.norm(normals.numpy(), axis=1), 1.0, atol=1e-5)
 
 
+def test_a_level_split_over_the_cores_lifts_the_same_surface_as_one_launch():
+    """The lift's levels split into parts that a captured CPU frame replays on threads at once give
+    the same surface, bit for bit, and the same counts as one launch per level."""
+    body, model, state = _draped_over_ball()
+    surfaces = []
+    for parts in (1, 3):
+        detail = ClothDetail(model, DetailParams(), "cpu")
+        detail.split_levels(parts, min_samples=100)
+        assert max(len(p) for p in detail.level_parts) == parts
+        graphs = FrameGraphs("cpu")
+        counts = []
+        for _ in range(3):  # eager, captured, replayed
+            graphs.run("detail", lambda detail=detail: detail.update(model, state, body, 1.0 / 24.0))
+            counts.append(detail.query_counts())
+        assert graphs.replays == 2
+        surfaces.append((detail.positions.numpy(), detail.height.numpy(), counts))
+    (x1, h1, c1), (x3, h3, c3) = surfaces
+    assert c1 == c3 and c1[0][0] > 0
+    np.testing.assert_array_equal(x1, x3)
+    np.testing.assert_array_equal(h1, h3)
+
+
 def test_lifting_walks_over_the_body_and_leaves_lifted_samples_at_the_margin():
     # every walk trusted however far it ends, so only a missing start sends a test to the BVH
     body, model, state = _draped_over_ball(walk_trust_distance=1.0)
@@ -84,7 +107,7 @@ def test_lifting_walks_over_the_body_and_leaves_lifted_samples_at_the_margin():
         before = detail.height.numpy().copy()
         detail.update(model, state, body, 1.0 / 24.0)
         sd = body.signed_distance(detail.positions.numpy().astype(np.float64), max_dist=0.05)
-        tested, bvh = detail.queries.numpy()
+        tested, bvh = detail.query_counts()
         # the samples tested: the corners, and those for which no listed coarser sample's clearance
         # less their distance apart clears the margin (the kernel's gate, recomputed; nothing moved
         # after the first update's lifts, so the positions are those the gate saw)
