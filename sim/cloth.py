@@ -333,19 +333,20 @@ class ClothSolver:
                    m.bind_barycentric if pins else None, m.bind_local if pins else None, dt, self.step_count],
                   device=dev)
         # RK4 on y = (x, v): stages at 0, dt/2, dt/2, dt, each a full force evaluation; stage states
-        # ping-pong between two buffer pairs because neighbours read a stage while it is replaced
+        # ping-pong between two buffer pairs because neighbours read a stage while it is replaced, and
+        # the last stage closes the step into state_out
         x0, v0 = state_in.x, state_in.v
         xs, vs = x0, v0
         buffers = ((self.x_stage, self.v_stage), (self.x_scratch, self.v_scratch))
         for k, (weight, h_next) in enumerate(((1.0, 0.5 * dt), (2.0, 0.5 * dt), (2.0, dt), (1.0, 0.0))):
-            xn, vn = buffers[k % 2]
+            last = k == 3
+            xn, vn = (state_out.x, state_out.v) if last else buffers[k % 2]
             wp.launch(kernels.rk4_stage, n,
                       [x0, v0, xs, vs, m.inv_mass, m.drag, m.adj_start, m.adj_other, m.adj_rest, m.adj_k_stretch,
                        m.adj_k_compress, m.adj_damping,
-                       wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, weight, h_next, self.acc_x, self.acc_v,
-                       xn, vn], device=dev)
+                       wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, weight, h_next, dt if last else 0.0,
+                       self.acc_x, self.acc_v, xn, vn], device=dev)
             xs, vs = xn, vn
-        wp.launch(kernels.rk4_finish, n, [x0, v0, self.acc_x, self.acc_v, dt, state_out.x, state_out.v], device=dev)
         if body is not None:
             adj = body.adjacency()
             limit = p.strain_limit > 0.0
@@ -369,17 +370,24 @@ class ClothSolver:
                    state.follow_local], device=m.device)
 
     def _limit_strain(self, state, dt):
+        """The strain limit's passes on state.x, ping-ponging through the scratch buffers so that the
+        last writes state.x, which until then holds the positions before the first (the last pass's
+        velocity correction reads them)."""
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
-        wp.copy(self.x_stage, state.x)
-        src, dst = state.x, self.x_scratch
-        for _ in range(p.strain_iterations):
+        passes = p.strain_iterations
+        start = state.x
+        if passes == 1:  # the one pass cannot read and write state.x
+            wp.copy(self.x_stage, state.x)
+            start = self.x_stage
+        src, spare = start, self.x_scratch
+        for k in range(passes):
+            last = k == passes - 1
+            dst = state.x if last else spare
             wp.launch(kernels.limit_strain, n,
                       [src, m.inv_mass, m.adj_start, m.adj_spring, m.spring_i, m.spring_j, m.spring_rest,
-                       m.spring_limited, p.strain_limit, dst], device=dev)
-            src, dst = dst, src
-        if src is not state.x:
-            wp.copy(state.x, src)
-        wp.launch(kernels.velocity_from_correction, n, [self.x_stage, state.x, dt, state.v], device=dev)
+                       m.spring_limited, p.strain_limit, start, dt if last else 0.0, state.v, dst], device=dev)
+            # the pass's input becomes the next one's spare, except state.x, which only the last writes
+            src, spare = dst, (self.x_stage if src is state.x else src)
 
     def count_unhealthy(self, state):
         """Launch the count of non-finite or too fast particles without waiting: (count, first

@@ -125,6 +125,58 @@ def grid(n, size, height):
     return pts, tris, edges, shear, bend
 
 
+def _strain_limited_reference(x, v, pairs, rest, limited, inv_mass, max_stretch, passes, dt):
+    """limit_strain's Jacobi passes and their velocity correction in float64."""
+    x0 = x.copy()
+    for _ in range(passes):
+        corr, count = np.zeros_like(x), np.zeros(len(x))
+        for (i, j), r, on in zip(pairs, rest, limited, strict=True):
+            d = x[i] - x[j]
+            length = np.linalg.norm(d)
+            limit = r * (1.0 + max_stretch)
+            if on and length > limit:
+                for a, b, sign in ((i, j, 1.0), (j, i, -1.0)):
+                    if inv_mass[a] > 0.0:
+                        corr[a] -= sign * inv_mass[a] / (inv_mass[a] + inv_mass[b]) * (length - limit) * d / length
+                        count[a] += 1.0
+        moved = count > 0
+        x = x.copy()
+        x[moved] += corr[moved] / count[moved, None]
+    return x, v + (x - x0) / dt
+
+
+@pytest.mark.parametrize("passes", [1, 2, 3, 4])
+def test_strain_limit_passes_match_a_float64_reference(passes):
+    """Any number of passes ends in the state's own buffers with the velocities corrected by the
+    whole displacement, as the float64 reference; over-stretched edges shorten, pinned corners stay."""
+    pts, tris, edges, shear, bend = grid(7, 0.3, 0.0)
+    model = ClothModel(pts, tris, edges, shear, bend, [0, 6], ClothParams(strain_limit=0.03, strain_iterations=passes))
+    rng = np.random.default_rng(passes)
+    x = pts * np.array([1.12, 1.0, 1.05]) + rng.normal(0.0, 0.004, pts.shape)
+    x[[0, 6]] = pts[[0, 6]]
+    v = rng.normal(0.0, 0.1, pts.shape)
+    state = model.state()
+    x_buffer = state.x
+    state.x.assign(x.astype(np.float32))
+    state.v.assign(v.astype(np.float32))
+    dt = 1.0 / 600.0
+    ClothSolver(model)._limit_strain(state, dt)
+    assert state.x is x_buffer
+    limited = model.spring_limited.numpy() != 0
+    x32, v32 = x.astype(np.float32).astype(np.float64), v.astype(np.float32).astype(np.float64)
+    want_x, want_v = _strain_limited_reference(x32, v32, model.spring_pairs_np, model.spring_rest_np, limited,
+                                               model.inv_mass_np, 0.03, passes, dt)
+    np.testing.assert_allclose(state.x.numpy(), want_x, atol=2e-7)
+    np.testing.assert_allclose(state.v.numpy(), want_v, atol=2e-7 / dt)
+    np.testing.assert_array_equal(state.x.numpy()[[0, 6]], x32[[0, 6]])
+
+    def worst(p):
+        e = model.spring_pairs_np[limited]
+        return (np.linalg.norm(p[e[:, 0]] - p[e[:, 1]], axis=1) / model.spring_rest_np[limited]).max() - 1.0
+
+    assert worst(x) > 0.1 and worst(want_x) < worst(x)
+
+
 def test_cloth_draped_on_a_ball_ends_outside_it():
     body = sphere_body()
     pts, tris, edges, shear, bend = grid(20, 0.9, 0.35)

@@ -7,9 +7,9 @@ force pass writes each particle once with no atomics and gives the same result o
 Step order (composed by sim.cloth.ClothSolver), the body posed for the end of the step:
 
     begin_step (following the body, pinned particles' velocities, step counter)
-    -> rk4_stage x 4 -> rk4_finish
+    -> rk4_stage x 4 (the last closes the step)
     -> body_collide
-    -> [limit_strain x passes -> velocity_from_correction -> body_collide] (with strain limiting)
+    -> [limit_strain x passes (the last corrects the velocities) -> body_collide] (with strain limiting)
 """
 
 # float(0.0), int(0) and bool(False) declare variables that a kernel reassigns (Warp treats a
@@ -167,6 +167,7 @@ def rk4_stage(
     damping: float,
     weight: float,
     h_next: float,
+    close_dt: float,
     acc_x: wp.array(dtype=wp.vec3),
     acc_v: wp.array(dtype=wp.vec3),
     x_next: wp.array(dtype=wp.vec3),
@@ -177,7 +178,9 @@ def rk4_stage(
     Evaluates the slope k = f(stage state), adds it to the accumulators with the stage's weight and
     writes the next stage's state y0 + h_next * k. Force evaluation and stage update are fused so the
     stage state is read once. Launch it four times per step with (weight, h_next) = (1, dt/2),
-    (2, dt/2), (2, dt), (1, 0), ping-ponging the stage buffers, then rk4_finish.
+    (2, dt/2), (2, dt), (1, 0), ping-ponging the stage buffers; the last (close_dt = dt) closes the
+    step instead, y1 = y0 + dt/6 * (k1 + 2 k2 + 2 k3 + k4), and clears the accumulators for the next
+    step, so a step needs no launch of its own to finish.
 
     Launch: one thread per particle (dim = num_particles).
     Inputs:
@@ -197,62 +200,41 @@ def rk4_stage(
       wind (vec3, m/s): air velocity that the drag pulls toward
       damping (float, 1/s): global velocity damping
       weight (float): RK4 weight of this stage's slope: 1, 2, 2, 1
-      h_next (float, s): time from the step's start to the next stage: dt/2, dt/2, dt, then 0
+      h_next (float, s): time from the step's start to the next stage: dt/2, dt/2, dt (unread when
+          close_dt > 0)
+      close_dt (float, s): 0 for the first three stages; the step length dt in the last, which closes it
     In/out:
-      acc_x (vec3, per particle, m/s): weighted sum of the stages' velocities; zero before the first stage
-      acc_v (vec3, per particle, m/s^2): weighted sum of the stages' accelerations; zero before the first
-          stage
+      acc_x (vec3, per particle, m/s): weighted sum of the stages' velocities; zero before the first
+          stage, and zero again after the last
+      acc_v (vec3, per particle, m/s^2): weighted sum of the stages' accelerations; as acc_x
     Outputs:
-      x_next (vec3, per particle, m): positions of the next stage; must not alias xs, which neighbours
-          are still reading
-      v_next (vec3, per particle, m/s): velocities of the next stage; must not alias vs
+      x_next (vec3, per particle, m): positions of the next stage, or at the end of the step when
+          close_dt > 0; must not alias xs, which neighbours are still reading
+      v_next (vec3, per particle, m/s): velocities likewise; must not alias vs
     """
     p = wp.tid()
     kv = particle_acceleration(p, xs, vs, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch, adj_k_compress,
                                adj_damping, gravity, wind, damping)
     kx = vs[p]
-    x_next[p] = x0[p] + h_next * kx
-    v_next[p] = v0[p] + h_next * kv
-    acc_x[p] = acc_x[p] + weight * kx
-    acc_v[p] = acc_v[p] + weight * kv
+    sum_x = acc_x[p] + weight * kx
+    sum_v = acc_v[p] + weight * kv
+    if close_dt > 0.0:
+        x_next[p] = x0[p] + (close_dt / 6.0) * sum_x
+        v_next[p] = v0[p] + (close_dt / 6.0) * sum_v
+        acc_x[p] = wp.vec3(0.0)
+        acc_v[p] = wp.vec3(0.0)
+    else:
+        x_next[p] = x0[p] + h_next * kx
+        v_next[p] = v0[p] + h_next * kv
+        acc_x[p] = sum_x
+        acc_v[p] = sum_v
 
 
-@wp.kernel
-def rk4_finish(
-    x0: wp.array(dtype=wp.vec3),
-    v0: wp.array(dtype=wp.vec3),
-    acc_x: wp.array(dtype=wp.vec3),
-    acc_v: wp.array(dtype=wp.vec3),
-    dt: float,
-    x1: wp.array(dtype=wp.vec3),
-    v1: wp.array(dtype=wp.vec3),
-):
-    """Close an RK4 step: y1 = y0 + dt/6 * (k1 + 2 k2 + 2 k3 + k4), then clear the accumulators.
-
-    Clearing them here saves a separate zeroing launch before the next step's first stage.
-
-    Launch: one thread per particle (dim = num_particles).
-    Inputs:
-      x0 (vec3, per particle, m): positions at the start of the step
-      v0 (vec3, per particle, m/s): velocities at the start of the step
-      dt (float, s): step length
-    In/out:
-      acc_x (vec3, per particle, m/s): weighted velocity sum of the four stages; zero on return
-      acc_v (vec3, per particle, m/s^2): weighted acceleration sum of the four stages; zero on return
-    Outputs:
-      x1 (vec3, per particle, m): positions at the end of the step
-      v1 (vec3, per particle, m/s): velocities at the end of the step
-    """
-    p = wp.tid()
-    x1[p] = x0[p] + (dt / 6.0) * acc_x[p]
-    v1[p] = v0[p] + (dt / 6.0) * acc_v[p]
-    acc_x[p] = wp.vec3(0.0)
-    acc_v[p] = wp.vec3(0.0)
-
-
-@wp.kernel
-def limit_strain(
+@wp.func
+def strain_corrected(
+    p: int,
     x: wp.array(dtype=wp.vec3),
+    w: float,
     inv_mass: wp.array(dtype=float),
     adj_start: wp.array(dtype=wp.int32),
     adj_spring: wp.array(dtype=wp.int32),
@@ -261,34 +243,24 @@ def limit_strain(
     spring_rest: wp.array(dtype=float),
     spring_limited: wp.array(dtype=wp.int32),
     max_stretch: float,
-    x_out: wp.array(dtype=wp.vec3),
 ):
-    """One Jacobi pass of strain limiting: over-stretched edges are shortened to (1 + max_stretch) rest.
+    """Particle p moved by the mean of its over-stretched limited springs' corrections (limit_strain).
 
-    Explicit springs soft enough to be stable let the cloth sag; this caps the stretch of the limited
-    springs directly. Each correction is split by inverse mass and a particle's corrections from its
-    edges are averaged, so the pass is order-independent. Run a few passes (ping-pong x and x_out),
-    then velocity_from_correction.
-
-    Launch: one thread per particle (dim = num_particles).
     Inputs:
-      x (vec3, per particle, m): positions before this pass
-      inv_mass (float, per particle, 1/kg): inverse masses; pinned particles (0) do not move
+      p (int, index): the particle
+      x (vec3, per particle, m): positions before the pass
+      w (float, 1/kg): p's inverse mass, not 0
+      inv_mass (float, per particle, 1/kg): inverse masses
       adj_start (int32, num_particles + 1): CSR offsets of each particle's incident springs
       adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
       spring_i (int32, per spring): first particle of each spring
       spring_j (int32, per spring): second particle of each spring
       spring_rest (float, per spring, m): rest lengths
-      spring_limited (int32, per spring): 1 where the spring is limited (the stretch springs), else 0
-      max_stretch (float, fraction of rest length): allowed stretch, e.g. 0.03 for 3%
-    Outputs:
-      x_out (vec3, per particle, m): corrected positions; must not alias x
+      spring_limited (int32, per spring): 1 where the spring is limited, else 0
+      max_stretch (float, fraction of rest length): allowed stretch
+    Returns:
+      vec3 (m): p's corrected position
     """
-    p = wp.tid()
-    w = inv_mass[p]
-    if w == 0.0:
-        x_out[p] = x[p]
-        return
     corr = wp.vec3(0.0)
     count = float(0.0)
     for k in range(adj_start[p], adj_start[p + 1]):
@@ -306,29 +278,63 @@ def limit_strain(
             corr -= (w / (w + wq)) * (length - limit) * d / length
             count += 1.0
     if count > 0.0:
-        x_out[p] = x[p] + corr / count
-    else:
-        x_out[p] = x[p]
+        return x[p] + corr / count
+    return x[p]
 
 
 @wp.kernel
-def velocity_from_correction(x_before: wp.array(dtype=wp.vec3), x_after: wp.array(dtype=wp.vec3), dt: float,
-                             v: wp.array(dtype=wp.vec3)):
-    """Add the velocity change of a position projection: the displacement over dt.
+def limit_strain(
+    x: wp.array(dtype=wp.vec3),
+    inv_mass: wp.array(dtype=float),
+    adj_start: wp.array(dtype=wp.int32),
+    adj_spring: wp.array(dtype=wp.int32),
+    spring_i: wp.array(dtype=wp.int32),
+    spring_j: wp.array(dtype=wp.int32),
+    spring_rest: wp.array(dtype=float),
+    spring_limited: wp.array(dtype=wp.int32),
+    max_stretch: float,
+    x_start: wp.array(dtype=wp.vec3),
+    dt: float,
+    v: wp.array(dtype=wp.vec3),
+    x_out: wp.array(dtype=wp.vec3),
+):
+    """One Jacobi pass of strain limiting: over-stretched edges are shortened to (1 + max_stretch) rest.
 
-    Without it the velocities would keep carrying the particles toward the state the projection
-    (strain limiting) just removed.
+    Explicit springs soft enough to be stable let the cloth sag; this caps the stretch of the limited
+    springs directly. Each correction is split by inverse mass and a particle's corrections from its
+    edges are averaged, so the pass is order-independent. Run a few passes, ping-ponging between
+    buffers; the last (dt > 0) also adds the velocity change of all the passes' correction, the
+    displacement from x_start over dt. Without it the velocities would keep carrying the particles
+    toward the stretch the passes just removed.
 
     Launch: one thread per particle (dim = num_particles).
     Inputs:
-      x_before (vec3, per particle, m): positions before the projection
-      x_after (vec3, per particle, m): positions after the projection
-      dt (float, s): step length
+      x (vec3, per particle, m): positions before this pass
+      inv_mass (float, per particle, 1/kg): inverse masses; pinned particles (0) do not move
+      adj_start (int32, num_particles + 1): CSR offsets of each particle's incident springs
+      adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
+      spring_i (int32, per spring): first particle of each spring
+      spring_j (int32, per spring): second particle of each spring
+      spring_rest (float, per spring, m): rest lengths
+      spring_limited (int32, per spring): 1 where the spring is limited (the stretch springs), else 0
+      max_stretch (float, fraction of rest length): allowed stretch, e.g. 0.03 for 3%
+      x_start (vec3, per particle, m): positions before the first pass; read only when dt > 0, and
+          may be x_out itself (each thread reads its particle's before writing it)
+      dt (float, s): step length in the last pass; 0 in the others, which leave v alone
     In/out:
-      v (vec3, per particle, m/s): velocities, corrected in place
+      v (vec3, per particle, m/s): velocities, corrected in the last pass
+    Outputs:
+      x_out (vec3, per particle, m): corrected positions; must not alias x
     """
     p = wp.tid()
-    v[p] = v[p] + (x_after[p] - x_before[p]) / dt
+    w = inv_mass[p]
+    corrected = x[p]
+    if w != 0.0:
+        corrected = strain_corrected(p, x, w, inv_mass, adj_start, adj_spring, spring_i, spring_j, spring_rest,
+                                     spring_limited, max_stretch)
+    if dt > 0.0:
+        v[p] = v[p] + (corrected - x_start[p]) / dt
+    x_out[p] = corrected
 
 
 @wp.func
