@@ -362,12 +362,13 @@ class ClothDetail:
         samples read only coarser levels' results). One part on a GPU, where a launch fills the device."""
         self.level_parts = []
         for level in self.levels:
-            edges = np.linspace(0, len(level), max(1, min(parts, len(level) // max(min_samples, 1))) + 1)
-            edges = edges.round().astype(int)
-            self.level_parts.append([level[a:b] for a, b in zip(edges[:-1], edges[1:], strict=True)])
+            k = max(1, min(parts, len(level) // max(min_samples, 1)))
+            self.level_parts.append([level[len(level) * i // k:len(level) * (i + 1) // k] for i in range(k)])
         # samples tested and BVH queries among them, a pair per part (parts on different cores would
         # lose each other's counts in one pair)
-        self.queries = wp.zeros(2 * max(len(p) for p in self.level_parts), dtype=wp.int32, device=self.device)
+        most = max(len(p) for p in self.level_parts)
+        self.queries = wp.zeros(2 * most, dtype=wp.int32, device=self.device)
+        self._part_queries = [self.queries[2 * i:2 * i + 2] for i in range(most)]
 
     @staticmethod
     def _polyline_lengths(p, grid, edge_face, edge_side, n):
@@ -406,8 +407,8 @@ class ClothDetail:
                                        body.points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face,
                                        adj.concave, walk.walk_steps, walk.teleport, walk.walk_trust_distance,
                                        self.side, p.margin, reach, self.height, self.clearance, self.body_vertex,
-                                       self.probe_point, self.queries[2 * k:2 * k + 2]], device=dev)
-                              for k, part in enumerate(parts)])
+                                       self.probe_point, queries], device=dev)
+                              for part, queries in zip(parts, self._part_queries)])
         wp.launch(kernels.displace_along_directions, nv, [base, pn_normals, self.side, self.height, self.positions],
                   device=dev)
         wp.launch(kernels.surface_vertex_normals, nv,
