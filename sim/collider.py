@@ -58,8 +58,11 @@ class Collider:
         self.sphere_centers = arr(self.tree.centers, wp.vec3)
         self.prev_sphere_centers = arr(self.tree.centers, wp.vec3)
         self.sphere_radii = arr(self.tree.radii, float)
-        self.sphere_skip = arr(self.tree.skip, wp.int32)
         self.sphere_is_leaf = arr(self.tree.is_leaf, wp.int32)
+        self.sphere_links = arr(self.tree.links(), wp.int32)
+        # the centres and radii packed side by side for the walks (collision.ColliderShape)
+        self.sphere_nodes = wp.zeros(len(self.tree.radii), dtype=wp.vec4, device=device)
+        self._pack_spheres()
         self.sphere_parent = arr(_parents(self.tree.skip), wp.int32)
         self.sphere_skin_indices = arr(skin_indices[nearest], wp.vec4i)
         self.sphere_skin_weights = arr(skin_weights[nearest], wp.vec4)
@@ -75,9 +78,12 @@ class Collider:
         """What the collision kernels take: the mesh and the sphere tree (arrays refitted in place)."""
         shape = collision.ColliderShape()
         shape.mesh = self.mesh.id
-        shape.centers, shape.radii = self.sphere_centers, self.sphere_radii
-        shape.skip, shape.is_leaf = self.sphere_skip, self.sphere_is_leaf
+        shape.spheres, shape.links = self.sphere_nodes, self.sphere_links
         return shape
+
+    def _pack_spheres(self):
+        wp.launch(collision.pack_sphere_tree, len(self.sphere_nodes),
+                  [self.sphere_centers, self.sphere_radii, self.sphere_nodes], device=self.device)
 
     def twin(self):
         """The same collider with a pose of its own: it shares the rest shape, skinning, sphere-tree
@@ -89,6 +95,7 @@ class Collider:
         twin.mesh = wp.Mesh(points=twin.points, indices=self.indices)
         twin.sphere_centers, twin.prev_sphere_centers = wp.clone(self.sphere_centers), wp.clone(self.prev_sphere_centers)
         twin.sphere_radii = wp.clone(self.sphere_radii)  # inner radii are refitted in place
+        twin.sphere_nodes = wp.clone(self.sphere_nodes)
         twin.shape = twin._shape()
         twin.bone_matrices = twin._pose_points = None
         twin._pose_buffers = {}
@@ -187,6 +194,7 @@ class Collider:
             wp.launch(collision.refit_sphere_tree, len(self.sphere_centers),
                       [self.sphere_centers, self.sphere_radii, self.sphere_parent, self.sphere_is_leaf],
                       device=self.device)
+            self._pack_spheres()
 
     def adjacency(self):
         """CSR vertex->vertex and vertex->face adjacency and per-vertex concave flags, built once

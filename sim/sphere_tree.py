@@ -29,6 +29,12 @@ class SphereTree:
         mask = self.is_leaf.astype(bool)
         return self.centers[mask], self.radii[mask]
 
+    def links(self):
+        """Each node's skip pointer with the leaf flag (collision.SPHERE_LEAF) set on leaves, as
+        collision.ColliderShape.links holds them (int32)."""
+        flag = np.where(self.is_leaf != 0, np.int64(1) << 31, 0)
+        return (np.asarray(self.skip, np.int64) | flag).astype(np.uint32).view(np.int32)
+
 
 def warp_mesh(vertices, faces, device="cpu", winding=False):
     """A wp.Mesh of NumPy arrays; winding=True also supports winding-number signs (signed_distance)."""

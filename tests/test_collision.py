@@ -127,6 +127,12 @@ def test_refitted_sphere_tree_bounds_each_subtree_exactly(head):
         leaves = sub[t.is_leaf[sub] == 1]
         expected = np.max(np.linalg.norm(centers[leaves] - centers[i], axis=1) + radii[leaves])
         assert abs(radii[i] - expected) < 1e-6
+    # the walks read the posed tree packed: centre and radius side by side, skip pointer and leaf flag
+    shape = c.shape
+    np.testing.assert_array_equal(shape.spheres.numpy(), np.concatenate([centers, radii[:, None]], axis=1))
+    links = shape.links.numpy()
+    np.testing.assert_array_equal(links < 0, t.is_leaf != 0)
+    np.testing.assert_array_equal(links & 0x7FFFFFFF, t.skip)
 
 
 def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed, ragged=False):

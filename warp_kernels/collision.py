@@ -3,9 +3,10 @@
 Both are written as @wp.func so a solver kernel can resolve contacts inline (inside its own loop
 over a strand); the kernels below expose the same functions over flat point arrays.
 
-Sphere tree layout: nodes in depth-first order, each with a `skip` index (the next node to visit when
+Sphere tree layout: nodes in depth-first order, each with a skip index (the next node to visit when
 this node's subtree is not entered). Traversal needs no stack: on a hit descend to i + 1, on a miss
-or after a leaf jump to skip[i]. Leaves are spheres inside the body; inner nodes bound their children.
+or after a leaf jump to the skip index. Leaves are spheres inside the body; inner nodes bound their
+children. The walks read each node as two packed values (ColliderShape).
 """
 
 # float(0.0), int(0) and bool(False) declare variables that a kernel reassigns (Warp treats a
@@ -21,6 +22,8 @@ wp.set_module_options(MODULE_OPTIONS)
 COLLIDE_NONE = wp.constant(0)
 COLLIDE_SPHERE_TREE = wp.constant(1)
 COLLIDE_MESH = wp.constant(2)
+SPHERE_LEAF = wp.constant(-2147483648)  # ColliderShape.links: the flag bit of a leaf sphere
+SPHERE_SKIP = wp.constant(2147483647)  # ColliderShape.links: the skip pointer's bits
 
 
 @wp.struct
@@ -31,19 +34,33 @@ class ColliderShape:
     collider switch between mesh and sphere-tree collision without a different launch.
     sim.Collider.shape holds one; a host fills the fields itself.
 
+    The sphere tree is packed for its walks: a node's centre and radius are one 16-byte read, and its
+    skip pointer and leaf flag one more (pack_sphere_tree, sim.sphere_tree.SphereTree.links), where four arrays cost a
+    walk four reads per node.
+
     Fields:
       mesh (uint64): wp.Mesh id of the posed triangle mesh, BVH refitted to the pose
-      centers (vec3, per tree node, m): sphere centres, nodes in depth-first order
-      radii (float, per tree node, m): sphere radii; inner nodes bound their subtree's leaves
-      skip (int32, per tree node): next node to visit when this node's subtree is not entered
-      is_leaf (int32, per tree node): 1 for leaf spheres (inside the body), 0 for bounding nodes
+      spheres (vec4, per tree node, m): centre (x, y, z) and radius (w) of each node, in depth-first
+          order; inner nodes bound their subtree's leaves
+      links (int32, per tree node): the node visited next when this node's subtree is not entered
+          (links & SPHERE_SKIP), with SPHERE_LEAF set for leaf spheres (inside the body)
     """
 
     mesh: wp.uint64
-    centers: wp.array(dtype=wp.vec3)
-    radii: wp.array(dtype=float)
-    skip: wp.array(dtype=wp.int32)
-    is_leaf: wp.array(dtype=wp.int32)
+    spheres: wp.array(dtype=wp.vec4)
+    links: wp.array(dtype=wp.int32)
+
+
+@wp.func
+def sphere_center(s: wp.vec4):
+    """The centre of a packed tree node (ColliderShape.spheres).
+
+    Inputs:
+      s (vec4, m): centre and radius
+    Returns:
+      vec3 (m): the centre
+    """
+    return wp.vec3(s[0], s[1], s[2])
 
 
 @wp.func
@@ -60,24 +77,26 @@ def sphere_tree_push_out(p: wp.vec3, shape: ColliderShape, margin: float):
     Returns:
       vec3 (m): the pushed point (p itself when it was outside every leaf)
     """
-    centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
-    n = centers.shape[0]
+    n = shape.spheres.shape[0]
     i = int(0)
     while i < n:
-        d = p - centers[i]
-        r = radii[i] + margin
+        s = shape.spheres[i]
+        link = shape.links[i]
+        c = sphere_center(s)
+        d = p - c
+        r = s[3] + margin
         dist = wp.length(d)
         if dist < r:
-            if is_leaf[i] != 0:
+            if link < 0:
                 if dist > 1.0e-9:
-                    p = centers[i] + d * (r / dist)
+                    p = c + d * (r / dist)
                 else:
-                    p = centers[i] + wp.vec3(0.0, r, 0.0)
-                i = skip[i]
+                    p = c + wp.vec3(0.0, r, 0.0)
+                i = link & SPHERE_SKIP
             else:
                 i = i + 1
         else:
-            i = skip[i]
+            i = link & SPHERE_SKIP
     return p
 
 
@@ -91,20 +110,21 @@ def sphere_tree_depth(p: wp.vec3, shape: ColliderShape):
     Returns:
       float (m): largest radius - distance over the leaves containing p; 0 when outside all
     """
-    centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
-    n = centers.shape[0]
+    n = shape.spheres.shape[0]
     i = int(0)
     depth = float(0.0)
     while i < n:
-        dist = wp.length(p - centers[i])
-        if dist < radii[i]:
-            if is_leaf[i] != 0:
-                depth = wp.max(depth, radii[i] - dist)
-                i = skip[i]
+        s = shape.spheres[i]
+        link = shape.links[i]
+        dist = wp.length(p - sphere_center(s))
+        if dist < s[3]:
+            if link < 0:
+                depth = wp.max(depth, s[3] - dist)
+                i = link & SPHERE_SKIP
             else:
                 i = i + 1
         else:
-            i = skip[i]
+            i = link & SPHERE_SKIP
     return depth
 
 
@@ -157,19 +177,20 @@ def sphere_tree_clearance(p: wp.vec3, shape: ColliderShape, search: float):
       float (m): min over the leaves of |p - centre| - radius, or search when that is larger
     """
     best = search
-    centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
-    n = centers.shape[0]
+    n = shape.spheres.shape[0]
     i = int(0)
     while i < n:
-        d = wp.length(p - centers[i]) - radii[i]
+        s = shape.spheres[i]
+        link = shape.links[i]
+        d = wp.length(p - sphere_center(s)) - s[3]
         if d < best:
-            if is_leaf[i] != 0:
+            if link < 0:
                 best = d
-                i = skip[i]
+                i = link & SPHERE_SKIP
             else:
                 i = i + 1
         else:
-            i = skip[i]
+            i = link & SPHERE_SKIP
     return best
 
 
@@ -190,29 +211,44 @@ def sphere_tree_nearest(p: wp.vec3, shape: ColliderShape, search: float):
       float (m): the nearest leaf's distance, or search when that is larger
       float (m): the fifth nearest leaf's distance, or search; every unlisted leaf is at least this far
     """
-    centers, radii, skip, is_leaf = shape.centers, shape.radii, shape.skip, shape.is_leaf
-    best = wp.vector(search, search, search, search, search)  # ascending
-    ids = wp.vector(-1, -1, -1, -1, -1)
-    n = centers.shape[0]
+    # the five best so far, ascending; kept in named registers (an indexed vector lives in memory);
+    # float() makes each its own variable, not another name for search
+    b0, b1, b2, b3, b4 = float(search), float(search), float(search), float(search), float(search)
+    i0, i1, i2, i3, i4 = int(-1), int(-1), int(-1), int(-1), int(-1)
+    n = shape.spheres.shape[0]
     i = int(0)
     while i < n:
-        d = wp.length(p - centers[i]) - radii[i]
-        if d < best[4]:
-            if is_leaf[i] != 0:
-                k = int(4)
-                while k > 0 and best[k - 1] > d:
-                    best[k] = best[k - 1]
-                    ids[k] = ids[k - 1]
-                    k -= 1
-                best[k] = d
-                ids[k] = i
-                i = skip[i]
-            else:
-                i = i + 1
-        else:
-            i = skip[i]
+        s = shape.spheres[i]
+        link = shape.links[i]
+        e = p - sphere_center(s)
+        r = s[3]
+        reach = b4 + r
+        # a node is entered, or a leaf tested, on its squared distance, without the square root; the
+        # margin takes every node the exact distance would (and a few more, which change nothing)
+        near = reach > 0.0 and wp.dot(e, e) < reach * reach * 1.0001
+        leaf = link < 0
+        if near and leaf:
+            d = wp.length(e) - r
+            if d < b4:
+                # insert d after the equal ones: one bubble pass down the sorted five
+                b4, i4 = d, i
+                if b3 > d:
+                    b4, i4 = b3, i3
+                    b3, i3 = d, i
+                    if b2 > d:
+                        b3, i3 = b2, i2
+                        b2, i2 = d, i
+                        if b1 > d:
+                            b2, i2 = b1, i1
+                            b1, i1 = d, i
+                            if b0 > d:
+                                b1, i1 = b0, i0
+                                b0, i0 = d, i
+        # the next node without a branch: the walk's turns are too irregular to predict
+        i = wp.where(near and not leaf, i + 1, link & SPHERE_SKIP)
+    ids = wp.vec4i(i0, i1, i2, i3)
     # ascending node order, the order in which a sweep of the tree meets them; missing ones last
-    listed = wp.vec4i(ids[0], ids[1], ids[2], ids[3])
+    listed = ids
     for a in range(1, 4):
         b = a
         while b > 0 and (listed[b - 1] < 0 or (listed[b] >= 0 and listed[b] < listed[b - 1])):
@@ -220,7 +256,7 @@ def sphere_tree_nearest(p: wp.vec3, shape: ColliderShape, search: float):
             listed[b] = listed[b - 1]
             listed[b - 1] = t
             b -= 1
-    return listed, best[0], best[4]
+    return listed, b0, b4
 
 
 @wp.func
@@ -248,14 +284,16 @@ def listed_spheres_push_out(p: wp.vec3, shape: ColliderShape, margin: float, lea
         for k in range(4):
             i = leaves[k]
             if i >= 0:
-                d = p - shape.centers[i]
-                r = shape.radii[i] + margin
+                s = shape.spheres[i]
+                c = sphere_center(s)
+                d = p - c
+                r = s[3] + margin
                 dist = wp.length(d)
                 if dist < r:
                     if dist > 1.0e-9:
-                        p = shape.centers[i] + d * (r / dist)
+                        p = c + d * (r / dist)
                     else:
-                        p = shape.centers[i] + wp.vec3(0.0, r, 0.0)
+                        p = c + wp.vec3(0.0, r, 0.0)
                     if beyond - wp.length(p - origin) <= margin + 1.0e-5:
                         return p, False
     return p, True
@@ -292,7 +330,8 @@ def collide_point_listed(p: wp.vec3, shape: ColliderShape, margin: float, search
         for k in range(4):
             i = leaves[k]
             if i >= 0:
-                distance = wp.min(distance, wp.length(p - shape.centers[i]) - shape.radii[i])
+                s = shape.spheres[i]
+                distance = wp.min(distance, wp.length(p - sphere_center(s)) - s[3])
         if distance > margin + 1.0e-6:
             return p, distance, leaves, origin, beyond
         pushed, kept = listed_spheres_push_out(p, shape, margin, leaves, origin, beyond)
@@ -606,6 +645,23 @@ def refit_sphere_tree(
     while a >= 0:
         wp.atomic_max(radii, a, wp.length(c - centers[a]) + r)
         a = parent[a]
+
+
+@wp.kernel
+def pack_sphere_tree(centers: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float), spheres: wp.array(dtype=wp.vec4)):
+    """Last step of a refit (after refit_sphere_tree): each node's centre and radius side by side,
+    as the walks read them (ColliderShape.spheres).
+
+    Launch: one thread per tree node (dim = num_nodes).
+    Inputs:
+      centers (vec3, per tree node, m): posed node centres
+      radii (float, per tree node, m): refitted radii
+    Outputs:
+      spheres (vec4, per tree node, m): centre (x, y, z) and radius (w)
+    """
+    i = wp.tid()
+    c = centers[i]
+    spheres[i] = wp.vec4(c[0], c[1], c[2], radii[i])
 
 
 @wp.kernel
