@@ -214,7 +214,7 @@ def sphere_tree_nearest(p: wp.vec3, shape: ColliderShape, search: float):
     # the five best so far, ascending; kept in named registers (an indexed vector lives in memory);
     # float() makes each its own variable, not another name for search
     b0, b1, b2, b3, b4 = float(search), float(search), float(search), float(search), float(search)
-    i0, i1, i2, i3, i4 = int(-1), int(-1), int(-1), int(-1), int(-1)
+    i0, i1, i2, i3 = int(-1), int(-1), int(-1), int(-1)  # the fifth's node is never needed
     n = shape.spheres.shape[0]
     i = int(0)
     while i < n:
@@ -231,9 +231,9 @@ def sphere_tree_nearest(p: wp.vec3, shape: ColliderShape, search: float):
             d = wp.length(e) - r
             if d < b4:
                 # insert d after the equal ones: one bubble pass down the sorted five
-                b4, i4 = d, i
+                b4 = d
                 if b3 > d:
-                    b4, i4 = b3, i3
+                    b4 = b3
                     b3, i3 = d, i
                     if b2 > d:
                         b3, i3 = b2, i2
