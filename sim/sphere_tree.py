@@ -32,8 +32,8 @@ class SphereTree:
     def links(self):
         """Each node's skip pointer with the leaf flag (collision.SPHERE_LEAF) set on leaves, as
         collision.ColliderShape.links holds them (int32)."""
-        flag = np.where(self.is_leaf != 0, np.int64(1) << 31, 0)
-        return (np.asarray(self.skip, np.int64) | flag).astype(np.uint32).view(np.int32)
+        flag = np.where(self.is_leaf != 0, collision.SPHERE_LEAF, 0).astype(np.int32)
+        return np.asarray(self.skip, np.int32) | flag
 
 
 def warp_mesh(vertices, faces, device="cpu", winding=False):

@@ -230,58 +230,6 @@ def rk4_stage(
         acc_v[p] = sum_v
 
 
-@wp.func
-def strain_corrected(
-    p: int,
-    x: wp.array(dtype=wp.vec3),
-    w: float,
-    inv_mass: wp.array(dtype=float),
-    adj_start: wp.array(dtype=wp.int32),
-    adj_spring: wp.array(dtype=wp.int32),
-    spring_i: wp.array(dtype=wp.int32),
-    spring_j: wp.array(dtype=wp.int32),
-    spring_rest: wp.array(dtype=float),
-    spring_limited: wp.array(dtype=wp.int32),
-    max_stretch: float,
-):
-    """Particle p moved by the mean of its over-stretched limited springs' corrections (limit_strain).
-
-    Inputs:
-      p (int, index): the particle
-      x (vec3, per particle, m): positions before the pass
-      w (float, 1/kg): p's inverse mass, not 0
-      inv_mass (float, per particle, 1/kg): inverse masses
-      adj_start (int32, num_particles + 1): CSR offsets of each particle's incident springs
-      adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
-      spring_i (int32, per spring): first particle of each spring
-      spring_j (int32, per spring): second particle of each spring
-      spring_rest (float, per spring, m): rest lengths
-      spring_limited (int32, per spring): 1 where the spring is limited, else 0
-      max_stretch (float, fraction of rest length): allowed stretch
-    Returns:
-      vec3 (m): p's corrected position
-    """
-    corr = wp.vec3(0.0)
-    count = float(0.0)
-    for k in range(adj_start[p], adj_start[p + 1]):
-        s = adj_spring[k]
-        if spring_limited[s] == 0:
-            continue
-        q = spring_j[s]
-        if q == p:
-            q = spring_i[s]
-        d = x[p] - x[q]
-        length = wp.length(d)
-        limit = spring_rest[s] * (1.0 + max_stretch)
-        if length > limit:
-            wq = inv_mass[q]
-            corr -= (w / (w + wq)) * (length - limit) * d / length
-            count += 1.0
-    if count > 0.0:
-        return x[p] + corr / count
-    return x[p]
-
-
 @wp.kernel
 def limit_strain(
     x: wp.array(dtype=wp.vec3),
@@ -330,8 +278,25 @@ def limit_strain(
     w = inv_mass[p]
     corrected = x[p]
     if w != 0.0:
-        corrected = strain_corrected(p, x, w, inv_mass, adj_start, adj_spring, spring_i, spring_j, spring_rest,
-                                     spring_limited, max_stretch)
+        # the mean of the over-stretched limited springs' corrections, each split by inverse mass
+        corr = wp.vec3(0.0)
+        count = float(0.0)
+        for k in range(adj_start[p], adj_start[p + 1]):
+            s = adj_spring[k]
+            if spring_limited[s] == 0:
+                continue
+            q = spring_j[s]
+            if q == p:
+                q = spring_i[s]
+            d = x[p] - x[q]
+            length = wp.length(d)
+            limit = spring_rest[s] * (1.0 + max_stretch)
+            if length > limit:
+                wq = inv_mass[q]
+                corr -= (w / (w + wq)) * (length - limit) * d / length
+                count += 1.0
+        if count > 0.0:
+            corrected = x[p] + corr / count
     if dt > 0.0:
         v[p] = v[p] + (corrected - x_start[p]) / dt
     x_out[p] = corrected

@@ -35,8 +35,8 @@ class ColliderShape:
     sim.Collider.shape holds one; a host fills the fields itself.
 
     The sphere tree is packed for its walks: a node's centre and radius are one 16-byte read, and its
-    skip pointer and leaf flag one more (pack_sphere_tree, sim.sphere_tree.SphereTree.links), where four arrays cost a
-    walk four reads per node.
+    skip pointer and leaf flag one more (pack_sphere_tree, sim.sphere_tree.SphereTree.links), where
+    four arrays cost a walk four reads per node.
 
     Fields:
       mesh (uint64): wp.Mesh id of the posed triangle mesh, BVH refitted to the pose
@@ -246,9 +246,8 @@ def sphere_tree_nearest(p: wp.vec3, shape: ColliderShape, search: float):
                                 b0, i0 = d, i
         # the next node without a branch: the walk's turns are too irregular to predict
         i = wp.where(near and not leaf, i + 1, link & SPHERE_SKIP)
-    ids = wp.vec4i(i0, i1, i2, i3)
     # ascending node order, the order in which a sweep of the tree meets them; missing ones last
-    listed = ids
+    listed = wp.vec4i(i0, i1, i2, i3)
     for a in range(1, 4):
         b = a
         while b > 0 and (listed[b - 1] < 0 or (listed[b] >= 0 and listed[b] < listed[b - 1])):
