@@ -41,9 +41,10 @@ def _replay_pool():
 def run_parallel(branches):
     """Run `branches`, functions that only launch work and touch disjoint data (the strand ranges
     of one hair substep), as one step of a frame. In a frame captured on the CPU each branch becomes
-    a graph of its own and the replays run on as many threads at once: Warp runs a CPU launch on one
-    thread, and a replay releases Python's lock, so the branches use the machine's cores. Anywhere
-    else (CUDA, eager frames, graphs off) they run one after the other."""
+    a graph of its own, and a replay runs them on up to one thread per core, each thread taking the
+    next branch left: Warp runs a CPU launch on one thread, and a replay releases Python's lock, so
+    the branches use the machine's cores, and more branches than cores even out their differences.
+    Anywhere else (CUDA, eager frames, graphs off) they run one after the other."""
     if len(branches) > 1 and _cpu_frame is not None:
         _cpu_frame.split_parallel(branches)
         return
@@ -155,6 +156,28 @@ class _SharedCores:
                     self.ready.acquire()
 
 
+def _replay_on_cores(graphs):
+    """Replay `graphs` (the branches of one parallel step) on at most one thread per core, each
+    thread taking the next branch not yet taken until none is left, and return when all are done."""
+    left = list(graphs)
+    lock = threading.Lock()
+
+    def claim():
+        while True:
+            with lock:
+                if not left:
+                    return
+                graph = left.pop(0)
+            wp.capture_launch(graph)
+
+    helpers = [_replay_pool().submit(claim) for _ in range(min(len(graphs), cpu_cores()) - 1)]
+    try:
+        claim()
+    finally:
+        for helper in helpers:
+            helper.result()
+
+
 def refit_mesh(mesh):
     """mesh.refit(), in order also inside a frame being captured on the CPU: Warp does not record a
     mesh refit there, so the capture is split around it and the refit runs between the pieces."""
@@ -229,10 +252,7 @@ class _CpuFrame:
                 if sharing is not None:  # beside other frames: they share the cores
                     sharing.run_branches(step)
                 else:
-                    others = [_replay_pool().submit(wp.capture_launch, graph) for graph in step[1:]]
-                    wp.capture_launch(step[0])
-                    for other in others:
-                        other.result()
+                    _replay_on_cores(step)
                 kept.append(step)
                 continue
             try:

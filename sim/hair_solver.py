@@ -3,6 +3,7 @@ follow-the-leader inextensibility and head collision, one fixed sequence of laun
 """
 
 from dataclasses import asdict, dataclass
+from functools import partial
 
 import numpy as np
 import warp as wp
@@ -23,7 +24,10 @@ LIST_SLACK = 0.0005
 # the same before strands.step_strands, which queues from the start positions: also covers how far a
 # particle travels in the substep (1k strands on the turning head: 1.5 mm at the 99th percentile)
 FUSED_LIST_SLACK = 0.002
-MAX_PARTS = 8  # strand ranges stepped side by side on the CPU
+# strand ranges stepped side by side on the CPU: a few per core, so that a core whose own work is done
+# (the cloth's frame beside the hair's) takes over ranges that would otherwise wait for the other core
+PARTS_PER_CORE = 3
+MAX_PARTS = 8
 
 
 @dataclass(frozen=True)
@@ -37,7 +41,6 @@ class StrandRange:
     particles: int
     first_window: int
     windows: int
-    reach: float = float("inf")  # m: its particles stay this close to the model's anchor (HairModel.reach)
 
 
 def split_strands(model, windows, count):
@@ -50,7 +53,7 @@ def split_strands(model, windows, count):
     for s0, s1 in zip(bounds[:-1], bounds[1:]):
         p0, p1 = int(start[s0]), int(start[s1])
         w0, w1 = (int(i) for i in np.searchsorted(windows.first_np, [p0, p1]))
-        ranges.append(StrandRange(int(s0), int(s1 - s0), p0, p1 - p0, w0, w1 - w0, model.reach(int(s0), int(s1 - s0))))
+        ranges.append(StrandRange(int(s0), int(s1 - s0), p0, p1 - p0, w0, w1 - w0))
     return ranges
 
 
@@ -154,19 +157,22 @@ class HairSolver:
     """Advances a HairModel's state by one substep: state_in -> state_out."""
 
     def __init__(self, model, params=HairParams(), parts=None):
-        """parts: how many StrandRanges to step separately (self.parts); by default one per CPU core
-        on the CPU, where Warp runs a launch on one thread, and one on a GPU."""
+        """parts: how many StrandRanges to step separately (self.parts); by default a few per CPU
+        core on the CPU, where Warp runs a launch on one thread, and one on a GPU."""
         self.model = model
         self.params = params
         device = model.device
         self.windows = model.shape_windows(params.window_size)
-        self.whole = StrandRange(0, model.num_strands, 0, model.num_particles, 0, self.windows.count,
-                                 model.reach(0, model.num_strands))
+        self.whole = StrandRange(0, model.num_strands, 0, model.num_particles, 0, self.windows.count)
+        self.reach = model.reach(0, model.num_strands)  # m: how far from the anchor a particle can be
+        # how the collider moved near the strands in the substep (strands.contact_motion), measured once
+        # for every part: the strands' reach, which sets what it covers, is about the same for any part
+        self._motion = _contact_motion(device)
         self._lanes = None
         self.hold = wp.array(model.root_hold_weights(params.root_hold_length), dtype=float, device=device)
         self._particle_order = strands.LaneOrder()  # lanes = 0: the length pass's arrays in particle order
         if parts is None:
-            parts = 1 if wp.get_device(device).is_cuda else min(cpu_cores(), MAX_PARTS)
+            parts = 1 if wp.get_device(device).is_cuda else min(PARTS_PER_CORE * cpu_cores(), MAX_PARTS)
         self.set_parts(parts)
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
@@ -308,8 +314,6 @@ class HairSolver:
         if count > 1 and self.lanes:
             raise ValueError("the length pass in lane order steps all strands as one range: set lanes off first")
         self.parts = split_strands(self.model, self.windows, count)
-        # how the collider moved near each range in the substep (strands.contact_motion)
-        self._motion = {r: _contact_motion(self.model.device) for r in [*self.parts, self.whole]}
         # how many particles of each range strands.find_short_lists queued
         self._short_count = {r: wp.zeros(1, dtype=wp.int32, device=self.model.device)
                              for r in [*self.parts, self.whole]}
@@ -324,12 +328,27 @@ class HairSolver:
         Collider.apply_pose(k): the contact bounds subtract how far that moved it near the strands.
         Guides (a sim.guides.GuideTargets) pull the strands toward captured motion at `time`.
 
-        part: one of self.parts (a StrandRange) steps only those strands; every launch touches only
-        their particles and windows, so the parts of one substep may run at the same time (on the
-        CPU's cores: sim.graphs.FrameGraphs.parallel). Each substep must step every part.
+        part: one of self.parts (a StrandRange) steps only those strands. The first part measures
+        how the collider moved near the strands, which every part reads, so step the parts of a
+        substep in order; branches() gives the same substep as functions that may run at once.
 
         With self.fused (the CPU's default) the substep is one launch per part after the collider's
         motion (strands.step_strands), with the same strands bit for bit as the launches below."""
+        if part is None or part is self.parts[0]:
+            self._measure_motion(collider)
+        self._step_part(state_in, state_out, collider, dt, time, guides, part)
+
+    def branches(self, state_in, state_out, collider, dt, time=0.0, guides=None):
+        """One substep (see step) as branches for sim.graphs.run_parallel: launches the measure of
+        how the collider moved near the strands now and returns a function per part that launches
+        the rest of the substep for its strands. Each touches only its part's particles and windows,
+        so they may run in any order or at the same time (on the CPU's cores); all must run before
+        the next substep."""
+        self._measure_motion(collider)
+        return [partial(self._step_part, state_in, state_out, collider, dt, time, guides, part) for part in self.parts]
+
+    def _step_part(self, state_in, state_out, collider, dt, time, guides, part):
+        """step() for one part (None: all strands) once the collider's motion is measured."""
         m, p, dev = self.model, self.params, self.model.device
         r = part if part is not None else self.whole
         offset = float(time - self._clock_time)
@@ -384,7 +403,7 @@ class HairSolver:
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright
         mode = COLLISION[p.collision] if collider is not None else 0
-        motion = self._measure_motion(c, mode, r)
+        motion = self._motion
         x, x_prev, inv_mass, rest = state_out.x, state_in.x, m.inv_mass, m.rest_length
         if lanes:
             if passes == 0:
@@ -397,7 +416,7 @@ class HairSolver:
             count.zero_()
             wp.launch(strands.find_short_lists, dim,
                       [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, p.collision_margin,
-                       p.collision_search, LIST_SLACK, motion, r.reach, self.clearance, self.beyond, order, 0, first,
+                       p.collision_search, LIST_SLACK, motion, self.reach, self.clearance, self.beyond, order, 0, first,
                        count, self._short], device=dev)
             wp.launch(strands.list_leaves_ahead, dim,
                       [x_prev, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start, order,
@@ -407,7 +426,7 @@ class HairSolver:
         wp.launch(strands.follow_the_leader, r.strands,
                   [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
+                   int(self.contact_bounds), probe, motion, self.reach, self.clearance, self.near_leaves, self.beyond,
                    p.ftl_damping, dt, state_out.x, state_out.v, order, r.first_strand], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
@@ -430,11 +449,12 @@ class HairSolver:
             self._pulled = (guides, dt, rate, pull)
         return self._pulled[3]
 
-    def _measure_motion(self, c, mode, r):
-        """How the collider moved near range r this substep (strands.contact_motion), for the contact
-        bounds of the length pass: the range's ContactMotion."""
+    def _measure_motion(self, c):
+        """Launch the measure of how collider c moved near the strands this substep
+        (strands.contact_motion) into self._motion, for the contact bounds of the length pass."""
         m, p, dev = self.model, self.params, self.model.device
-        motion = self._motion[r]
+        motion = self._motion
+        mode = COLLISION[p.collision] if c is not None else 0
         if mode != 0 and self.contact_bounds:
             adjacency = c.adjacency()
             wp.launch(strands.anchor_frame, strands.MOTION_GRID ** 3,
@@ -443,8 +463,7 @@ class HairSolver:
             wp.launch(strands.contact_motion, (len(c.points) if mesh else 0) + len(c.sphere_centers),
                       [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
                        c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
-                       r.reach, p.collision_search, motion], device=dev)
-        return motion
+                       self.reach, p.collision_search, motion], device=dev)
 
     def _comb(self, state_in, state_out, c, mode, dt, offset, order, r):
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
@@ -457,7 +476,7 @@ class HairSolver:
         """step() as one launch per range (strands.step_strands), after the collider's motion."""
         m, p, dev = self.model, self.params, self.model.device
         mode = COLLISION[p.collision] if c is not None else 0
-        motion = self._measure_motion(c, mode, r)
+        motion = self._motion
         bound = m.bind_particle is not None and c is not None
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
         if getattr(m, "root_local", None) is not self._slots_root_local:
@@ -474,7 +493,7 @@ class HairSolver:
             count.zero_()
             wp.launch(strands.find_short_lists, dim,
                       [state_in.x, state_in.x, m.particle_strand, m.strand_start, m.pinned_per_strand,
-                       p.collision_margin, p.collision_search, FUSED_LIST_SLACK, motion, r.reach, self.clearance,
+                       p.collision_margin, p.collision_search, FUSED_LIST_SLACK, motion, self.reach, self.clearance,
                        self.beyond, order, 1, first, count, self._short], device=dev)
             wp.launch(strands.list_leaves_ahead, dim,
                       [state_in.x, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start,
@@ -489,18 +508,18 @@ class HairSolver:
                    self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
                    int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), probe, motion, r.reach, self.clearance, self.near_leaves, self.beyond,
+                   int(self.contact_bounds), probe, motion, self.reach, self.clearance, self.near_leaves, self.beyond,
                    p.ftl_damping, shaped, spare, state_out.x, state_out.v, order,
                    0 if lane is not None else r.first_strand], device=dev)
         if variant == SHAPE_MATCHING["full"] and passes > 0 and (part is None or part is self.parts[-1]):
             self._rotations_exact = False
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
-    def contact_motion(self, part=None):
-        """What the last substep measured of the collider's motion near a range of strands (the whole
-        hair by default), as NumPy: (largest relative displacement [m], the anchor's rigid motion as a
-        4x4 matrix, the anchor's centre [m])."""
-        motion = self._motion[part if part is not None else self.whole]
+    def contact_motion(self):
+        """What the last substep measured of the collider's motion near the strands, as NumPy:
+        (largest relative displacement [m], the anchor's rigid motion as a 4x4 matrix, the anchor's
+        centre [m])."""
+        motion = self._motion
         return float(motion.moved.numpy()[0]), motion.rigid.numpy()[0], motion.center.numpy()[0]
 
     def reset(self):

@@ -10,7 +10,6 @@ import os
 import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
-from functools import partial
 
 import numpy as np
 import warp as wp
@@ -649,9 +648,7 @@ class Scene:
 
     def _step_hair(self, dt, t):
         # the solver's strand ranges, side by side on the CPU's cores once the frame is a graph
-        step = self.solver.step
-        run_parallel([partial(step, self.state, self._scratch, self.collider, dt, t, self.guides, part)
-                      for part in self.solver.parts])
+        run_parallel(self.solver.branches(self.state, self._scratch, self.collider, dt, t, self.guides))
         self.state, self._scratch = self._scratch, self.state
 
     def _step_cloth(self, dt, t):

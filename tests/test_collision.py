@@ -365,7 +365,7 @@ def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_s
     free = np.arange(model.num_particles) - model.strand_start_np[model.particle_strand_np] >= model.pinned_per_strand
     margin, search = params.collision_margin, params.collision_search
     slack = hair_solver.FUSED_LIST_SLACK if fused else hair_solver.LIST_SLACK
-    reach, grid = solver.whole.reach, strand_kernels.MOTION_GRID
+    reach, grid = solver.reach, strand_kernels.MOTION_GRID
     half = reach + search
     listed_total = 0
     for x, x_prev, before, after, rigid, center, cells, centers in seen:
@@ -545,7 +545,7 @@ def test_contact_motion_follows_the_anchor_and_counts_only_the_collider_near_the
             turn = poses[k, 0] @ np.linalg.inv(poses[k - 1, 0])
             np.testing.assert_allclose(rigid, turn, atol=2e-6)  # the head bone's own motion
             # the rule in float64: a vertex counts when one of its edges reaches within reach + search
-            reach, search = solver.whole.reach, params.collision_search
+            reach, search = solver.reach, params.collision_search
             edge = np.zeros(len(after))
             for a, b in ((0, 1), (1, 2), (2, 0)):
                 length = np.linalg.norm(after[f[:, a]] - after[f[:, b]], axis=1)
@@ -568,7 +568,7 @@ def test_contact_motion_follows_the_anchor_and_counts_only_the_collider_near_the
                 a, b = (np.clip(np.floor((x - center + half) / size).astype(int), 0, grid - 1) for x in (lo, hi))
                 block = cells[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1]
                 np.maximum(block, m, out=block)
-            got = solver._motion[solver.whole].cells.numpy().reshape(cells.shape)
+            got = solver._motion.cells.numpy().reshape(cells.shape)
             np.testing.assert_allclose(got, cells, atol=2e-6)
             assert got.max() == pytest.approx(moved, abs=2e-6)
             if k == 3:  # the hand beside the hair raises only the cells near it
@@ -602,9 +602,9 @@ def test_hair_on_a_walking_body_skips_queries_by_the_motion_near_it_and_steps_th
         scene.advance(0.25)  # into the stride
         for _ in range(15):
             scene.advance(1.0 / 60.0)
-            for part in scene.solver.parts if use else []:  # each range of strands measures its own
-                cells = scene.solver._motion[part].cells.numpy()
-                moved, _, _ = scene.solver.contact_motion(part)
+            if use:  # one measure per substep serves every range of strands
+                cells = scene.solver._motion.cells.numpy()
+                moved, _, _ = scene.solver.contact_motion()
                 assert cells.max() == pytest.approx(moved, abs=1e-7)
                 spread.append((np.mean(cells > 0.0), np.mean(cells < 0.5 * moved)))
         results.append(scene.state.x.numpy())
