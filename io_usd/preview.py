@@ -529,7 +529,7 @@ def write_images(images, labels, tmp, ext, fps, columns):
 
 
 def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720, columns=None, camera=None,
-            shadows=True, follow=False, focus=None):
+            shadows=True, follow=False, focus=None, progress=True):
     """Render a cache to an image or a movie and return out_path.
 
     The extension picks the output: .png is one frame (default the last) or, when `frames` lists
@@ -537,8 +537,8 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     play `frames` (default all) at the cache's fps. A given camera sets the image size and view;
     otherwise one frames the whole scene, or with follow=True each frame on its own (a camera that
     tracks a walking character); focus (a prim name or role, e.g. "face") frames just those prims.
-    shadows=False roughly halves the render time on software GL. The
-    file appears only once fully written.
+    shadows=False roughly halves the render time on software GL; progress=False hides the progress
+    bar. The file appears only once fully written.
     """
     cache_path, out_path = os.fspath(cache_path), os.fspath(out_path)
     ext = os.path.splitext(out_path)[1].lower()
@@ -563,18 +563,18 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     folder = os.path.dirname(os.path.abspath(out_path))
     os.makedirs(folder, exist_ok=True)
     tmp = os.path.join(folder, f".{os.path.basename(out_path)}.partial-{os.getpid()}{ext}")
-    progress = tqdm(chosen, desc=f"preview {os.path.basename(out_path)}", unit="frame", file=sys.stderr,
-                    disable=len(chosen) < 2, leave=False)
+    bar = tqdm(chosen, desc=f"preview {os.path.basename(out_path)}", unit="frame", file=sys.stderr,
+               disable=not progress or len(chosen) < 2, leave=False)
     try:
         with FrameRenderer(reader, camera.width, camera.height, shadows=shadows) as renderer:
             def view(f):
                 return auto_camera(reader, camera.width, camera.height, [f], names) if follow else camera
 
-            images = (renderer.render(f, view(f)) for f in progress)
+            images = (renderer.render(f, view(f)) for f in bar)
             write_images(images, [f"frame {f}" for f in chosen], tmp, ext, reader.fps or 24.0, columns)
         os.replace(tmp, out_path)
     finally:
-        progress.close()
+        bar.close()
         if os.path.exists(tmp):
             os.remove(tmp)
     return out_path

@@ -127,7 +127,8 @@ def cmd_lipsync(args):
 def _preview(cache, out, frames, quiet, size=(960, 720), follow=False, focus=None):
     from io_usd.preview import preview
 
-    preview(cache, out, frames=frames, width=size[0], height=size[1], follow=follow, focus=focus)
+    preview(cache, out, frames=frames, width=size[0], height=size[1], follow=follow, focus=focus,
+            progress=not quiet)
     if not quiet:
         print(f"wrote {out}", file=sys.stderr)
 

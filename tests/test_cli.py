@@ -52,10 +52,11 @@ def test_run_writes_a_valid_cache_and_info_lists_it(tmp_path, capsys):
     assert "role=hair" in text and "40 curves, 320 points" in text and "0 errors" in text
 
 
-def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path):
+def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path, capsys):
     scene = write(tmp_path, SMALL)
     out = str(tmp_path / "hair.usdc")
     assert main(["run", scene, "-o", out, "-q"]) == 0
+    capsys.readouterr()
     from PIL import Image
 
     still, sheet = tmp_path / "still.png", tmp_path / "sheet.png"
@@ -63,6 +64,7 @@ def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path):
     assert Image.open(still).size == (160, 120)
     assert main(["preview", out, "-o", str(sheet), "--frames", "1:3", "--size", "160x120", "-q"]) == 0
     assert Image.open(sheet).size == (320, 240)  # 3 frames in a 2 x 2 grid
+    assert capsys.readouterr().err == ""  # -q: no progress bar either
     assert main(["preview", out, "-o", str(tmp_path / "x.png"), "--frames", "9", "-q"]) == 2
 
 
