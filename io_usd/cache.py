@@ -10,7 +10,7 @@ import os
 from dataclasses import dataclass, field
 
 import numpy as np
-from pxr import Gf, Sdf, Usd, UsdGeom, UsdSkel, Vt
+from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt
 
 ROLES = ("hair", "cloth", "cloth_detail", "collider", "face", "hair_card")
 ROOT = "/World"
@@ -392,9 +392,12 @@ class CacheReader:
         self.path = os.fspath(path)
         if not os.path.exists(self.path):
             raise FileNotFoundError(f"{self.path}: no such cache")
-        self.stage = Usd.Stage.Open(self.path)
+        try:
+            self.stage = Usd.Stage.Open(self.path)
+        except Tf.ErrorException:
+            self.stage = None
         if self.stage is None:
-            raise ValueError(f"{self.path}: not a USD stage")
+            raise ValueError(f"{self.path}: not a USD file (USD could not open it)")
         s = self.stage
         self.fps = s.GetTimeCodesPerSecond()
         self.start_frame = int(round(s.GetStartTimeCode()))

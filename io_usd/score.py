@@ -185,12 +185,7 @@ def _open(path, frame):
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no such cache file")
-    from pxr import Tf
-
-    try:
-        reader = CacheReader(path)
-    except Tf.ErrorException:
-        raise ValueError(f"{path}: not a USD file (USD could not open it)") from None
+    reader = CacheReader(path)
     hair = [n for n, p in reader.prims.items() if p.role == "hair" and p.kind == "curves"]
     if not hair:
         found = ", ".join(f"{n} ({p.role})" for n, p in reader.prims.items()) or "none"

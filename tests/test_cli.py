@@ -68,6 +68,17 @@ def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path, capsys):
     assert main(["preview", out, "-o", str(tmp_path / "x.png"), "--frames", "9", "-q"]) == 2
 
 
+@pytest.mark.parametrize("command", ["info", "preview"])
+def test_a_file_that_is_not_usd_exits_2_with_one_line(tmp_path, capsys, command):
+    text = tmp_path / "notes.usdc"
+    text.write_text("not a cache")
+    args = [command, str(text)] + (["-o", str(tmp_path / "x.png")] if command == "preview" else [])
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and str(text) in err and "not a USD file" in err
+    assert not (tmp_path / "x.png").exists()
+
+
 def test_view_without_a_display_exits_2(tmp_path, monkeypatch, capsys):
     scene = write(tmp_path, SMALL)
     out = str(tmp_path / "hair.usdc")
