@@ -33,14 +33,18 @@ def open_stage(path, source=None, key=None):
 
     path = os.fspath(path)
     source = path if source is None else source
+    if os.path.isdir(path):
+        raise InputError(source, key, f"{path} is a folder, not a USD file" if source != path else "a folder, not a USD file")
     if not os.path.isfile(path):
         raise InputError(source, key, f"no such file: {path}" if source != path else "no such file")
-    what = "cannot open as USD" if source == path else f"cannot open {os.path.basename(path)} as USD"
+    what = "not a USD file" if source == path else f"{os.path.basename(path)} is not a USD file"
     try:
         stage = Usd.Stage.Open(path)
-    except Exception as err:  # pxr raises Tf.ErrorException for unreadable layers
-        detail = next((line.strip() for line in str(err).splitlines() if line.strip()), "")
-        raise InputError(source, key, f"{what}: {detail}" if detail else what) from None
+    except Tf.ErrorException as err:
+        # "Error in 'function' at line N in file F : 'reason'": the reason is what a user can act on
+        first = next((line.strip() for line in str(err).splitlines() if line.strip()), "")
+        detail = first.rpartition(" : ")[2].strip("'") if " : " in first else first
+        raise InputError(source, key, f"{what} (USD could not open it: {detail})" if detail else what) from None
     if stage is None:
         raise InputError(source, key, what)
     return stage
@@ -392,12 +396,7 @@ class CacheReader:
         self.path = os.fspath(path)
         if not os.path.exists(self.path):
             raise FileNotFoundError(f"{self.path}: no such cache")
-        try:
-            self.stage = Usd.Stage.Open(self.path)
-        except Tf.ErrorException:
-            self.stage = None
-        if self.stage is None:
-            raise ValueError(f"{self.path}: not a USD file (USD could not open it)")
+        self.stage = open_stage(self.path)
         s = self.stage
         self.fps = s.GetTimeCodesPerSecond()
         self.start_frame = int(round(s.GetStartTimeCode()))
