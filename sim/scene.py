@@ -721,6 +721,11 @@ class Scene:
         x = st.x.numpy().astype(np.float64)
         edges = cm.spring_pairs_np[cm.spring_kind_np == 0]
         rest = cm.spring_rest_np[cm.spring_kind_np == 0]
+        # the edges the solver moves: one between two pinned particles (a strap bound to a shoulder)
+        # stretches with the body's skin, whatever the cloth does
+        moved = (cm.inv_mass_np[edges[:, 0]] > 0) | (cm.inv_mass_np[edges[:, 1]] > 0)
+        if moved.any():
+            edges, rest = edges[moved], rest[moved]
         strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
         # penetration of the body itself, also when the cloth collides with a proxy of it; the walk
         # below runs on the mesh the cloth collides with

@@ -105,6 +105,32 @@ def test_the_dress_colliding_with_a_body_proxy_stays_out_of_the_body_itself():
     assert np.linalg.norm(proxied[1] - exact[1], axis=1).mean() < 0.01
 
 
+def test_cloth_stretch_counts_the_edges_the_solver_moves():
+    """An edge between two pinned particles (a strap bound to the shoulder) stretches with the body's
+    skin: the stretch reported is over the edges with a free end, checked against NumPy."""
+    config = sim.demo_scene({"hair": {"enabled": False}, "face": {"enabled": False},
+                             "cloth.solver": {"body_proxy": 0.025}})
+    scene = Scene(config)
+    scene.advance(2.0 / config.timing.fps)
+    cm = scene.cloth_model
+    pinned = cm.inv_mass_np == 0
+    edges = cm.spring_pairs_np[cm.spring_kind_np == 0]
+    rest = cm.spring_rest_np[cm.spring_kind_np == 0]
+    both = pinned[edges[:, 0]] & pinned[edges[:, 1]]
+    assert both.any() and not both.all()
+    # stretch one pinned-pinned edge by half, as a body's skin could
+    a, b = edges[np.flatnonzero(both)[0]]
+    x = scene.cloth_state.x.numpy()
+    x[b] = x[a] + 1.5 * (x[b] - x[a]) * rest[np.flatnonzero(both)[0]] / np.linalg.norm(x[b] - x[a])
+    scene.cloth_state.x.assign(x)
+    stats = scene.cloth_stats()
+    strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
+    assert strain.max() > 0.49
+    np.testing.assert_allclose(stats["cloth_stretch_max"], strain[~both].max(), rtol=1e-5)
+    np.testing.assert_allclose(stats["cloth_stretch_p99"], np.percentile(strain[~both], 99), rtol=1e-5)
+    assert stats["cloth_stretch_max"] < 0.2
+
+
 def test_a_negative_proxy_spacing_is_refused(tmp_path, capsys):
     scene = tmp_path / "scene.toml"
     scene.write_text('[hair]\nenabled = false\n[cloth]\ngarment = "dress"\n[cloth.solver]\nbody_proxy = -0.02\n')
