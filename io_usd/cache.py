@@ -34,7 +34,8 @@ def open_stage(path, source=None, key=None):
     path = os.fspath(path)
     source = path if source is None else source
     if os.path.isdir(path):
-        raise InputError(source, key, f"{path} is a folder, not a USD file" if source != path else "a folder, not a USD file")
+        reason = "a folder, not a USD file"
+        raise InputError(source, key, f"{path} is {reason}" if source != path else reason)
     if not os.path.isfile(path):
         raise InputError(source, key, f"no such file: {path}" if source != path else "no such file")
     what = "not a USD file" if source == path else f"{os.path.basename(path)} is not a USD file"
