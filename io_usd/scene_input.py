@@ -121,6 +121,9 @@ def read_usd_scene(path, overrides=None):
 
     path = os.fspath(path)
     stage = open_stage(path)
+    if stage.GetRootLayer().customLayerData.get("cfx:engine") == "warp-cfx":
+        raise InputError(path, "cfx:engine", "this is a cache cfx wrote, not a shot: run the scene or stage it was "
+                                             "made from (cfx info lists what it holds)")
     frame_space = HostFrame(str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage))
     tagged = _tagged_prims(path, stage)
     colliders = [p for p in tagged if p.role == "collider"]

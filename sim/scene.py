@@ -1045,12 +1045,45 @@ def _lipsync_weights(config):
     return lipsync.choose_weights(bank, vowels).weights
 
 
+# Warp's native library prints this straight to file descriptor 2 when a machine has no CUDA
+# driver, on every start. A CPU run needs no driver, and a scene that asks for CUDA gets its own
+# error (Scene: "scene.device: device 'cuda' is not available"), so the line is only noise.
+_NO_DRIVER_LINE = "Could not find or load the NVIDIA CUDA driver"
+
+
 def quiet_warp():
-    """Keep Warp's start-up banner and per-module compile lines out of the CLI's output."""
+    """Keep Warp's start-up banner, per-module compile lines and its no-CUDA-driver warning out of
+    the CLI's output. Initialises Warp; anything else it prints while starting is passed on."""
     if hasattr(wp, "LOG_WARNING") and hasattr(wp.config, "log_level"):
         wp.config.log_level = wp.LOG_WARNING
     else:  # warp-lang before the log levels
         wp.config.quiet = True
+    _init_warp_filtered()
+
+
+def _init_warp_filtered():
+    import tempfile
+
+    sys.stderr.flush()
+    try:
+        saved = os.dup(2)
+    except OSError:  # no descriptor 2 to redirect (a host that closed it): start Warp as it is
+        wp.init()
+        return
+    with tempfile.TemporaryFile() as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+        caught.seek(0)
+        printed = caught.read().decode("utf-8", "replace")
+    kept = "".join(line for line in printed.splitlines(keepends=True) if _NO_DRIVER_LINE not in line)
+    if kept:
+        sys.stderr.write(kept)
+        sys.stderr.flush()
 
 
 def _progress(total, enabled):

@@ -143,6 +143,33 @@ def test_cfx_entry_point_runs_as_a_module():
     assert proc.returncode == 0 and "warp-cfx" in proc.stdout
 
 
+def test_quiet_run_prints_nothing_to_stderr(tmp_path):
+    """-q on a CPU machine: no progress bar and no Warp start-up lines (its native no-CUDA-driver
+    warning included), only the summary."""
+    scene = write(tmp_path, SMALL)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.run([sys.executable, "-m", "sim.cli", "run", scene, "-o", str(tmp_path / "c.usdc"), "-q"],
+                          capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert lines[0].startswith("wrote ") and all(line.startswith("  ") for line in lines[1:]), proc.stderr
+
+
+def test_warp_start_up_drops_only_the_no_driver_line(monkeypatch, capfd):
+    import warp as wp
+
+    from sim import scene as scene_module
+
+    def noisy_init():  # what warp.so writes straight to descriptor 2, around another line
+        os.write(2, b"Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not "
+                    b"be available.\nsomething else Warp says\n")
+
+    monkeypatch.setattr(wp, "init", noisy_init)
+    scene_module.quiet_warp()
+    err = capfd.readouterr().err
+    assert err == "something else Warp says\n"
+
+
 def test_bad_output_path_and_missing_device_fail_before_simulating(tmp_path, capsys):
     import warp as wp
 

@@ -293,6 +293,15 @@ def test_stage_without_collider_or_cache_over_itself(tmp_path, capsys):
         read_usd_scene(scene)
 
 
+def test_a_cache_given_as_a_shot_says_so(ran, tmp_path, capsys):
+    """The cache is a layer over the shot, so its stage has every tagged prim and more; run it and
+    the error says what the file is rather than which role it does not know."""
+    out = tmp_path / "again.usdc"
+    assert main(["run", str(ran / "cache.usdc"), "-o", str(out), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "cache.usdc: cfx:engine: this is a cache cfx wrote, not a shot" in err and not out.exists()
+
+
 def test_embedding_rejects_bad_arrays():
     v, faces = _sphere()
     with pytest.raises(InputError, match="collider_faces"):
