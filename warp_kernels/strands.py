@@ -340,6 +340,25 @@ def rotation_from_covariance(A: wp.mat33):
 
 
 @wp.func
+def small_turn(omega: wp.vec3, angle_sq: float):
+    """The unit quaternion turning by |omega| radians about omega, for |omega| <= 1 radian.
+
+    sin(a/2)/a and cos(a/2) as series in a^2, cut where the next term is below float rounding for
+    a <= 1: no square root, division, sine or cosine (refine_rotation takes one per window and pass).
+
+    Inputs:
+      omega (vec3, rad): the rotation vector, no longer than 1
+      angle_sq (float, rad^2): |omega|^2
+    Returns:
+      quat: the rotation
+    """
+    a2 = angle_sq
+    s = 0.5 + a2 * (-1.0 / 48.0 + a2 * (1.0 / 3840.0 + a2 * (-1.0 / 645120.0 + a2 * (1.0 / 185794560.0))))
+    c = 1.0 + a2 * (-1.0 / 8.0 + a2 * (1.0 / 384.0 + a2 * (-1.0 / 46080.0 + a2 * (1.0 / 10321920.0))))
+    return wp.quat(omega[0] * s, omega[1] * s, omega[2] * s, c)
+
+
+@wp.func
 def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
     """Turn q toward argmax_R trace(R^T A), warm-started from the last solution.
 
@@ -351,8 +370,9 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
 
     Inputs:
       q (quat): rotation to start from, usually last substep's
-      A (mat33): covariance of current and rest offsets, scaled to unit Frobenius norm so the small
-          guards are relative
+      A (mat33, m^2): covariance of current and rest offsets, unscaled: the positive-definite test
+          and the fallback's guard are relative to A's size (windows of 0.1 mm or more stay clear of
+          float32's smallest normal numbers)
       iterations (int): most Newton steps; stops early when a step is below 1e-9 radians
     Returns:
       quat: the refined unit rotation
@@ -362,21 +382,36 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
         M = A * wp.transpose(R)
         g = wp.vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
         tr = M[0, 0] + M[1, 1] + M[2, 2]
-        H = wp.identity(n=3, dtype=float) * (tr * (1.0 + 1.0e-6)) - 0.5 * (M + wp.transpose(M))
-        omega = g / (wp.abs(tr) + 1.0e-9)
-        if tr > 0.0:
-            detH = wp.determinant(H)
-            # positive definite: leading minors positive (H[0,0] > 0 and the 2x2 minor > 0 and det > 0)
-            minor = H[0, 0] * H[1, 1] - H[0, 1] * H[1, 0]
-            if H[0, 0] > 0.0 and minor > 0.0 and detH > 1.0e-12 * tr * tr * tr:
-                omega = wp.inverse(H) * g
-        angle = wp.length(omega)
-        if angle < 1.0e-9:
+        # H = tr (1 + 1e-6) I - sym(M) is symmetric: its six cofactors give both the leading minors
+        # (positive definite: all positive) and the Newton step adj(H) g / det(H)
+        d = tr * (1.0 + 1.0e-6)
+        h00 = d - M[0, 0]
+        h11 = d - M[1, 1]
+        h22 = d - M[2, 2]
+        h01 = -0.5 * (M[0, 1] + M[1, 0])
+        h02 = -0.5 * (M[0, 2] + M[2, 0])
+        h12 = -0.5 * (M[1, 2] + M[2, 1])
+        c00 = h11 * h22 - h12 * h12
+        c01 = h02 * h12 - h01 * h22
+        c02 = h01 * h12 - h02 * h11
+        det = h00 * c00 + h01 * c01 + h02 * c02
+        minor = h00 * h11 - h01 * h01
+        omega = wp.vec3(0.0)
+        if tr > 0.0 and h00 > 0.0 and minor > 0.0 and det > 1.0e-12 * tr * tr * tr:
+            c11 = h00 * h22 - h02 * h02
+            c12 = h01 * h02 - h00 * h12
+            omega = wp.vec3(c00 * g[0] + c01 * g[1] + c02 * g[2], c01 * g[0] + c11 * g[1] + c12 * g[2],
+                            c02 * g[0] + c12 * g[1] + minor * g[2]) / det
+        else:
+            # the step of Müller et al.; its guard relative to A's size (A is not normalised)
+            omega = g / wp.max(wp.abs(tr) + 1.0e-9 * wp.sqrt(wp.ddot(A, A)), 1.0e-30)
+        angle_sq = wp.dot(omega, omega)
+        if angle_sq < 1.0e-18:
             break
-        if angle > 1.0:
-            omega = omega / angle
-            angle = 1.0
-        q = wp.normalize(wp.quat_from_axis_angle(omega / angle, angle) * q)
+        if angle_sq > 1.0:
+            omega = omega / wp.sqrt(angle_sq)
+            angle_sq = 1.0
+        q = wp.normalize(small_turn(omega, angle_sq) * q)
     return q
 
 
@@ -426,7 +461,6 @@ def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: i
     A = wp.mat33(0.0)
     for k in range(size):
         A += wp.outer(x[first + k * stride] - centroid, rest[base + k * rest_stride])
-    A = A / wp.sqrt(wp.max(wp.ddot(A, A), 1.0e-30))  # scale-free, so the 1e-9 guard is relative
     if exact != 0:
         return wp.quat_from_matrix(rotation_from_covariance(A)), centroid
     return refine_rotation(q, A, iterations), centroid
