@@ -457,10 +457,16 @@ def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: i
       quat: the window's rotation
       vec3 (m): its centroid
     """
-    centroid = window_centroid(x, first, stride, size)
+    # the rest offsets sum to zero, so offsets from the window's first particle give the covariance
+    # of offsets from its centroid without waiting for the centroid
+    x0 = x[first]
     A = wp.mat33(0.0)
-    for k in range(size):
-        A += wp.outer(x[first + k * stride] - centroid, rest[base + k * rest_stride])
+    c = x0
+    for k in range(1, size):
+        p = x[first + k * stride]
+        c += p
+        A += wp.outer(p - x0, rest[base + k * rest_stride])
+    centroid = c / float(size)
     if exact != 0:
         return wp.quat_from_matrix(rotation_from_covariance(A)), centroid
     return refine_rotation(q, A, iterations), centroid
