@@ -27,6 +27,9 @@ def _extent(points, widths=None):
     return UsdGeom.PointBased.ComputeExtent(points)
 
 
+ENGINE = "warp-cfx"  # the root layer's cfx:engine in every cache written here
+
+
 def open_stage(path, source=None, key=None):
     """A user's USD file opened, or InputError(source or path, key, reason): missing, unreadable, not USD."""
     from sim.errors import InputError
@@ -101,7 +104,7 @@ class CacheWriter:
             default = Sdf.Layer.FindOrOpen(os.path.abspath(over)).defaultPrim
             if default:
                 stage.GetRootLayer().defaultPrim = default
-        data = {"cfx:engine": "warp-cfx", "cfx:complete": False}
+        data = {"cfx:engine": ENGINE, "cfx:complete": False}
         if engine_version:
             data["cfx:engineVersion"] = str(engine_version)
         if settings:

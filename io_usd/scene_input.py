@@ -117,11 +117,11 @@ def read_usd_scene(path, overrides=None):
     """Read a tagged USD stage into a UsdScene; bad input raises InputError naming the prim and key."""
     from sim.scene import PointCacheMotion, SceneAssets
 
-    from .cache import open_stage
+    from .cache import ENGINE, open_stage
 
     path = os.fspath(path)
     stage = open_stage(path)
-    if stage.GetRootLayer().customLayerData.get("cfx:engine") == "warp-cfx":
+    if stage.GetRootLayer().customLayerData.get("cfx:engine") == ENGINE:
         raise InputError(path, "cfx:engine", "this is a cache cfx wrote, not a shot: run the scene or stage it was "
                                              "made from (cfx info lists what it holds)")
     frame_space = HostFrame(str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage))
