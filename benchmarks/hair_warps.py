@@ -64,8 +64,8 @@ def counting_follow_the_leader():
     func_edits = [
         ("    beyond: wp.array(dtype=float),\n):",
          "    beyond: wp.array(dtype=float),\n    work: wp.array(dtype=float),\n):"),
-        ("                if listed:\n                    pushed, bound, leaves, origin, unlisted = ",
-         "                if listed:\n"
+        ("                elif listed:\n                    pushed, bound, leaves, origin, unlisted = ",
+         "                elif listed:\n"
          "                    if unlisted - wp.length(p - origin) > margin + 1.0e-5:\n"
          f"                        work[i] += {LISTED}\n"
          "                    else:\n"

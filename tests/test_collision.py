@@ -635,3 +635,65 @@ def test_signed_distance_re_signs_points_a_self_intersecting_pose_puts_inside_by
     np.testing.assert_allclose(d[40:], -0.05, atol=2e-3)
     # the pseudo-normal alone calls the first ones inside
     assert np.all(signed_distance(around_fold, body.fresh_mesh())[0] < 0.0)
+
+
+def test_listed_faces_answer_as_the_bvh_query_does(head, head_collider):
+    """Mesh queries through a list of the nearest faces (collide_point_listed_mesh): the push and the
+    signed distance of the BVH's query (mesh_push_out), to rounding, for points outside, inside and
+    beyond the query's reach; and a list gathered at a nearby point, where it decides, gives the
+    fresh list's answer bit for bit (so lists kept between steps change nothing)."""
+    import warp as wp
+
+    from warp_kernels import collision
+
+    @wp.kernel
+    def resolve(points: wp.array(dtype=wp.vec3), listed_at: wp.array(dtype=wp.vec3), mesh: wp.uint64, margin: float,
+                search: float, pushed: wp.array(dtype=wp.vec3), distance: wp.array(dtype=float),
+                bvh_pushed: wp.array(dtype=wp.vec3), bvh_distance: wp.array(dtype=float),
+                kept_pushed: wp.array(dtype=wp.vec3), kept_distance: wp.array(dtype=float),
+                kept: wp.array(dtype=wp.int32)):
+        i = wp.tid()
+        p = points[i]
+        none = wp.vec4i(-1, -1, -1, -1)
+        q, d, _faces, _origin, _beyond = collision.collide_point_listed_mesh(p, mesh, margin, search, none, p, -1.0e30)
+        pushed[i] = q
+        distance[i] = d
+        q, d = collision.mesh_push_out(p, mesh, margin, search)
+        bvh_pushed[i] = q
+        bvh_distance[i] = d
+        # a list made 3 mm away, then asked at p
+        o = listed_at[i]
+        faces, fifth = collision.mesh_nearest_faces(o, mesh, search)
+        q, d, decided = collision.listed_faces_push_out(p, mesh, margin, search, faces, fifth - wp.length(p - o))
+        kept_pushed[i] = q
+        kept_distance[i] = d
+        kept[i] = wp.where(decided, 1, 0)
+
+    rng = np.random.default_rng(11)
+    surface, _ = trimesh.sample.sample_surface(trimesh.Trimesh(head.vertices, head.faces, process=False), 600, seed=7)
+    points = (surface + rng.normal(0.0, 0.006, surface.shape)).astype(np.float32)
+    step = rng.normal(size=points.shape)
+    listed_at = (points + 0.003 * step / np.linalg.norm(step, axis=1, keepdims=True)).astype(np.float32)
+    margin, search = 0.0015, 0.01
+    arr = lambda a, t: wp.array(a, dtype=t)  # noqa: E731
+    out = [wp.zeros(len(points), dtype=t) for t in (wp.vec3, float) * 3] + [wp.zeros(len(points), dtype=wp.int32)]
+    wp.launch(resolve, len(points), [arr(points, wp.vec3), arr(listed_at, wp.vec3), head_collider.mesh.id, margin,
+                                     search, *out])
+    pushed, distance, bvh_pushed, bvh_distance, kept_pushed, kept_distance, kept = (a.numpy() for a in out)
+    truth = head_collider.signed_distance(points)
+    assert np.mean(truth < 0.0) > 0.2 and np.mean(truth > margin) > 0.2 and np.any(np.abs(truth) > search)
+    np.testing.assert_allclose(distance, bvh_distance, atol=2e-6)
+    # a point inside whose nearest point lies on an edge goes out along either face's normal: the
+    # BVH takes the face its walk met first, the list the lower face index; both are margin from
+    # the same nearest point
+    apart = np.linalg.norm(pushed - bvh_pushed, axis=1)
+    tie = apart > 2e-6
+    assert tie.mean() < 0.01 and np.all(truth[tie] < 0.0) and np.all(apart[tie] <= 2.0 * margin)
+    moved = np.linalg.norm(pushed - points, axis=1) > 0.0
+    assert moved.mean() > 0.2  # inside and within the margin: pushed
+    # the kept lists decide for some points (a list lasts while the points move less than the gap
+    # to the fifth face), and where they do they answer as the fresh ones
+    decided = kept == 1
+    assert decided.mean() > 0.2
+    np.testing.assert_array_equal(kept_pushed[decided], pushed[decided])
+    np.testing.assert_array_equal(kept_distance[decided], distance[decided])

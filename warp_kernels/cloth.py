@@ -19,6 +19,7 @@ Step order (composed by sim.cloth.ClothSolver), the body posed for the end of th
 import warp as wp
 
 from ._options import MODULE_OPTIONS
+from .collision import closest_on_triangle, pseudo_normal_weight
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -303,51 +304,6 @@ def limit_strain(
 
 
 @wp.func
-def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
-    """Barycentric weights of the point of triangle abc closest to p (Ericson, RTCD §5.1.5).
-
-    Inputs:
-      p (vec3, m): query point
-      a (vec3, m): corner 0
-      b (vec3, m): corner 1
-      c (vec3, m): corner 2
-    Returns:
-      vec3: weights of a, b, c (non-negative, summing to 1)
-    """
-    ab = b - a
-    ac = c - a
-    ap = p - a
-    d1 = wp.dot(ab, ap)
-    d2 = wp.dot(ac, ap)
-    if d1 <= 0.0 and d2 <= 0.0:
-        return wp.vec3(1.0, 0.0, 0.0)
-    bp = p - b
-    d3 = wp.dot(ab, bp)
-    d4 = wp.dot(ac, bp)
-    if d3 >= 0.0 and d4 <= d3:
-        return wp.vec3(0.0, 1.0, 0.0)
-    vc = d1 * d4 - d3 * d2
-    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        t = d1 / (d1 - d3)
-        return wp.vec3(1.0 - t, t, 0.0)
-    cp = p - c
-    d5 = wp.dot(ab, cp)
-    d6 = wp.dot(ac, cp)
-    if d6 >= 0.0 and d5 <= d6:
-        return wp.vec3(0.0, 0.0, 1.0)
-    vb = d5 * d2 - d1 * d6
-    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        t = d2 / (d2 - d6)
-        return wp.vec3(1.0 - t, 0.0, t)
-    va = d3 * d6 - d5 * d4
-    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        return wp.vec3(0.0, 1.0 - t, t)
-    denom = 1.0 / (va + vb + vc)
-    return wp.vec3(va * denom, vb * denom, vc * denom)
-
-
-@wp.func
 def walk_to_nearest_vertex(p: wp.vec3, start: int, points: wp.array(dtype=wp.vec3),
                            vv_start: wp.array(dtype=wp.int32), vv_adj: wp.array(dtype=wp.int32), max_steps: int):
     """Greedy walk over the body's vertex adjacency while the distance to p decreases.
@@ -614,20 +570,6 @@ def gather_candidates(xp: wp.vec3, radius: float, mesh: wp.uint64, points: wp.ar
 
 
 @wp.func
-def corner_angle(at: wp.vec3, b: wp.vec3, c: wp.vec3):
-    """The angle of a triangle at one corner.
-
-    Inputs:
-      at (vec3, m): the corner
-      b (vec3, m): another corner
-      c (vec3, m): the third corner
-    Returns:
-      float (radians): the angle between the edges to b and to c
-    """
-    return wp.acos(wp.clamp(wp.dot(wp.normalize(b - at), wp.normalize(c - at)), -1.0, 1.0))
-
-
-@wp.func
 def closest_candidate(xp: wp.vec3, max_dist: float, tie: float, points: wp.array(dtype=wp.vec3), p: int,
                       candidates: BodyCandidates):
     """The closest point of particle p's gathered body triangles to xp within max_dist, signed as
@@ -677,16 +619,7 @@ def closest_candidate(xp: wp.vec3, max_dist: float, tie: float, points: wp.array
         q = w[0] * a + w[1] * b + w[2] * c
         d = wp.length(xp - q)
         if d < best + tie:
-            # the feature of the closest point sets the weight of this triangle's normal
-            weight = float(2.0 * wp.pi)
-            if wp.length(q - a) < tie:
-                weight = corner_angle(a, b, c)
-            elif wp.length(q - b) < tie:
-                weight = corner_angle(b, c, a)
-            elif wp.length(q - c) < tie:
-                weight = corner_angle(c, a, b)
-            elif w[0] * w[1] * w[2] == 0.0:
-                weight = float(wp.pi)
+            weight = pseudo_normal_weight(q, w, a, b, c, tie)
             if d > best - tie:
                 weighted += weight * wp.normalize(n)
             else:

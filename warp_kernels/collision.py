@@ -24,6 +24,11 @@ COLLIDE_SPHERE_TREE = wp.constant(1)
 COLLIDE_MESH = wp.constant(2)
 SPHERE_LEAF = wp.constant(-2147483648)  # ColliderShape.links: the flag bit of a leaf sphere
 SPHERE_SKIP = wp.constant(2147483647)  # ColliderShape.links: the skip pointer's bits
+# listed faces (collide_point_listed_mesh): closest points this close count as one point (above the
+# rounding of closest points computed on different faces), and a fresh list looks this much farther
+# than its query, so that it can tell nothing near from an unlisted face near
+MESH_TIE = wp.constant(1.0e-5)  # m
+MESH_LIST_SLACK = wp.constant(0.002)  # m
 
 
 @wp.struct
@@ -163,6 +168,318 @@ def mesh_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, max_dist: float):
 
 
 @wp.func
+def closest_on_triangle(p: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """Barycentric weights of the point of triangle abc closest to p (Ericson, RTCD §5.1.5).
+
+    Inputs:
+      p (vec3, m): query point
+      a (vec3, m): corner 0
+      b (vec3, m): corner 1
+      c (vec3, m): corner 2
+    Returns:
+      vec3: weights of a, b, c (non-negative, summing to 1)
+    """
+    ab = b - a
+    ac = c - a
+    ap = p - a
+    d1 = wp.dot(ab, ap)
+    d2 = wp.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        return wp.vec3(1.0, 0.0, 0.0)
+    bp = p - b
+    d3 = wp.dot(ab, bp)
+    d4 = wp.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        return wp.vec3(0.0, 1.0, 0.0)
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        t = d1 / (d1 - d3)
+        return wp.vec3(1.0 - t, t, 0.0)
+    cp = p - c
+    d5 = wp.dot(ab, cp)
+    d6 = wp.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        return wp.vec3(0.0, 0.0, 1.0)
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        t = d2 / (d2 - d6)
+        return wp.vec3(1.0 - t, 0.0, t)
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        return wp.vec3(0.0, 1.0 - t, t)
+    denom = 1.0 / (va + vb + vc)
+    return wp.vec3(va * denom, vb * denom, vc * denom)
+
+
+@wp.func
+def corner_angle(at: wp.vec3, b: wp.vec3, c: wp.vec3):
+    """The angle of a triangle at one corner.
+
+    Inputs:
+      at (vec3, m): the corner
+      b (vec3, m): another corner
+      c (vec3, m): the third corner
+    Returns:
+      float (radians): the angle between the edges to b and to c
+    """
+    return wp.acos(wp.clamp(wp.dot(wp.normalize(b - at), wp.normalize(c - at)), -1.0, 1.0))
+
+
+@wp.func
+def pseudo_normal_weight(q: wp.vec3, w: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, tie: float):
+    """The weight of a triangle's normal in the angle-weighted pseudo-normal (Baerentzen and Aanaes)
+    at a point of the triangle: its angle at a corner, pi on an edge, 2 pi inside.
+
+    Inputs:
+      q (vec3, m): the point, the triangle's closest point to some query
+      w (vec3): q's barycentric weights of a, b, c
+      a (vec3, m): corner 0
+      b (vec3, m): corner 1
+      c (vec3, m): corner 2
+      tie (float, m): a point this close to a corner is at it
+    Returns:
+      float (radians): the weight
+    """
+    if wp.length(q - a) < tie:
+        return corner_angle(a, b, c)
+    if wp.length(q - b) < tie:
+        return corner_angle(b, c, a)
+    if wp.length(q - c) < tie:
+        return corner_angle(c, a, b)
+    if w[0] * w[1] * w[2] == 0.0:
+        return wp.pi
+    return 2.0 * wp.pi
+
+
+@wp.func
+def keep_nearest(d: float, i: int, b0: float, b1: float, b2: float, b3: float, i0: int, i1: int, i2: int, i3: int):
+    """Insert item i at distance d into the five nearest so far, after the equally near ones: one bubble
+    pass down. Call only when d < b4; the five are kept in named registers (an indexed vector lives
+    in memory), and the fifth's item is never needed.
+
+    Inputs:
+      d (float, m): the new item's distance
+      i (int, index): the new item
+      b0 (float, m): the nearest distance so far
+      b1 (float, m): the second nearest
+      b2 (float, m): the third nearest
+      b3 (float, m): the fourth nearest (the fifth, b4, is replaced)
+      i0 (int, index): the nearest item so far, -1 for none
+      i1 (int, index): the second nearest
+      i2 (int, index): the third nearest
+      i3 (int, index): the fourth nearest
+    Returns:
+      float, float, float, float, float, int, int, int, int: the new b0 .. b4 and i0 .. i3
+    """
+    b4 = d
+    if b3 > d:
+        b4 = b3
+        b3, i3 = d, i
+        if b2 > d:
+            b3, i3 = b2, i2
+            b2, i2 = d, i
+            if b1 > d:
+                b2, i2 = b1, i1
+                b1, i1 = d, i
+                if b0 > d:
+                    b1, i1 = b0, i0
+                    b0, i0 = d, i
+    return b0, b1, b2, b3, b4, i0, i1, i2, i3
+
+
+@wp.func
+def ascending(listed: wp.vec4i):
+    """The four listed items in ascending order, missing ones (-1) last.
+
+    Inputs:
+      listed (vec4i): items (indices), -1 for missing ones
+    Returns:
+      vec4i: the same items, ascending, the missing ones last
+    """
+    for a in range(1, 4):
+        b = a
+        while b > 0 and (listed[b - 1] < 0 or (listed[b] >= 0 and listed[b] < listed[b - 1])):
+            t = listed[b]
+            listed[b] = listed[b - 1]
+            listed[b - 1] = t
+            b -= 1
+    return listed
+
+
+@wp.func
+def mesh_face_distance(p: wp.vec3, points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), f: int):
+    """Distance from p to face f of an indexed mesh, and the face's closest point; a sliver (no
+    trustworthy normal, skipped by Warp's queries too) is reported 1e30 away.
+
+    Inputs:
+      p (vec3, m): the point
+      points (vec3, per vertex, m): mesh vertices
+      indices (int32, 3 per face): mesh faces
+      f (int, index): the face
+    Returns:
+      float (m): the distance, 1e30 for a sliver
+      vec3 (m): the closest point of the face
+      vec3: the closest point's barycentric weights of the face's corners
+    """
+    a = points[indices[3 * f + 0]]
+    b = points[indices[3 * f + 1]]
+    c = points[indices[3 * f + 2]]
+    e0 = b - a
+    e1 = c - a
+    e2 = c - b
+    w = closest_on_triangle(p, a, b, c)
+    q = w[0] * a + w[1] * b + w[2] * c
+    d = wp.length(p - q)
+    n = wp.cross(e0, e1)
+    size = 1.0e-6 * (wp.dot(e0, e0) + wp.dot(e1, e1) + wp.dot(e2, e2))
+    if wp.dot(n, n) < size * size:
+        d = 1.0e30
+    return d, q, w
+
+
+@wp.func
+def mesh_nearest_faces(p: wp.vec3, mesh: wp.uint64, radius: float):
+    """The four faces of a mesh nearest p within radius, and the distance of the fifth nearest.
+
+    Inputs:
+      p (vec3, m): the point
+      mesh (uint64): wp.Mesh id, its BVH refitted to the pose
+      radius (float, m): how far to look
+    Returns:
+      vec4i: the four nearest faces in ascending face order, -1 for missing ones (fewer than four
+          within radius)
+      float (m): the fifth nearest face's distance, or radius; every unlisted face is at least
+          this far from p
+    """
+    m = wp.mesh_get(mesh)
+    # the five best so far, ascending, in named registers as sphere_tree_nearest keeps them
+    b0, b1, b2, b3, b4 = float(radius), float(radius), float(radius), float(radius), float(radius)
+    i0, i1, i2, i3 = int(-1), int(-1), int(-1), int(-1)
+    query = wp.mesh_query_aabb(mesh, p - wp.vec3(radius), p + wp.vec3(radius))
+    f = int(0)
+    while wp.mesh_query_aabb_next(query, f):
+        d, _q, _w = mesh_face_distance(p, m.points, m.indices, f)
+        if d < b4:
+            b0, b1, b2, b3, b4, i0, i1, i2, i3 = keep_nearest(d, f, b0, b1, b2, b3, i0, i1, i2, i3)
+    # ascending face order, so that every list holding the same faces visits them in the same order
+    return ascending(wp.vec4i(i0, i1, i2, i3)), b4
+
+
+@wp.func
+def listed_faces_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, search: float, faces: wp.vec4i,
+                          beyond: float):
+    """mesh_push_out over listed faces only, where they decide it.
+
+    The nearest listed face is the mesh's nearest when every unlisted face is farther (beyond) than
+    it by more than MESH_TIE; the faces sharing the nearest point are then all listed too, and the
+    angle-weighted pseudo-normal of Baerentzen and Aanaes over them signs the distance, as
+    wp.mesh_query_point_sign_normal signs it. The answer depends only on those faces, taken in
+    ascending order, so any list that decides gives the same one bit for bit.
+
+    Inputs:
+      p (vec3, m): the point
+      mesh (uint64): wp.Mesh id, its BVH refitted to the pose (only its points and faces are read)
+      margin (float, m): distance kept outside the surface
+      search (float, m): query radius: a surface farther than this is not seen
+      faces (vec4i): the listed faces, ascending, -1 for none (mesh_nearest_faces)
+      beyond (float, m): lower bound of p's distance from every unlisted face
+    Returns:
+      vec3 (m): the pushed point (p itself when nothing is within search)
+      float (m): p's signed distance from the surface, negative inside; search when nothing is within it.
+          When the faces did not decide: the nearest listed face's distance (capped at search), an
+          upper bound of p's distance from the surface
+      bool: whether the listed faces decided
+    """
+    m = wp.mesh_get(mesh)
+    best = search
+    nearest = int(-1)
+    closest = wp.vec3(0.0)
+    weights = wp.vec3(0.0)
+    distances = wp.vec4(1.0e30)
+    for k in range(4):
+        f = faces[k]
+        if f >= 0:
+            d, q, w = mesh_face_distance(p, m.points, m.indices, f)
+            distances[k] = d
+            if d < best:  # ascending faces: of equally near ones the first stays
+                best = d
+                nearest = f
+                closest = q
+                weights = w
+    if beyond <= best + MESH_TIE:
+        return p, best, False  # an unlisted face may be as near
+    if nearest < 0:
+        return p, search, True
+    # the faces sharing the nearest point sign it by their angle-weighted normals
+    weighted = wp.vec3(0.0)
+    for k in range(4):
+        f = faces[k]
+        if distances[k] < best + MESH_TIE:
+            q = closest  # the nearest face's, from the loop above
+            w = weights
+            if f != nearest:
+                _d, q, w = mesh_face_distance(p, m.points, m.indices, f)
+            a = m.points[m.indices[3 * f + 0]]
+            b = m.points[m.indices[3 * f + 1]]
+            c = m.points[m.indices[3 * f + 2]]
+            weighted += pseudo_normal_weight(q, w, a, b, c, MESH_TIE) * wp.normalize(wp.cross(b - a, c - a))
+    a = m.points[m.indices[3 * nearest + 0]]
+    n = wp.normalize(wp.cross(m.points[m.indices[3 * nearest + 1]] - a, m.points[m.indices[3 * nearest + 2]] - a))
+    away = p - closest
+    if wp.dot(weighted, away) <= 0.0:
+        return closest + n * margin, -best, True
+    if best < margin:
+        if best > 1.0e-9:
+            return closest + away * (margin / best), best, True
+        return closest + n * margin, best, True
+    return p, best, True
+
+
+@wp.func
+def collide_point_listed_mesh(p: wp.vec3, mesh: wp.uint64, margin: float, search: float, faces: wp.vec4i,
+                              origin: wp.vec3, beyond: float):
+    """collide_point_bounded for the mesh, through a list of the faces near the point.
+
+    Resting contact queries the mesh every step; the four faces nearest the point and a bound on
+    all others (mesh_nearest_faces) answer those queries instead, a few triangle tests, for as
+    long as beyond - |p - origin| keeps the nearest listed face the nearest. Otherwise the list is
+    gathered again at p (out to MESH_LIST_SLACK beyond the nearest listed face, at most search), and
+    where even a fresh list cannot decide (five or more faces equally near, or none within search)
+    the BVH query answers. Which of the two answers a point gets
+    depends only on the point, never on the list it came with, so skipping queries changes nothing.
+
+    Inputs:
+      p (vec3, m): the point
+      mesh (uint64): wp.Mesh id, its BVH refitted to the pose
+      margin (float, m): distance kept outside the surface
+      search (float, m): query radius: a surface farther than this is not seen
+      faces (vec4i): the list, ascending, -1 for none
+      origin (vec3, m): where beyond holds
+      beyond (float, m): lower bound of the distance from origin to every unlisted face (NO_BOUND
+          or any negative value: no list)
+    Returns:
+      vec3 (m): the resolved point, as mesh_push_out resolves it
+      float (m): p's signed distance, capped at search (mesh_push_out's)
+      vec4i: the list after the call
+      vec3 (m): where the returned beyond holds
+      float (m): the returned list's beyond
+    """
+    pushed, distance, decided = listed_faces_push_out(p, mesh, margin, search, faces, beyond - wp.length(p - origin))
+    if decided:
+        return pushed, distance, faces, origin, beyond
+    # the surface is no farther than the nearest listed face: a gathering that far (and the slack)
+    # holds the nearest faces, and costs less than one as far as the query. It looks no farther than
+    # search: the collider's motion (contact_motion) is measured only within search of the strands,
+    # so a bound on faces beyond it could not be kept
+    listed, fifth = mesh_nearest_faces(p, mesh, wp.min(distance + MESH_LIST_SLACK, search))
+    pushed, distance, decided = listed_faces_push_out(p, mesh, margin, search, listed, fifth)
+    if not decided:
+        pushed, distance = mesh_push_out(p, mesh, margin, search)
+    return pushed, distance, listed, p, fifth
+
+
+@wp.func
 def sphere_tree_clearance(p: wp.vec3, shape: ColliderShape, search: float):
     """Distance from p to the nearest leaf sphere's surface (negative inside one), capped at search.
 
@@ -230,32 +547,11 @@ def sphere_tree_nearest(p: wp.vec3, shape: ColliderShape, search: float):
         if near and leaf:
             d = wp.length(e) - r
             if d < b4:
-                # insert d after the equal ones: one bubble pass down the sorted five
-                b4 = d
-                if b3 > d:
-                    b4 = b3
-                    b3, i3 = d, i
-                    if b2 > d:
-                        b3, i3 = b2, i2
-                        b2, i2 = d, i
-                        if b1 > d:
-                            b2, i2 = b1, i1
-                            b1, i1 = d, i
-                            if b0 > d:
-                                b1, i1 = b0, i0
-                                b0, i0 = d, i
+                b0, b1, b2, b3, b4, i0, i1, i2, i3 = keep_nearest(d, i, b0, b1, b2, b3, i0, i1, i2, i3)
         # the next node without a branch: the walk's turns are too irregular to predict
         i = wp.where(near and not leaf, i + 1, link & SPHERE_SKIP)
-    # ascending node order, the order in which a sweep of the tree meets them; missing ones last
-    listed = wp.vec4i(i0, i1, i2, i3)
-    for a in range(1, 4):
-        b = a
-        while b > 0 and (listed[b - 1] < 0 or (listed[b] >= 0 and listed[b] < listed[b - 1])):
-            t = listed[b]
-            listed[b] = listed[b - 1]
-            listed[b - 1] = t
-            b -= 1
-    return listed, b0, b4
+    # ascending node order, the order in which a sweep of the tree meets them
+    return ascending(wp.vec4i(i0, i1, i2, i3)), b0, b4
 
 
 @wp.func

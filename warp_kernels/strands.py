@@ -32,8 +32,8 @@ from ._options import MODULE_OPTIONS
 
 wp.set_module_options(MODULE_OPTIONS)
 
-from .collision import (COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded, collide_point_listed,
-                        sphere_tree_nearest)
+from .collision import (COLLIDE_MESH, COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded,
+                        collide_point_listed, collide_point_listed_mesh, sphere_tree_nearest)
 from .skinning import bound_position, face_frame, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
@@ -1081,8 +1081,9 @@ def follow_leader(
     In/out:
       clearance (float, per element, m): the contact bound, at start in and at the result out;
           written only when collide_mode != COLLIDE_NONE
-      near_leaves (vec4i, per element): the listed leaf spheres (sphere tree with bounds)
-      beyond (float, per element, m): the bound on every unlisted leaf (sphere tree with bounds)
+      near_leaves (vec4i, per element): the listed leaf spheres (sphere tree) or faces (mesh),
+          with bounds
+      beyond (float, per element, m): the bound on every unlisted leaf or face, with bounds
     Returns:
       vec3 (m): the resolved position
     """
@@ -1096,7 +1097,9 @@ def follow_leader(
     p = parent + d * (length / dist)
     if collide_mode != 0:
         bound = float(NO_BOUND)
-        listed = use_bounds != 0 and collide_mode == COLLIDE_SPHERE_TREE
+        # the lists near each particle are kept with the bounds; mesh queries go through a list
+        # even without them (one made for the query), so that skipping queries changes nothing
+        listed = use_bounds != 0 and (collide_mode == COLLIDE_SPHERE_TREE or collide_mode == COLLIDE_MESH)
         leaves = wp.vec4i(-1, -1, -1, -1)
         unlisted = float(NO_BOUND)
         if use_bounds != 0:
@@ -1121,7 +1124,10 @@ def follow_leader(
             for _round in range(2):
                 queried = p
                 pushed = p
-                if listed:
+                if collide_mode == COLLIDE_MESH:
+                    pushed, bound, leaves, origin, unlisted = collide_point_listed_mesh(
+                        p, shape.mesh, margin, reach, leaves, origin, unlisted)
+                elif listed:
                     pushed, bound, leaves, origin, unlisted = collide_point_listed(
                         p, shape, margin, reach, leaves, origin, unlisted)
                 else:
