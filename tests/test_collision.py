@@ -655,7 +655,8 @@ def test_listed_faces_answer_as_the_bvh_query_does(head, head_collider):
         i = wp.tid()
         p = points[i]
         none = wp.vec4i(-1, -1, -1, -1)
-        q, d, _faces, _origin, _beyond = collision.collide_point_listed_mesh(p, mesh, margin, search, none, p, -1.0e30)
+        q, d, _faces, _origin, _beyond = collision.collide_point_listed_mesh(p, mesh, margin, search, search, none,
+                                                                              p, -1.0e30)
         pushed[i] = q
         distance[i] = d
         q, d = collision.mesh_push_out(p, mesh, margin, search)

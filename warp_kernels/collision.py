@@ -437,16 +437,16 @@ def listed_faces_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, search: fl
 
 
 @wp.func
-def collide_point_listed_mesh(p: wp.vec3, mesh: wp.uint64, margin: float, search: float, faces: wp.vec4i,
-                              origin: wp.vec3, beyond: float):
+def collide_point_listed_mesh(p: wp.vec3, mesh: wp.uint64, margin: float, search: float, limit: float,
+                              faces: wp.vec4i, origin: wp.vec3, beyond: float):
     """collide_point_bounded for the mesh, through a list of the faces near the point.
 
     Resting contact queries the mesh every step; the four faces nearest the point and a bound on
     all others (mesh_nearest_faces) answer those queries instead, a few triangle tests, for as
     long as beyond - |p - origin| keeps the nearest listed face the nearest. Otherwise the list is
-    gathered again at p (out to MESH_LIST_SLACK beyond the nearest listed face, at most search), and
-    where even a fresh list cannot decide (five or more faces equally near, or none within search)
-    the BVH query answers. Which of the two answers a point gets
+    gathered again at p (out to MESH_LIST_SLACK beyond the nearest listed face, at most limit), and
+    where even a fresh list cannot decide (five or more faces equally near, or none within a search
+    as far as limit) the BVH query answers. Which of the two answers a point gets
     depends only on the point, never on the list it came with, so skipping queries changes nothing.
 
     Inputs:
@@ -454,6 +454,8 @@ def collide_point_listed_mesh(p: wp.vec3, mesh: wp.uint64, margin: float, search
       mesh (uint64): wp.Mesh id, its BVH refitted to the pose
       margin (float, m): distance kept outside the surface
       search (float, m): query radius: a surface farther than this is not seen
+      limit (float, m): the farthest a list may reach, at least search: the distance within which
+          the caller bounds the collider's motion
       faces (vec4i): the list, ascending, -1 for none
       origin (vec3, m): where beyond holds
       beyond (float, m): lower bound of the distance from origin to every unlisted face (NO_BOUND
@@ -470,9 +472,8 @@ def collide_point_listed_mesh(p: wp.vec3, mesh: wp.uint64, margin: float, search
         return pushed, distance, faces, origin, beyond
     # the surface is no farther than the nearest listed face: a gathering that far (and the slack)
     # holds the nearest faces, and costs less than one as far as the query. It looks no farther than
-    # search: the collider's motion (contact_motion) is measured only within search of the strands,
-    # so a bound on faces beyond it could not be kept
-    listed, fifth = mesh_nearest_faces(p, mesh, wp.min(distance + MESH_LIST_SLACK, search))
+    # limit: beyond it the caller does not follow the collider's motion, so a bound there would not hold
+    listed, fifth = mesh_nearest_faces(p, mesh, wp.min(distance + MESH_LIST_SLACK, limit))
     pushed, distance, decided = listed_faces_push_out(p, mesh, margin, search, listed, fifth)
     if not decided:
         pushed, distance = mesh_push_out(p, mesh, margin, search)

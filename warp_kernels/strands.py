@@ -1126,7 +1126,7 @@ def follow_leader(
                 pushed = p
                 if collide_mode == COLLIDE_MESH:
                     pushed, bound, leaves, origin, unlisted = collide_point_listed_mesh(
-                        p, shape.mesh, margin, reach, leaves, origin, unlisted)
+                        p, shape.mesh, margin, reach, search, leaves, origin, unlisted)
                 elif listed:
                     pushed, bound, leaves, origin, unlisted = collide_point_listed(
                         p, shape, margin, reach, leaves, origin, unlisted)
