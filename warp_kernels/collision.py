@@ -25,8 +25,8 @@ COLLIDE_MESH = wp.constant(2)
 SPHERE_LEAF = wp.constant(-2147483648)  # ColliderShape.links: the flag bit of a leaf sphere
 SPHERE_SKIP = wp.constant(2147483647)  # ColliderShape.links: the skip pointer's bits
 # listed faces (collide_point_listed_mesh): closest points this close count as one point (above the
-# rounding of closest points computed on different faces), and a fresh list looks this much farther
-# than its query, so that it can tell nothing near from an unlisted face near
+# rounding of closest points computed on different faces), and a list is gathered this much beyond
+# the nearest face last listed (1 and 2 mm measured alike, 5 mm slower: BENCHMARKS.md, session 25)
 MESH_TIE = wp.constant(1.0e-5)  # m
 MESH_LIST_SLACK = wp.constant(0.002)  # m
 
