@@ -366,7 +366,7 @@ def mesh_nearest_faces(p: wp.vec3, mesh: wp.uint64, radius: float):
     return ascending(wp.vec4i(i0, i1, i2, i3)), b4
 
 
-@wp.func
+@wp.func(inline=False)
 def listed_faces_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, search: float, faces: wp.vec4i,
                           beyond: float):
     """mesh_push_out over listed faces only, where they decide it.
@@ -436,7 +436,10 @@ def listed_faces_push_out(p: wp.vec3, mesh: wp.uint64, margin: float, search: fl
     return p, best, True
 
 
-@wp.func
+# not inlined, nor listed_faces_push_out: the length pass's serial loop (follow_leader) is capped at
+# 128 registers on a GPU, and the lists inlined there doubled its spills in every collision mode
+# (sm_90: 396 / 592 bytes stored / loaded without the lists, 1012 / 1472 inlined, 604 / 644 not)
+@wp.func(inline=False)
 def collide_point_listed_mesh(p: wp.vec3, mesh: wp.uint64, margin: float, search: float, limit: float,
                               faces: wp.vec4i, origin: wp.vec3, beyond: float):
     """collide_point_bounded for the mesh, through a list of the faces near the point.
