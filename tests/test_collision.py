@@ -651,9 +651,12 @@ def test_listed_faces_answer_as_the_bvh_query_does(head, head_collider):
                 search: float, pushed: wp.array(dtype=wp.vec3), distance: wp.array(dtype=float),
                 bvh_pushed: wp.array(dtype=wp.vec3), bvh_distance: wp.array(dtype=float),
                 kept_pushed: wp.array(dtype=wp.vec3), kept_distance: wp.array(dtype=float),
-                kept: wp.array(dtype=wp.int32)):
+                kept: wp.array(dtype=wp.int32), fresh: wp.array(dtype=wp.int32)):
         i = wp.tid()
         p = points[i]
+        faces, fifth = collision.mesh_nearest_faces(p, mesh, search)
+        _q, _d, decided = collision.listed_faces_push_out(p, mesh, margin, search, faces, fifth)
+        fresh[i] = wp.where(decided, 1, 0)  # the list answered, not the BVH
         none = wp.vec4i(-1, -1, -1, -1)
         q, d, _faces, _origin, _beyond = collision.collide_point_listed_mesh(p, mesh, margin, search, search, none,
                                                                               p, -1.0e30)
@@ -677,12 +680,14 @@ def test_listed_faces_answer_as_the_bvh_query_does(head, head_collider):
     listed_at = (points + 0.003 * step / np.linalg.norm(step, axis=1, keepdims=True)).astype(np.float32)
     margin, search = 0.0015, 0.01
     arr = lambda a, t: wp.array(a, dtype=t)  # noqa: E731
-    out = [wp.zeros(len(points), dtype=t) for t in (wp.vec3, float) * 3] + [wp.zeros(len(points), dtype=wp.int32)]
+    out = [wp.zeros(len(points), dtype=t) for t in (wp.vec3, float) * 3 + (wp.int32, wp.int32)]
     wp.launch(resolve, len(points), [arr(points, wp.vec3), arr(listed_at, wp.vec3), head_collider.mesh.id, margin,
                                      search, *out])
-    pushed, distance, bvh_pushed, bvh_distance, kept_pushed, kept_distance, kept = (a.numpy() for a in out)
+    pushed, distance, bvh_pushed, bvh_distance, kept_pushed, kept_distance, kept, fresh = (a.numpy() for a in out)
     truth = head_collider.signed_distance(points)
     assert np.mean(truth < 0.0) > 0.2 and np.mean(truth > margin) > 0.2 and np.any(np.abs(truth) > search)
+    near = np.abs(truth) < search - 1e-4
+    assert fresh[near].mean() > 0.95  # within reach a fresh list answers (the BVH only where five faces tie)
     np.testing.assert_allclose(distance, bvh_distance, atol=2e-6)
     # a point inside whose nearest point lies on an edge goes out along either face's normal: the
     # BVH takes the face its walk met first, the list the lower face index; both are margin from
