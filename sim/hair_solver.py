@@ -179,8 +179,8 @@ class HairSolver:
         self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
         # contact bounds of the length pass (see strands.follow_the_leader), per particle in the pass's
-        # order (set with lanes): clearance (NO_BOUND = unknown, a full query), the sphere tree's four
-        # leaves near each particle (near_leaves), and a bound on the distance to all others (beyond)
+        # order (set with lanes): clearance (NO_BOUND = unknown, a full query), the four sphere-tree leaves
+        # or mesh faces nearest each particle (near_leaves), and a bound on the distance to all others (beyond)
         self.contact_bounds = True  # False queries every particle every substep (same result, slower)
         # walk the sphere tree for the particles whose leaf lists run short in parallel passes before the
         # length pass (strands.find_short_lists, list_leaves_ahead), the same strands: on a GPU the walks
@@ -302,7 +302,7 @@ class HairSolver:
 
     def particle_bounds(self):
         """The length pass's contact bounds in particle order, as NumPy: (clearance [m], the four listed
-        leaves, the bound on every other leaf [m]) per particle, whichever order the solver keeps."""
+        leaves or faces, the bound on every other one [m]) per particle, whichever order the solver keeps."""
         bounds = (self.clearance.numpy(), self.near_leaves.numpy(), self.beyond.numpy())
         if self._lanes is None:
             return bounds
