@@ -95,6 +95,23 @@ def time_frames(step, device, frames=10, min_seconds=0.5, max_frames=200):
     return 1e3 * (time.perf_counter() - start) / done
 
 
+def time_each_frame(step, device, frames=10, min_seconds=0.5, max_frames=200):
+    """ms of each frame of `step()` after the two warm-up frames of time_frames, the device synchronised
+    after every frame, as an application that shows each frame must: at least `frames` frames and at
+    least `min_seconds` unless that exceeds `max_frames`. Frames slower than the rest show here, where
+    a mean hides them."""
+    for _ in range(2):
+        step()
+    wp.synchronize_device(device)
+    times, start = [], time.perf_counter()
+    while len(times) < frames or (time.perf_counter() - start < min_seconds and len(times) < max_frames):
+        begin = time.perf_counter()
+        step()
+        wp.synchronize_device(device)
+        times.append(1e3 * (time.perf_counter() - begin))
+    return times
+
+
 def copy_bandwidth(device, megabytes=1024, repeats=10):
     """GB/s of a large device-to-device copy, counting bytes read plus bytes written."""
     n = megabytes * (1 << 20) // 16

@@ -11,10 +11,14 @@ lands on this body's head, and the head bone carries that region rigidly.
 """
 
 import functools
+import threading
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import warp as wp
 from scipy.interpolate import PchipInterpolator
+
+from warp_kernels import body_motion
 
 from .collision_proxy import neighbour_average
 from .head import _scalp_faces, _smoothstep, procedural_head
@@ -26,6 +30,7 @@ _BUST_CUT_Y = 0.18  # bust coordinates: only the bust above this height joins th
 _HEAD_RIGID_Y = (0.17, 0.23)  # bust coordinates: head-bone weight ramps 0 -> 1 (1 exactly above)
 ARM_ABDUCTION_DEGREES = 42.0  # rest A-pose: upper arm angle out from the torso
 _HEEL_REACH = 0.09  # [m] from the ankle back to where the heel meets the floor
+KEPT_LAUNCH_TIMES = 64  # BodyAnimation.bone_matrices keeps its launch for requests of up to this many times
 
 # torso loft: height, half-width (x), half-depth (z), centre z  [m]
 _TORSO = np.array([
@@ -448,31 +453,6 @@ def scalp_mask(vertices, faces, head_offset=HEAD_OFFSET):
 
 # ---- animation -------------------------------------------------------------------------------------------
 
-def _axis_angle(axis, angle):
-    """(T, 3, 3) rotations by angle[t] [rad] about a fixed unit axis (Rodrigues)."""
-    x, y, z = _unit(axis)
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * K + (1.0 - c) * (K @ K)
-
-
-def _rx(a):
-    return _axis_angle((1.0, 0.0, 0.0), a)
-
-
-def _ry(a):
-    return _axis_angle((0.0, 1.0, 0.0), a)
-
-
-def _rz(a):
-    return _axis_angle((0.0, 0.0, 1.0), a)
-
-
-def _min_jerk(u):
-    u = np.clip(u, 0.0, 1.0)
-    return u * u * u * (10.0 + u * (-15.0 + 6.0 * u))
-
-
 @dataclass(frozen=True)
 class BodyAnimation:
     """Procedural body motion from the rest pose: presets "walk", "arm_raise", "turn" and "none".
@@ -523,187 +503,83 @@ class BodyAnimation:
     def _sk(self):
         return self.skeleton if self.skeleton is not None else default_skeleton()
 
-    # -- pose: root offset (T, 3) and local joint rotations (T, J, 3, 3) about each rest joint
-    def local_pose(self, times):
-        t = np.atleast_1d(np.asarray(times, np.float64))
-        sk = self._sk
-        R = np.tile(np.eye(3), (len(t), sk.num_joints, 1, 1))
-        root = np.zeros((len(t), 3))
-        ease = _smoothstep(t / self.ease_in_s) if self.ease_in_s > 0 else np.ones_like(t)
-        if self.motion == "walk":
-            self._walk(t, ease, R, root)
-        elif self.motion == "arm_raise":
-            self._arm_raise(t, ease, R)
-        elif self.motion == "turn":
-            self._turn(t, R)
-        return root, R
-
     def bone_matrices(self, times):
-        """(T, J, 4, 4) skinning matrices (world pose @ inverse bind): skinned = sum_k w_k M[b_k] @ rest."""
-        root, R = self.local_pose(times)
-        return _skinning_matrices(self._sk, root, R)
+        """(T, J, 4, 4) float64 skinning matrices (world pose @ inverse bind): skinned = sum_k w_k M[b_k] @ rest.
+
+        One launch of warp_kernels.body_motion on the CPU evaluates every time: a frame's dozen
+        substep poses cost tens of microseconds, not a NumPy evaluation's milliseconds."""
+        t = np.atleast_1d(np.asarray(times, np.float64))
+        joints = self._sk.num_joints
+        if len(t) == 0:
+            return np.zeros((0, joints, 4, 4))
+        with self._launch_lock:
+            # one recorded launch and its buffers per count of times: a frame asks for the same count
+            # every time, and building a launch costs more than running it (long requests, rare and
+            # 4 kB per time, are not kept)
+            launch = self._launches.get(len(t))
+            if launch is None:
+                buffers = (wp.empty(len(t), dtype=wp.float64, device="cpu"),
+                           wp.empty(len(t) * joints, dtype=wp.mat33d, device="cpu"),
+                           wp.empty(len(t) * joints, dtype=wp.mat44d, device="cpu"))
+                command = wp.launch(body_motion.body_bone_matrices, len(t), [buffers[0], self._kernel_motion,
+                                    *buffers[1:]], device="cpu", record_cmd=True)
+                launch = (buffers[0], buffers[2], command)
+                if len(t) <= KEPT_LAUNCH_TIMES:
+                    self._launches[len(t)] = launch
+            time_buffer, bones, command = launch
+            time_buffer.numpy()[:] = t
+            command.launch()
+            return bones.numpy().reshape(len(t), joints, 4, 4).copy()
+
+    @functools.cached_property
+    def _launches(self):
+        return {}
+
+    @functools.cached_property
+    def _launch_lock(self):
+        return threading.Lock()
+
+    @functools.cached_property
+    def _kernel_motion(self):
+        """The body_motion.BodyMotion of this animation (angles in radians, derived walk constants)."""
+        sk = self._sk
+        m = body_motion.BodyMotion()
+        m.motion = {"none": body_motion.MOTION_NONE, "walk": body_motion.MOTION_WALK,
+                    "arm_raise": body_motion.MOTION_ARM_RAISE, "turn": body_motion.MOTION_TURN}[self.motion]
+        m.ease_in_s = self.ease_in_s
+        m.in_place = int(self.in_place)
+        m.stride_hz = 0.5 * self.cadence_steps_per_s
+        m.speed = self.step_length_m * self.cadence_steps_per_s
+        m.stance_fraction = self.stance_fraction
+        m.reach = self.stance_fraction * self.step_length_m - 0.03  # less a little heel-to-toe roll
+        m.foot_clearance = self.foot_clearance_m
+        m.heel_rise, m.toe_up = np.radians(self.heel_rise_degrees), np.radians(self.toe_up_degrees)
+        foot = sk.index("foot_l")  # both feet pivot as the left one is shaped
+        P = sk.rest_positions
+        m.toe, m.heel, m.ankle_height = sk.tips[foot, 2] - P[foot, 2], _HEEL_REACH, P[foot, 1]
+        m.pelvis_drop, m.pelvis_bob, m.pelvis_sway = self.pelvis_drop_m, self.pelvis_bob_m, self.pelvis_sway_m
+        for name in ("pelvis_yaw", "pelvis_roll", "torso_twist", "arm_swing", "arm_swing_back", "arm_lower",
+                     "elbow_bend"):
+            setattr(m, name, np.radians(getattr(self, name + "_degrees")))
+        for s in ("l", "r"):
+            # a positive angle about each hinge swings the arm forward and bends the elbow
+            arm = P[sk.index(f"forearm_{s}")] - P[sk.index(f"upper_arm_{s}")]
+            fore = P[sk.index(f"hand_{s}")] - P[sk.index(f"forearm_{s}")]
+            setattr(m, f"arm_hinge_{s}", wp.vec3d(*_unit(np.cross(arm, (0.0, 0.0, 1.0)))))
+            setattr(m, f"fore_hinge_{s}", wp.vec3d(*_unit(np.cross(fore, (0.0, 0.0, 1.0)))))
+        m.raise_angle = np.radians(self.raise_to_degrees - ARM_ABDUCTION_DEGREES)
+        m.raise_s, m.hold_s, m.clavicle_share = self.raise_s, self.hold_s, self.clavicle_share
+        m.turn_angle, m.turn_s, m.head_lead_s = np.radians(self.turn_degrees), self.turn_s, self.head_lead_s
+        m.rest = wp.array(P, dtype=wp.vec3d, device="cpu")
+        m.parents = wp.array(sk.parents, dtype=wp.int32, device="cpu")
+        for name in ("pelvis", "spine", "chest", "neck", "head", "shoulder_l", "shoulder_r", "upper_arm_l",
+                     "upper_arm_r", "forearm_l", "forearm_r", "thigh_l", "thigh_r", "shin_l", "shin_r", "foot_l",
+                     "foot_r"):
+            setattr(m, name, sk.index(name))
+        return m
 
     def joint_positions(self, times):
         """(T, J, 3) world joint positions [m]."""
         M = self.bone_matrices(times)
         p = self._sk.rest_positions
         return np.einsum("tjab,jb->tja", M[:, :, :3, :3], p) + M[:, :, :3, 3]
-
-    # -- motions
-    def _arm_raise(self, t, ease, R):
-        sk = self._sk
-        cycle = 2.0 * (self.raise_s + self.hold_s)
-        u = np.mod(t, cycle)
-        up = _smoothstep(u / self.raise_s) - _smoothstep((u - self.raise_s - self.hold_s) / self.raise_s)
-        total = np.radians(self.raise_to_degrees - ARM_ABDUCTION_DEGREES) * up * ease
-        for s, sx in (("l", 1.0), ("r", -1.0)):
-            R[:, sk.index(f"shoulder_{s}")] = _rz(sx * self.clavicle_share * total)
-            R[:, sk.index(f"upper_arm_{s}")] = _rz(sx * (1.0 - self.clavicle_share) * total)
-
-    def _turn(self, t, R):
-        sk = self._sk
-        delay = self.head_lead_s  # the body holds still while the head starts the turn
-
-        def yaw(tt):
-            cycle = 2.0 * (self.turn_s + self.hold_s)
-            u = np.mod(np.maximum(tt - delay, 0.0), cycle)
-            a = _smoothstep(u / self.turn_s) - _smoothstep((u - self.turn_s - self.hold_s) / self.turn_s)
-            return np.radians(self.turn_degrees) * a * (tt > delay)
-
-        pelvis, chest, head = yaw(t), yaw(t + 0.5 * self.head_lead_s), yaw(t + self.head_lead_s)
-        R[:, sk.index("pelvis")] = _ry(pelvis)
-        R[:, sk.index("spine")] = _ry(0.5 * (chest - pelvis))
-        R[:, sk.index("chest")] = _ry(0.5 * (chest - pelvis))
-        R[:, sk.index("neck")] = _ry(0.5 * (head - chest))
-        R[:, sk.index("head")] = _ry(0.5 * (head - chest))
-
-    def _walk(self, t, ease, R, root):
-        sk = self._sk
-        P = sk.rest_positions
-        stride_hz = 0.5 * self.cadence_steps_per_s
-        speed = self.step_length_m * self.cadence_steps_per_s  # [m/s]
-        phase_l = np.mod(stride_hz * t, 1.0)  # 0 = left heel strike
-        cyc = 2.0 * np.pi * phase_l
-
-        # root: forward distance is the integral of speed * ease, in closed form
-        if not self.in_place:
-            te = self.ease_in_s
-            u = np.clip(t / te, 0.0, 1.0) if te > 0 else np.ones_like(t)
-            root[:, 2] = speed * (te * (u ** 3 - 0.5 * u ** 4) + np.maximum(t - te, 0.0))
-        midstance = 0.5 * self.stance_fraction
-        root[:, 1] = ease * (-self.pelvis_drop_m + self.pelvis_bob_m * np.cos(4.0 * np.pi * (phase_l - midstance)))
-        root[:, 0] = ease * self.pelvis_sway_m * np.sin(cyc)
-
-        # the pelvis turns with the swinging leg and drops on its side; the chest turns against it
-        yaw = -np.radians(self.pelvis_yaw_degrees) * np.cos(cyc) * ease
-        roll = np.radians(self.pelvis_roll_degrees) * np.sin(cyc) * ease
-        R_pelvis = _ry(yaw) @ _rz(roll)
-        R[:, sk.index("pelvis")] = R_pelvis
-        chest_yaw = np.radians(self.torso_twist_degrees) * np.cos(cyc) * ease  # in the world
-        R[:, sk.index("spine")] = _ry(0.4 * (chest_yaw - yaw)) @ _rz(-0.6 * roll)
-        R[:, sk.index("chest")] = _ry(0.6 * (chest_yaw - yaw)) @ _rz(-0.4 * roll)
-        # the head keeps looking ahead
-        R[:, sk.index("neck")] = _ry(-0.5 * chest_yaw)
-        R[:, sk.index("head")] = _ry(-0.5 * chest_yaw)
-
-        # arms: lowered from the A-pose, swinging against the legs
-        swing = np.radians(self.arm_swing_degrees) * np.cos(cyc) * ease
-        back = np.radians(self.arm_swing_back_degrees) * ease
-        lower = np.radians(self.arm_lower_degrees) * ease
-        bend = np.radians(self.elbow_bend_degrees) * ease
-        for s, sx, sgn in (("l", 1.0, -1.0), ("r", -1.0, 1.0)):
-            i_up, i_fore = sk.index(f"upper_arm_{s}"), sk.index(f"forearm_{s}")
-            arm = P[i_fore] - P[i_up]
-            hinge = _unit(np.cross(arm, (0.0, 0.0, 1.0)))  # positive angle swings the arm forward
-            R[:, i_up] = _rz(-sx * lower) @ _axis_angle(hinge, sgn * swing - back)
-            fore_hinge = _unit(np.cross(P[sk.index(f"hand_{s}")] - P[i_fore], (0.0, 0.0, 1.0)))
-            R[:, i_fore] = _axis_angle(fore_hinge, bend * (1.0 + 0.5 * sgn * np.cos(cyc)))
-
-        # legs: two-bone IK to ankle targets given in the walking (root) frame; the thigh's local
-        # rotation cancels the pelvis's, so each leg swings in a plane fixed in the world
-        pelvis_shift = root + P[0] - np.einsum("tab,b->ta", R_pelvis, P[0])  # exactly 0 at rest
-        for s, offset in (("l", 0.0), ("r", 0.5)):
-            phase = np.mod(phase_l + offset, 1.0)
-            i_hip, i_knee, i_ankle = (sk.index(n + s) for n in ("thigh_", "shin_", "foot_"))
-            ankle_rel, pitch = self._foot_path(phase)
-            target = P[i_ankle] + ease[:, None] * ankle_rel
-            target[:, 2] += root[:, 2]
-            hip = np.einsum("tab,b->ta", R_pelvis, P[i_hip]) + pelvis_shift
-            a_hip, a_knee, a_abd = _leg_ik(P[i_hip], P[i_knee], P[i_ankle], hip, target)
-            R_leg = _rz(a_abd) @ _rx(a_hip)
-            R[:, i_hip] = np.swapaxes(R_pelvis, 1, 2) @ R_leg
-            R[:, i_knee] = _rx(a_knee)
-            R[:, i_ankle] = _rx(ease * pitch - a_hip - a_knee)
-
-    def _foot_path(self, phase):
-        """Ankle offset from its rest position (T, 3) and world foot pitch [rad], before easing.
-
-        Stance: the ankle moves back under the hip at walking speed (less a little heel-to-toe roll)
-        and the heel rises before toe-off. Swing: a minimum-jerk path forward, lifted by the clearance.
-        """
-        beta = self.stance_fraction
-        reach = beta * self.step_length_m - 0.03  # half the ankle's travel relative to the hip [m]
-        rise = np.radians(self.heel_rise_degrees)
-        off = np.zeros((len(phase), 3))
-        stance = phase < beta
-        u = np.where(stance, phase / beta, (phase - beta) / (1.0 - beta))
-        late = _smoothstep((u - 0.6) / 0.4)  # heel rise over the last 40% of stance
-        heel_up = np.where(stance, rise * late, rise * (1.0 - _smoothstep(u / 0.5)))
-        strike = np.radians(self.toe_up_degrees)
-        toe_up = np.where(stance, -strike * (1.0 - _smoothstep(u / 0.15)), -strike * _smoothstep((u - 0.6) / 0.4))
-        pitch = heel_up + toe_up
-        s = _min_jerk(u)
-        off[:, 2] = np.where(stance, reach * (1.0 - 2.0 * u), reach * (2.0 * s - 1.0))
-        # a pitched foot pivots on its toe (heel up) or heel (toe up), which lifts the ankle
-        sk = self._sk
-        i = sk.index("foot_l")
-        height = sk.rest_positions[i, 1]
-        toe, heel = sk.tips[i, 2] - sk.rest_positions[i, 2], _HEEL_REACH
-        lift = np.where(pitch > 0, toe, heel) * np.sin(np.abs(pitch)) - height * (1.0 - np.cos(pitch))
-        off[:, 1] = lift + np.where(stance, 0.0, self.foot_clearance_m * np.sin(np.pi * u) ** 2)
-        return off, pitch
-
-
-def _leg_ik(hip_rest, knee_rest, ankle_rest, hip, target):
-    """Hip flexion, knee flexion (Rx angles from rest) and hip abduction (Rz) putting the ankle on target.
-
-    Solved in the sagittal (y, z) plane with the knee bending forward; a target out of reach
-    straightens the leg. Angles are differences from the same solve for the rest pose, so the rest
-    target gives exactly zero.
-    """
-    thigh, shin = knee_rest - hip_rest, ankle_rest - knee_rest
-    l1, l2 = np.hypot(thigh[1], thigh[2]), np.hypot(shin[1], shin[2])
-
-    def solve(d):  # world thigh and shin angles from straight down, positive backward (as Rx)
-        dist = np.clip(np.hypot(d[:, 1], d[:, 2]), abs(l1 - l2) + 1e-6, (l1 + l2) * (1.0 - 1e-9))
-        to_target = np.arctan2(-d[:, 2], -d[:, 1])
-        at_hip = np.arccos(np.clip((l1 * l1 + dist * dist - l2 * l2) / (2.0 * l1 * dist), -1.0, 1.0))
-        at_ankle = np.arccos(np.clip((l2 * l2 + dist * dist - l1 * l1) / (2.0 * l2 * dist), -1.0, 1.0))
-        return to_target - at_hip, to_target + at_ankle  # knee forward of the hip-ankle line
-
-    d = target - hip
-    thigh_0, shin_0 = solve((ankle_rest - hip_rest)[None])
-    thigh_w, shin_w = solve(d)
-    a_hip = thigh_w - thigh_0
-    a_knee = (shin_w - shin_0) - a_hip
-    a_abd = np.arcsin(np.clip((d[:, 0] - (ankle_rest[0] - hip_rest[0])) / (l1 + l2), -1.0, 1.0))
-    return a_hip, a_knee, a_abd
-
-
-def _skinning_matrices(sk, root, R):
-    """M_j = M_parent @ T(p_j) R_j T(-p_j), M_root = T(root) T(p_0) R_0 T(-p_0): identity when R = I, root = 0."""
-    n, J = R.shape[:2]
-    M = np.zeros((n, J, 4, 4))
-    M[:, :, 3, 3] = 1.0
-    p = sk.rest_positions
-    for j in range(J):
-        local = np.zeros((n, 4, 4))
-        local[:, :3, :3] = R[:, j]
-        local[:, :3, 3] = p[j] - np.einsum("tab,b->ta", R[:, j], p[j])
-        local[:, 3, 3] = 1.0
-        if sk.parents[j] < 0:
-            local[:, :3, 3] += root
-            M[:, j] = local
-        else:
-            M[:, j] = M[:, sk.parents[j]] @ local
-    return M

@@ -33,7 +33,6 @@ from .strands import StrandBuilder
 HAIR_COLOR = (0.23, 0.14, 0.08)
 SKIN_COLOR = (0.85, 0.68, 0.58)
 CLOTH_COLOR = (0.25, 0.35, 0.55)
-POSE_LOOKAHEAD = 8  # frames of a skeleton's motion evaluated together (Scene._substep_poses)
 
 
 @dataclass(frozen=True)
@@ -336,7 +335,6 @@ class Scene:
             raise InputError(config.source, "scene.device", f"device '{device}' is not available") from None
         self.device = device
         self.time = 0.0
-        self._poses_ahead = None  # (frame_dt and substep counts, {frame start: poses}) evaluated ahead
         self._root_vertices = None  # (hair model, its root triangles' collider vertices)
         self.graphs = FrameGraphs(device, config.timing.graphs)
         leaves = config.head.sphere_leaves if config.hair.enabled and config.solver.collision == "sphere_tree" else 0
@@ -472,35 +470,17 @@ class Scene:
 
     def _substep_poses(self, t0, frame_dt, substep_counts, animate):
         """{substeps: (times, poses)} for a frame from t0 split into each of `substep_counts`: the
-        motion is evaluated once at every distinct time (hair at 4 and cloth at 12 substeps share
-        the hair's 5 times), since evaluating it costs more than a solver's whole substep.
-
-        A skeleton's motion costs mostly per evaluation, not per time (NumPy over a few dozen
-        joints), so an animated frame evaluates the next POSE_LOOKAHEAD frames' times at once and
-        later frames take theirs from that block: frame k + 1 starts at t0 + frame_dt, as advance
-        steps the clock, and each pose is the one a single frame's evaluation gives, bit for bit."""
+        motion is evaluated once, at every distinct time (hair at 4 and cloth at 12 substeps share
+        the hair's 5 times)."""
         if not substep_counts:
             return {}
         counts = sorted(set(substep_counts))
-        block = (frame_dt, tuple(counts))
-        ahead = self._poses_ahead
-        if animate and ahead is not None and ahead[0] == block and t0 in ahead[1]:
-            return ahead[1].pop(t0)
-        lookahead = POSE_LOOKAHEAD if animate and not isinstance(self._motion, PointCacheMotion) else 1
-        starts = [t0]
-        for _ in range(lookahead - 1):
-            starts.append(starts[-1] + frame_dt)
-        times = [{n: (start + (frame_dt / n) * np.arange(0, n + 1) if animate else np.full(n + 1, start))
-                  for n in counts} for start in starts]
+        times = {n: (t0 + (frame_dt / n) * np.arange(0, n + 1) if animate else np.full(n + 1, t0)) for n in counts}
         common = math.lcm(*counts)
         keys = {n: np.arange(0, n + 1) * (common // n) for n in counts}  # substep k of n is k/n of the frame
         distinct, first = np.unique(np.concatenate(list(keys.values())), return_index=True)
-        poses = self._motion_poses(np.concatenate([np.concatenate(list(t.values()))[first] for t in times]))
-        poses = poses.reshape(lookahead, len(distinct), *poses.shape[1:])
-        frames = {start: {n: (t[n], frame_poses[np.searchsorted(distinct, keys[n])]) for n in counts}
-                  for start, t, frame_poses in zip(starts, times, poses, strict=True)}
-        self._poses_ahead = (block, frames) if lookahead > 1 else None
-        return frames.pop(t0)
+        poses = self._motion_poses(np.concatenate(list(times.values()))[first])
+        return {n: (times[n], poses[np.searchsorted(distinct, keys[n])]) for n in counts}
 
     def _groom(self):
         cfg, head = self.config, self.head

@@ -1,5 +1,6 @@
 """The built-in body: a closed human-sized mesh, a rigid head for hair, and animations that start at rest."""
 
+import body_motion_reference as reference  # tests/body_motion_reference.py
 import numpy as np
 import pytest
 import trimesh
@@ -104,6 +105,33 @@ def test_bone_matrices_are_rigid_transforms(name):
     assert np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max() < 1e-12
     assert np.abs(np.linalg.det(R) - 1.0).max() < 1e-12
     assert np.array_equal(M[..., 3, :], np.broadcast_to([0.0, 0.0, 0.0, 1.0], M[..., 3, :].shape))
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_bone_matrices_equal_a_float64_numpy_reference(name):
+    """The motion kernel (one thread per time) against the same motions evaluated as NumPy arrays
+    over all times at once, before and after the ease-in, at negative and late times, and with
+    other parameters than the preset's."""
+    times = np.concatenate([[0.0, -0.4], np.linspace(0.0, 7.0, 141), [250.0]])
+    others = {"step_length_m": 0.8, "stance_fraction": 0.55, "arm_swing_degrees": 25.0, "raise_to_degrees": 120.0,
+              "hold_s": 0.2, "turn_degrees": 45.0, "head_lead_s": 0.4, "ease_in_s": 1.1}
+    for overrides in ({}, {"in_place": True}, {"ease_in_s": 0.0}, others):
+        anim = BodyAnimation.preset(name, **overrides)
+        got, want = anim.bone_matrices(times), reference.bone_matrices(anim, times)
+        assert got.shape == want.shape == (len(times), 19, 4, 4)
+        np.testing.assert_allclose(got[:, :, :3, :3], want[:, :, :3, :3], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got[:, :, :3, 3], want[:, :, :3, 3], rtol=1e-12, atol=1e-12)  # 270 m walked
+        if name != "none":
+            assert np.abs(want - np.eye(4)).max() > 0.1  # the reference moved: the comparison means something
+
+
+def test_bone_matrices_of_later_calls_leave_earlier_results_alone():
+    anim = BodyAnimation.preset("walk")
+    first = anim.bone_matrices([0.5, 0.6])
+    kept = first.copy()
+    second = anim.bone_matrices([1.5, 1.6])  # the same count of times: the same launch, its buffers reused
+    np.testing.assert_array_equal(first, kept)
+    assert np.abs(second - first).max() > 0.1
 
 
 def test_unknown_preset_is_a_key_error():

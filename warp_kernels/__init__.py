@@ -4,6 +4,6 @@ This package is what a host application embeds; it imports nothing from `sim` or
 Every kernel runs on "cpu" and "cuda".
 """
 
-from . import cloth, collision, detail, skinning, strands
+from . import body_motion, cloth, collision, detail, skinning, strands
 
-__all__ = ["cloth", "collision", "detail", "skinning", "strands"]
+__all__ = ["body_motion", "cloth", "collision", "detail", "skinning", "strands"]

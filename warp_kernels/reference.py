@@ -2,7 +2,7 @@
 
     python -m warp_kernels.reference > docs/kernels.md
 
-Every @wp.kernel, @wp.func and @wp.struct defined in the five kernel modules gets a heading, its
+Every @wp.kernel, @wp.func and @wp.struct defined in the six kernel modules gets a heading, its
 docstring and a table of its arguments whose Warp types are read from the signature itself, not
 from the prose. Nothing is compiled or launched, so this runs without a GPU and in a second.
 
@@ -32,9 +32,9 @@ import sys
 
 import warp as wp
 
-from . import cloth, collision, detail, skinning, strands
+from . import body_motion, cloth, collision, detail, skinning, strands
 
-MODULES = (cloth, collision, detail, skinning, strands)
+MODULES = (body_motion, cloth, collision, detail, skinning, strands)
 
 ARGUMENT_SECTIONS = ("Inputs", "In/out", "Outputs", "Fields")  # entries named after arguments or fields
 _HEADING = re.compile(r"^(Inputs|In/out|Outputs|Returns|Fields):$")
