@@ -1103,7 +1103,8 @@ def follow_leader(
         leaves = wp.vec4i(-1, -1, -1, -1)
         unlisted = float(NO_BOUND)
         if use_bounds != 0:
-            if wp.length(p - motion.center[0]) <= strand_reach:
+            from_center = p - motion.center[0]
+            if wp.dot(from_center, from_center) <= strand_reach * strand_reach:
                 _carried, lowered = bound_lowering(motion, start, p, strand_reach + search)
                 held = clearance[i]
                 bound = held - lowered
@@ -1111,7 +1112,8 @@ def follow_leader(
                     leaves = near_leaves[i]
                     unlisted = beyond[i] - lowered
         origin = p
-        if use_bounds == 0 or bound <= margin + 1.0e-5:
+        queried_here = use_bounds == 0 or bound <= margin + 1.0e-5
+        if queried_here:
             # a particle known to be no deeper than probe inside needs only a probe-sized
             # query: one within probe finds what a search-sized one finds, and one that finds
             # nothing shows it outside (a query's cost grows fast with its radius)
@@ -1143,8 +1145,11 @@ def follow_leader(
             bound = bound - wp.length(p - queried)
         clearance[i] = bound
         if listed:
-            near_leaves[i] = leaves
-            beyond[i] = unlisted - wp.length(p - origin)
+            # a list not queried is the one read above, and its bound holds at p itself
+            if queried_here:
+                near_leaves[i] = leaves
+                unlisted = unlisted - wp.length(p - origin)
+            beyond[i] = unlisted
     return p
 
 
