@@ -31,6 +31,15 @@ _HEAD_RIGID_Y = (0.17, 0.23)  # bust coordinates: head-bone weight ramps 0 -> 1 
 ARM_ABDUCTION_DEGREES = 42.0  # rest A-pose: upper arm angle out from the torso
 _HEEL_REACH = 0.09  # [m] from the ankle back to where the heel meets the floor
 KEPT_LAUNCH_TIMES = 64  # BodyAnimation.bone_matrices keeps its launch for requests of up to this many times
+# the named joints the motion kernel addresses (body_motion.BodyMotion), and those each preset moves
+_KERNEL_JOINTS = ("pelvis", "spine", "chest", "neck", "head", "shoulder_l", "shoulder_r", "upper_arm_l", "upper_arm_r",
+                  "forearm_l", "forearm_r", "thigh_l", "thigh_r", "shin_l", "shin_r", "foot_l", "foot_r")
+_MOTION_JOINTS = {
+    "none": (),
+    "walk": tuple(n for n in _KERNEL_JOINTS if not n.startswith("shoulder")) + ("hand_l", "hand_r"),
+    "arm_raise": ("shoulder_l", "shoulder_r", "upper_arm_l", "upper_arm_r"),
+    "turn": ("pelvis", "spine", "chest", "neck", "head"),
+}
 
 # torso loft: height, half-width (x), half-depth (z), centre z  [m]
 _TORSO = np.array([
@@ -546,6 +555,11 @@ class BodyAnimation:
         m = body_motion.BodyMotion()
         m.motion = {"none": body_motion.MOTION_NONE, "walk": body_motion.MOTION_WALK,
                     "arm_raise": body_motion.MOTION_ARM_RAISE, "turn": body_motion.MOTION_TURN}[self.motion]
+        missing = [name for name in _MOTION_JOINTS[self.motion] if name not in sk.names]
+        if missing:
+            raise ValueError(f"the {self.motion} motion needs the skeleton's joints {', '.join(missing)}")
+        for name in _KERNEL_JOINTS:  # -1 for a joint this skeleton lacks and the motion leaves alone
+            setattr(m, name, sk.index(name) if name in sk.names else -1)
         m.ease_in_s = self.ease_in_s
         m.in_place = int(self.in_place)
         m.stride_hz = 0.5 * self.cadence_steps_per_s
@@ -554,28 +568,25 @@ class BodyAnimation:
         m.reach = self.stance_fraction * self.step_length_m - 0.03  # less a little heel-to-toe roll
         m.foot_clearance = self.foot_clearance_m
         m.heel_rise, m.toe_up = np.radians(self.heel_rise_degrees), np.radians(self.toe_up_degrees)
-        foot = sk.index("foot_l")  # both feet pivot as the left one is shaped
-        P = sk.rest_positions
-        m.toe, m.heel, m.ankle_height = sk.tips[foot, 2] - P[foot, 2], _HEEL_REACH, P[foot, 1]
         m.pelvis_drop, m.pelvis_bob, m.pelvis_sway = self.pelvis_drop_m, self.pelvis_bob_m, self.pelvis_sway_m
         for name in ("pelvis_yaw", "pelvis_roll", "torso_twist", "arm_swing", "arm_swing_back", "arm_lower",
                      "elbow_bend"):
             setattr(m, name, np.radians(getattr(self, name + "_degrees")))
-        for s in ("l", "r"):
-            # a positive angle about each hinge swings the arm forward and bends the elbow
-            arm = P[sk.index(f"forearm_{s}")] - P[sk.index(f"upper_arm_{s}")]
-            fore = P[sk.index(f"hand_{s}")] - P[sk.index(f"forearm_{s}")]
-            setattr(m, f"arm_hinge_{s}", wp.vec3d(*_unit(np.cross(arm, (0.0, 0.0, 1.0)))))
-            setattr(m, f"fore_hinge_{s}", wp.vec3d(*_unit(np.cross(fore, (0.0, 0.0, 1.0)))))
+        P = sk.rest_positions
+        if self.motion == "walk":
+            foot = sk.index("foot_l")  # both feet pivot as the left one is shaped
+            m.toe, m.heel, m.ankle_height = sk.tips[foot, 2] - P[foot, 2], _HEEL_REACH, P[foot, 1]
+            for s in ("l", "r"):
+                # a positive angle about each hinge swings the arm forward and bends the elbow
+                arm = P[sk.index(f"forearm_{s}")] - P[sk.index(f"upper_arm_{s}")]
+                fore = P[sk.index(f"hand_{s}")] - P[sk.index(f"forearm_{s}")]
+                setattr(m, f"arm_hinge_{s}", wp.vec3d(*_unit(np.cross(arm, (0.0, 0.0, 1.0)))))
+                setattr(m, f"fore_hinge_{s}", wp.vec3d(*_unit(np.cross(fore, (0.0, 0.0, 1.0)))))
         m.raise_angle = np.radians(self.raise_to_degrees - ARM_ABDUCTION_DEGREES)
         m.raise_s, m.hold_s, m.clavicle_share = self.raise_s, self.hold_s, self.clavicle_share
         m.turn_angle, m.turn_s, m.head_lead_s = np.radians(self.turn_degrees), self.turn_s, self.head_lead_s
         m.rest = wp.array(P, dtype=wp.vec3d, device="cpu")
         m.parents = wp.array(sk.parents, dtype=wp.int32, device="cpu")
-        for name in ("pelvis", "spine", "chest", "neck", "head", "shoulder_l", "shoulder_r", "upper_arm_l",
-                     "upper_arm_r", "forearm_l", "forearm_r", "thigh_l", "thigh_r", "shin_l", "shin_r", "foot_l",
-                     "foot_r"):
-            setattr(m, name, sk.index(name))
         return m
 
     def joint_positions(self, times):

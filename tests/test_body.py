@@ -237,3 +237,19 @@ def test_procedural_body_is_cached_and_hands_out_copies():
     b = procedural_body()
     assert b.vertices[:, 1].max() > 1.6 and b.scalp_faces.any()
     assert b.skeleton is a.skeleton  # immutable, shared
+
+
+def test_a_skeleton_without_the_moved_joints_is_refused_and_one_without_others_moves():
+    from sim.body import Skeleton, default_skeleton
+
+    sk = default_skeleton()
+    keep = [j for j, name in enumerate(sk.names) if not name.startswith(("thigh", "shin", "foot"))]  # no legs
+    remap = {old: new for new, old in enumerate(keep)}
+    legless = Skeleton(tuple(sk.names[j] for j in keep), np.array([remap.get(sk.parents[j], -1) for j in keep]),
+                       sk.rest_positions[keep], sk.tips[keep])
+    with pytest.raises(ValueError, match="walk motion needs the skeleton's joints thigh_l"):
+        BodyAnimation.preset("walk", skeleton=legless).bone_matrices([0.5])
+    for name in ("turn", "arm_raise", "none"):  # these move no leg: the same matrices as the full skeleton's
+        full = BodyAnimation.preset(name).bone_matrices([0.9, 2.1])
+        np.testing.assert_array_equal(BodyAnimation.preset(name, skeleton=legless).bone_matrices([0.9, 2.1]),
+                                      full[:, keep])
