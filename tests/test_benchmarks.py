@@ -118,3 +118,22 @@ def test_cuda_resources_reads_each_kernels_registers_spills_and_cap():
     for name in ("step_strands", "follow_the_leader"):
         assert by_name[name].cap == 128 and 64 < by_name[name].registers <= 128
     assert by_name["to_lanes"].registers < 64 and by_name["to_lanes"].spill_stores == 0
+
+
+def test_each_frame_is_timed_after_the_warm_up_frames():
+    calls = []
+
+    def step():
+        calls.append(1)
+
+    times = common.time_each_frame(step, "cpu", frames=5, min_seconds=0.0)
+    assert len(times) == 5 and len(calls) == 2 + 5  # two warm-up frames, not timed
+    assert all(t >= 0.0 for t in times)
+    slow = iter([0.0] * 3 + [0.02] + [0.0] * 10)  # the second timed frame sleeps 20 ms
+
+    def uneven():
+        import time
+        time.sleep(next(slow))
+
+    times = common.time_each_frame(uneven, "cpu", frames=4, min_seconds=0.0)
+    assert max(times) == times[1] and times[1] >= 20.0 and sum(t > 20.0 for t in times) == 1
