@@ -5,6 +5,7 @@ examples/scenes/*.toml. The same is reachable from Python: build a SceneConfig (
 run_scene(config, "out.usdc").
 """
 
+import functools
 import math
 import os
 import sys
@@ -474,13 +475,11 @@ class Scene:
         the hair's 5 times)."""
         if not substep_counts:
             return {}
-        counts = sorted(set(substep_counts))
+        counts = tuple(sorted(set(substep_counts)))
         times = {n: (t0 + (frame_dt / n) * np.arange(0, n + 1) if animate else np.full(n + 1, t0)) for n in counts}
-        common = math.lcm(*counts)
-        keys = {n: np.arange(0, n + 1) * (common // n) for n in counts}  # substep k of n is k/n of the frame
-        distinct, first = np.unique(np.concatenate(list(keys.values())), return_index=True)
+        first, picks = _shared_substep_times(counts)
         poses = self._motion_poses(np.concatenate(list(times.values()))[first])
-        return {n: (times[n], poses[np.searchsorted(distinct, keys[n])]) for n in counts}
+        return {n: (times[n], poses[pick]) for n, pick in zip(counts, picks, strict=True)}
 
     def _groom(self):
         cfg, head = self.config, self.head
@@ -726,6 +725,18 @@ class Scene:
                 "cloth_stretch_max": float(strain.max()),
                 "cloth_inside_2mm": float(np.mean(sdf < -0.002)),
                 "walk_agreement": float(np.mean(same[free])) if free.any() else 1.0}
+
+
+@functools.lru_cache(maxsize=8)
+def _shared_substep_times(counts):
+    """For substep counts (ascending) splitting one frame: where each distinct time first appears in
+    the counts' times laid end to end (n + 1 times for n substeps), and for each count the rows of
+    those distinct times that are its own. Substep k of n is k/n of the frame, so the times are
+    compared as integers, multiples of 1/lcm(counts)."""
+    common = math.lcm(*counts)
+    keys = [np.arange(0, n + 1) * (common // n) for n in counts]
+    distinct, first = np.unique(np.concatenate(keys), return_index=True)
+    return first, tuple(np.searchsorted(distinct, k) for k in keys)
 
 
 class PointCacheMotion:
