@@ -22,6 +22,7 @@ import os
 import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
+from functools import partial
 
 import warp as wp
 
@@ -159,7 +160,14 @@ class _SharedCores:
 def _replay_on_cores(graphs):
     """Replay `graphs` (the branches of one parallel step) on at most one thread per core, each
     thread taking the next branch not yet taken until none is left, and return when all are done."""
-    left = list(graphs)
+    run_on_cores([partial(wp.capture_launch, graph) for graph in graphs])
+
+
+def run_on_cores(calls):
+    """Run `calls` (functions that release Python's lock while they work: graph replays, recorded
+    launches) on at most one thread per core, each thread taking the next call not yet taken, and
+    return when all are done; the first exception is raised here."""
+    left = list(calls)
     lock = threading.Lock()
 
     def claim():
@@ -167,15 +175,31 @@ def _replay_on_cores(graphs):
             with lock:
                 if not left:
                     return
-                graph = left.pop(0)
-            wp.capture_launch(graph)
+                call = left.pop(0)
+            call()
 
-    helpers = [_replay_pool().submit(claim) for _ in range(min(len(graphs), cpu_cores()) - 1)]
+    helpers = [_replay_pool().submit(claim) for _ in range(min(len(calls), cpu_cores()) - 1)]
     try:
         claim()
     finally:
         for helper in helpers:
             helper.result()
+
+
+def launch_on_cores(kernel, dim, inputs, sliced, device, per_core=1):
+    """wp.launch(kernel, dim, inputs) with one thread per item, on the CPU in slices of the items side
+    by side on the cores (a CPU launch runs on one thread); on a GPU one launch. sliced: the indices
+    of the inputs that hold one element per item (sliced with the items); per_core: the fewest items
+    worth a slice of their own."""
+    parts = 1 if wp.get_device(device).is_cuda else max(1, min(cpu_cores(), dim // max(1, per_core)))
+    if parts == 1:
+        wp.launch(kernel, dim, inputs, device=device)
+        return
+    cuts = [dim * k // parts for k in range(parts + 1)]
+    launches = [wp.launch(kernel, b - a, [arg[a:b] if i in sliced else arg for i, arg in enumerate(inputs)],
+                          device=device, record_cmd=True)
+                for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+    run_on_cores([launch.launch for launch in launches])
 
 
 def refit_mesh(mesh):

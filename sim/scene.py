@@ -20,7 +20,7 @@ from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
 from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
-from .graphs import AsyncReadback, FrameGraphs, run_parallel, run_side_by_side
+from .graphs import AsyncReadback, FrameGraphs, launch_on_cores, run_parallel, run_side_by_side
 from .errors import InputError
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
@@ -678,7 +678,8 @@ class Scene:
             child = np.arange(1, m.num_particles)
             keep = m.rest_length_np[child] > 0.0
             stretch = np.abs(seg[keep] / m.rest_length_np[child][keep] - 1.0)
-            sdf = self.collider.signed_distance(x, max_dist=0.03)
+            # the sign matters only for the count deeper than 1 mm (roots count by |distance|)
+            sdf = self.collider.signed_distance(x, max_dist=0.03, checked_depth=0.001)
             roots = m.strand_start_np[:-1]
             out.update(max_stretch=float(stretch.max()) if stretch.size else 0.0,
                        root_distance_max=float(np.abs(sdf[roots]).max()),
@@ -688,7 +689,8 @@ class Scene:
             out.update(self.cloth_stats())
         if self.cloth_detail is not None:
             x = self.cloth_detail.positions.numpy()
-            out.update(detail_inside_2mm=float(np.mean(self.cloth_body.signed_distance(x, max_dist=0.05) < -0.002)),
+            depth = self.cloth_body.signed_distance(x, max_dist=0.05, checked_depth=0.002)
+            out.update(detail_inside_2mm=float(np.mean(depth < -0.002)),
                        detail_queries=self.cloth_detail.query_fraction(),
                        detail_bvh=self.cloth_detail.bvh_fraction())
         return out
@@ -708,10 +710,11 @@ class Scene:
         strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
         # penetration of the body itself, also when the cloth collides with a proxy of it; the walk
         # below runs on the mesh the cloth collides with
-        sdf = self.cloth_body.signed_distance(x, max_dist=0.05)
+        sdf = self.cloth_body.signed_distance(x, max_dist=0.05, checked_depth=0.002)
         brute = wp.zeros(cm.num_particles, dtype=wp.int32, device=self.device)
-        wp.launch(cloth_kernels.nearest_vertex_brute_force, cm.num_particles, [st.x, body.points, brute],
-                  device=self.device)
+        # every particle against every body vertex (a few ms on the CPU): slices on the cores
+        launch_on_cores(cloth_kernels.nearest_vertex_brute_force, cm.num_particles, [st.x, body.points, brute], {0, 2},
+                        self.device, per_core=64)
         walk, truth = st.nearest.numpy(), brute.numpy()
         free = cm.inv_mass_np > 0
         pts = body.points.numpy()

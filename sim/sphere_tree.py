@@ -13,6 +13,11 @@ from scipy.spatial import cKDTree
 
 from warp_kernels import collision
 
+from .graphs import launch_on_cores
+
+# the fewest points signed_distance queries on a CPU core of their own
+POINTS_PER_SLICE = 4096
+
 
 @dataclass
 class SphereTree:
@@ -47,10 +52,12 @@ def signed_distance(points, mesh, device="cpu", max_dist=1.0e6, winding=False):
     """Signed distance of points to a closed wp.Mesh (negative inside) and closest surface points.
     winding=True signs by the winding number (collision.mesh_signed_distance; the mesh must support it)."""
     pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=device)
-    dist = wp.zeros(len(pts), dtype=float, device=device)
-    closest = wp.zeros(len(pts), dtype=wp.vec3, device=device)
-    wp.launch(collision.mesh_signed_distance, len(pts), [pts, mesh.id, float(max_dist), int(winding), dist, closest],
-              device=device)
+    n = len(pts)
+    dist = wp.zeros(n, dtype=float, device=device)
+    closest = wp.zeros(n, dtype=wp.vec3, device=device)
+    # a groom's every particle: slices side by side on the CPU's cores
+    launch_on_cores(collision.mesh_signed_distance, n, [pts, mesh.id, float(max_dist), int(winding), dist, closest],
+                    {0, 4, 5}, device, per_core=POINTS_PER_SLICE)
     return dist.numpy(), closest.numpy()
 
 

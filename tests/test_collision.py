@@ -635,6 +635,37 @@ def test_signed_distance_re_signs_points_a_self_intersecting_pose_puts_inside_by
     np.testing.assert_allclose(d[40:], -0.05, atol=2e-3)
     # the pseudo-normal alone calls the first ones inside
     assert np.all(signed_distance(around_fold, body.fresh_mesh())[0] < 0.0)
+    # a caller counting only points deeper than 2 cm re-signs only those: the same distances, the
+    # shallower points keep the pseudo-normal's sign
+    shallow = body.signed_distance(np.concatenate([around_fold, inside_ball]), checked_depth=0.02)
+    np.testing.assert_array_equal(np.abs(shallow), np.abs(d))
+    np.testing.assert_allclose(shallow[:40], -0.01, atol=2e-3)
+    np.testing.assert_array_equal(shallow[40:], d[40:])
+
+
+def test_signed_distance_in_slices_on_the_cores_equals_one_launch(head, head_collider, monkeypatch):
+    import warp as wp
+
+    import sim.graphs
+    import sim.sphere_tree
+    from warp_kernels import collision
+
+    rng = np.random.default_rng(5)
+    points = (head.vertices[rng.integers(0, len(head.vertices), 1000)] + rng.normal(0.0, 0.02, (1000, 3)))
+    mesh = head_collider.fresh_mesh()
+    pts = wp.array(points.astype(np.float32), dtype=wp.vec3)
+    dist, closest = wp.zeros(1000, dtype=float), wp.zeros(1000, dtype=wp.vec3)
+    wp.launch(collision.mesh_signed_distance, 1000, [pts, mesh.id, 0.03, 0, dist, closest])
+    monkeypatch.setattr(sim.sphere_tree, "POINTS_PER_SLICE", 100)
+    monkeypatch.setattr(sim.graphs, "cpu_cores", lambda: 3)  # three slices, whatever this machine has
+    calls = []
+    run = sim.graphs.run_on_cores
+    monkeypatch.setattr(sim.graphs, "run_on_cores", lambda launches: calls.append(len(launches)) or run(launches))
+    got, got_closest = signed_distance(points, mesh, max_dist=0.03)
+    assert calls == [3]
+    np.testing.assert_array_equal(got, dist.numpy())
+    np.testing.assert_array_equal(got_closest, closest.numpy())
+    assert np.any(got < 0.0) and np.any((got > 0.0) & (got < 0.03)) and np.any(got == np.float32(0.03))
 
 
 def test_listed_faces_answer_as_the_bvh_query_does(head, head_collider):
