@@ -186,19 +186,34 @@ def run_on_cores(calls):
             helper.result()
 
 
-def launch_on_cores(kernel, dim, inputs, sliced, device, per_core=1):
+def core_slices(dim, device, per_core=1):
+    """How many slices launch_on_cores cuts `dim` items into: one on a GPU; on the CPU one per core,
+    each of at least per_core items."""
+    if wp.get_device(device).is_cuda:
+        return 1
+    return max(1, min(cpu_cores(), dim // max(1, per_core)))
+
+
+def launch_on_cores(kernel, dim, inputs, device, sliced=(), first=None, part=None, per_core=1):
     """wp.launch(kernel, dim, inputs) with one thread per item, on the CPU in slices of the items side
     by side on the cores (a CPU launch runs on one thread); on a GPU one launch. sliced: the indices
-    of the inputs that hold one element per item (sliced with the items); per_core: the fewest items
-    worth a slice of their own."""
-    parts = 1 if wp.get_device(device).is_cuda else max(1, min(cpu_cores(), dim // max(1, per_core)))
-    if parts == 1:
-        wp.launch(kernel, dim, inputs, device=device)
-        return
+    of the inputs that hold one element per item, sliced with the items; first: the index of an int
+    input that takes the slice's first item instead (kernels that read items by their index); part:
+    the index of an int input that takes the slice's number (kernels that reduce into a row of their
+    own: a CPU's atomics are not atomic across launches); per_core: see core_slices."""
+    parts = core_slices(dim, device, per_core)
     cuts = [dim * k // parts for k in range(parts + 1)]
-    launches = [wp.launch(kernel, b - a, [arg[a:b] if i in sliced else arg for i, arg in enumerate(inputs)],
-                          device=device, record_cmd=True)
-                for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
+
+    def arguments(k):
+        a, b = cuts[k], cuts[k + 1]
+        return [arg[a:b] if i in sliced else (a if i == first else (k if i == part else arg))
+                for i, arg in enumerate(inputs)]
+
+    if parts == 1:
+        wp.launch(kernel, dim, arguments(0), device=device)
+        return
+    launches = [wp.launch(kernel, cuts[k + 1] - cuts[k], arguments(k), device=device, record_cmd=True)
+                for k in range(parts) if cuts[k + 1] > cuts[k]]
     run_on_cores([launch.launch for launch in launches])
 
 

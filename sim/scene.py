@@ -20,7 +20,7 @@ from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
 from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
-from .graphs import AsyncReadback, FrameGraphs, launch_on_cores, run_parallel, run_side_by_side
+from .graphs import AsyncReadback, FrameGraphs, run_parallel, run_side_by_side
 from .errors import InputError
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
@@ -29,6 +29,7 @@ from .comb import before_frame as comb_before_frame
 from .haircut import parse_timeline, run_events
 from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp, scalp_area
 from .head import HeadAnimation, mesh_head, procedural_head
+from .quality import QualityProbe
 from .strands import StrandBuilder
 
 HAIR_COLOR = (0.23, 0.14, 0.08)
@@ -338,6 +339,7 @@ class Scene:
         self.time = 0.0
         self._root_vertices = None  # (hair model, its root triangles' collider vertices)
         self.graphs = FrameGraphs(device, config.timing.graphs)
+        self.quality = QualityProbe(self)  # the per-frame statistics (measure(), run_scene)
         leaves = config.head.sphere_leaves if config.hair.enabled and config.solver.collision == "sphere_tree" else 0
         if assets is not None:
             self.head = mesh_head(assets.collider_name, assets.motion.frames[0], assets.collider_faces)
@@ -668,66 +670,20 @@ class Scene:
         self._detail_frame = self._frames
 
     def measure(self):
-        """Per-frame quality numbers for hair (stretch, root drift, penetration) and cloth (edge
-        stretch, penetration, how often the nearest-vertex walk agrees with brute force)."""
-        out = {}
-        if self.model is not None:
-            m = self.model
-            x = self.state.x.numpy().astype(np.float64)
-            seg = np.linalg.norm(x[1:] - x[:-1], axis=1)
-            child = np.arange(1, m.num_particles)
-            keep = m.rest_length_np[child] > 0.0
-            stretch = np.abs(seg[keep] / m.rest_length_np[child][keep] - 1.0)
-            # the sign matters only for the count deeper than 1 mm (roots count by |distance|)
-            sdf = self.collider.signed_distance(x, max_dist=0.03, checked_depth=0.001)
-            roots = m.strand_start_np[:-1]
-            out.update(max_stretch=float(stretch.max()) if stretch.size else 0.0,
-                       root_distance_max=float(np.abs(sdf[roots]).max()),
-                       root_within_5mm=float(np.mean(np.abs(sdf[roots]) <= 0.005)),
-                       inside_1mm=float(np.mean(sdf < -0.001)))
-        if self.cloth_model is not None:
-            out.update(self.cloth_stats())
-        if self.cloth_detail is not None:
-            x = self.cloth_detail.positions.numpy()
-            depth = self.cloth_body.signed_distance(x, max_dist=0.05, checked_depth=0.002)
-            out.update(detail_inside_2mm=float(np.mean(depth < -0.002)),
-                       detail_queries=self.cloth_detail.query_fraction(),
-                       detail_bvh=self.cloth_detail.bvh_fraction())
-        return out
+        """This frame's quality numbers, waiting for them (sim.quality; a run queues them instead):
+        hair stretch, root drift and penetration, cloth edge stretch and penetration, how often the
+        cloth's nearest-vertex walk agrees with brute force, and the detail surface's penetration and
+        query shares."""
+        return self._measured()
 
     def cloth_stats(self):
-        from warp_kernels import cloth as cloth_kernels
+        """measure()'s cloth numbers only (cloth_stretch_p99, cloth_stretch_max, cloth_inside_2mm,
+        walk_agreement)."""
+        return self._measured(hair=False, detail=False)
 
-        cm, st, body = self.cloth_model, self.cloth_state, self.cloth_collider
-        x = st.x.numpy().astype(np.float64)
-        edges = cm.spring_pairs_np[cm.spring_kind_np == 0]
-        rest = cm.spring_rest_np[cm.spring_kind_np == 0]
-        # the edges the solver moves: one between two pinned particles (a strap bound to a shoulder)
-        # stretches with the body's skin, whatever the cloth does
-        moved = (cm.inv_mass_np[edges[:, 0]] > 0) | (cm.inv_mass_np[edges[:, 1]] > 0)
-        if moved.any():
-            edges, rest = edges[moved], rest[moved]
-        strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
-        # penetration of the body itself, also when the cloth collides with a proxy of it; the walk
-        # below runs on the mesh the cloth collides with
-        sdf = self.cloth_body.signed_distance(x, max_dist=0.05, checked_depth=0.002)
-        brute = wp.zeros(cm.num_particles, dtype=wp.int32, device=self.device)
-        # every particle against every body vertex (a few ms on the CPU): slices on the cores
-        launch_on_cores(cloth_kernels.nearest_vertex_brute_force, cm.num_particles, [st.x, body.points, brute], {0, 2},
-                        self.device, per_core=64)
-        walk, truth = st.nearest.numpy(), brute.numpy()
-        free = cm.inv_mass_np > 0
-        pts = body.points.numpy()
-        # ties (two vertices at the same distance) count as agreement; particles beyond the solver's
-        # re-seed radius neither touch nor follow the body, so their cache is not kept exact
-        near = np.linalg.norm(x - pts[truth], axis=1)
-        free &= near <= self.cloth_solver.reseed_radius
-        same = (walk == truth) | np.isclose(np.linalg.norm(x - pts[np.maximum(walk, 0)], axis=1), near, rtol=1e-6,
-                                            atol=1e-9)
-        return {"cloth_stretch_p99": float(np.percentile(strain, 99)),
-                "cloth_stretch_max": float(strain.max()),
-                "cloth_inside_2mm": float(np.mean(sdf < -0.002)),
-                "walk_agreement": float(np.mean(same[free])) if free.any() else 1.0}
+    def _measured(self, **parts):
+        arrays, finish = self.quality.queue(**parts)
+        return finish({name: a.numpy() for name, a in arrays.items()})
 
 
 @functools.lru_cache(maxsize=8)
@@ -898,8 +854,17 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
 
         first_counts = scene.model.counts if scene.model is not None else None
 
-        def write(frame, wait, weights, hair):
+        def write(frame, wait, weights, hair, finish_stats):
             data = wait()
+            if finish_stats is not None:
+                for key, value in finish_stats(data).items():
+                    if key == "walk_agreement":  # reported over the whole run and for the worst frame
+                        agreement.append(value)
+                        key = "walk_agreement_worst_frame"
+                    if key not in worst:
+                        worst[key] = value
+                    else:
+                        worst[key] = max(worst[key], value) if key in larger_is_worse else min(worst[key], value)
             curves = None
             if hair is not None:  # the hair's model and solver when the frame was queued (haircuts replace them)
                 model, solver = hair
@@ -939,16 +904,11 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
                 run_events(scene, config.haircut, frame)
             arrays, weights = scene.queue_outputs(frame)
             hair = (scene.model, scene.solver) if scene.model is not None else None
-            ready = (frame, readback.begin(arrays), weights, hair)
-            if t.stats:
-                for key, value in scene.measure().items():
-                    if key == "walk_agreement":  # reported over the whole run and for the worst frame
-                        agreement.append(value)
-                        key = "walk_agreement_worst_frame"
-                    if key not in worst:
-                        worst[key] = value
-                    else:
-                        worst[key] = max(worst[key], value) if key in larger_is_worse else min(worst[key], value)
+            finish_stats = None
+            if t.stats:  # queued behind the frame and read back with it, like the frame itself
+                queued, finish_stats = scene.quality.queue()
+                arrays.update(queued)
+            ready = (frame, readback.begin(arrays), weights, hair, finish_stats)
             if on_frame:
                 on_frame(frame, scene)
             if pending is not None:

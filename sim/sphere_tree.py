@@ -57,7 +57,7 @@ def signed_distance(points, mesh, device="cpu", max_dist=1.0e6, winding=False):
     closest = wp.zeros(n, dtype=wp.vec3, device=device)
     # a groom's every particle: slices side by side on the CPU's cores
     launch_on_cores(collision.mesh_signed_distance, n, [pts, mesh.id, float(max_dist), int(winding), dist, closest],
-                    {0, 4, 5}, device, per_core=POINTS_PER_SLICE)
+                    device, sliced={0, 4, 5}, per_core=POINTS_PER_SLICE)
     return dist.numpy(), closest.numpy()
 
 

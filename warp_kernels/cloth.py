@@ -888,6 +888,26 @@ def body_collide(
         follow_record(x[p], vtx, points, indices, vf_start, vf_face, p, follow_face, follow_barycentric, follow_local)
 
 
+@wp.func
+def nearest_vertex(p: wp.vec3, points: wp.array(dtype=wp.vec3)):
+    """Exhaustive nearest vertex of p: the first of equally near ones.
+
+    Inputs:
+      p (vec3, m): the point
+      points (vec3, per vertex, m): the vertices; at least one
+    Returns:
+      int (index): the nearest vertex
+    """
+    best = int(0)
+    d = wp.length_sq(p - points[0])
+    for i in range(1, points.shape[0]):
+        di = wp.length_sq(p - points[i])
+        if di < d:
+            d = di
+            best = i
+    return best
+
+
 @wp.kernel
 def nearest_vertex_brute_force(x: wp.array(dtype=wp.vec3), points: wp.array(dtype=wp.vec3),
                                nearest: wp.array(dtype=wp.int32)):
@@ -901,14 +921,56 @@ def nearest_vertex_brute_force(x: wp.array(dtype=wp.vec3), points: wp.array(dtyp
       nearest (int32, per particle): index of the nearest body vertex
     """
     p = wp.tid()
-    best = int(0)
-    d = wp.length_sq(x[p] - points[0])
-    for i in range(1, points.shape[0]):
-        di = wp.length_sq(x[p] - points[i])
-        if di < d:
-            d = di
-            best = i
-    nearest[p] = best
+    nearest[p] = nearest_vertex(x[p], points)
+
+
+@wp.kernel
+def walk_agreement(
+    x: wp.array(dtype=wp.vec3),
+    first: int,
+    part: int,
+    points: wp.array(dtype=wp.vec3),
+    walked: wp.array(dtype=wp.int32),
+    inv_mass: wp.array(dtype=float),
+    radius: float,
+    counts: wp.array2d(dtype=wp.int32),
+):
+    """Count how often the nearest-vertex walk (body_collide's follow) found the nearest body
+    vertex, against an exhaustive search (a quality statistic).
+
+    Only free particles within radius of the body count: farther ones neither touch nor follow it,
+    and their walk is not kept exact. A walk that ends on another vertex equally near (within 1e-6
+    of the distance, relative, or 1e-9 m) agrees. Distances are compared in float64.
+
+    Launch: one thread per particle from first (dim = particles counted).
+    Inputs:
+      x (vec3, per particle, m): positions
+      first (int, index): the first particle of the launch
+      part (int, index): the launch's row of counts (launches side by side on a CPU's cores each
+          count in their own: collision.list_deep_point)
+      points (vec3, per body vertex, m): the posed vertices the walk runs on
+      walked (int32, per particle): the walk's vertex (ClothState.nearest), -1 for none
+      inv_mass (float, per particle): 0 marks pinned particles
+      radius (float, m): particles farther from the nearest vertex are not counted
+    In/out:
+      counts (int32, rows * 2): particles that agree, particles counted (zero them first)
+    """
+    p = wp.tid() + first
+    if inv_mass[p] <= 0.0:
+        return
+    q = wp.vec3d(x[p])
+    truth = nearest_vertex(x[p], points)
+    near = wp.length(q - wp.vec3d(points[truth]))
+    if near > wp.float64(radius):
+        return
+    wp.atomic_add(counts, part, 1, 1)
+    w = walked[p]
+    if w == truth:
+        wp.atomic_add(counts, part, 0, 1)
+        return
+    walked_distance = wp.length(q - wp.vec3d(points[wp.max(w, 0)]))
+    if wp.abs(walked_distance - near) <= wp.float64(1.0e-9) + wp.float64(1.0e-6) * near:
+        wp.atomic_add(counts, part, 0, 1)
 
 
 @wp.kernel

@@ -791,6 +791,78 @@ def mesh_signed_distance(
         distance[i] = max_dist
 
 
+@wp.func
+def pseudo_normal_distance(mesh: wp.uint64, p: wp.vec3, max_dist: float):
+    """Signed distance of p to a closed mesh, signed by the closest face's pseudo-normal: the
+    distance mesh_signed_distance gives with winding = 0.
+
+    Inputs:
+      mesh (uint64): wp.Mesh id of a closed, outward-wound mesh
+      p (vec3, m): the point
+      max_dist (float, m): query radius
+    Returns:
+      float (m): signed distance, negative inside; max_dist where no surface is within reach
+    """
+    q = wp.mesh_query_point_sign_normal(mesh, p, max_dist)
+    if q.result:
+        return q.sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+    return max_dist
+
+
+@wp.func
+def list_deep_point(distance: float, depth: float, i: int, part: int, count: wp.array2d(dtype=wp.int32),
+                    listed: wp.array2d(dtype=wp.int32)):
+    """Count point i when it lies deeper inside than depth, and list it while the list has room.
+    Launches that run side by side on the CPU's cores (sim.graphs.launch_on_cores) each count and list
+    in their own row: a CPU's atomics are not atomic across launches.
+
+    Inputs:
+      distance (float, m): the point's signed distance (negative inside)
+      depth (float, m): how deep a point must lie to count
+      i (int, index): the point
+      part (int, index): the launch's row
+    In/out:
+      count (int32, rows * 1): points counted so far per row (may exceed the list's length)
+    Outputs:
+      listed (int32, rows * any length): the first points each row counted, in any order
+    """
+    if distance < -depth:
+        slot = wp.atomic_add(count, part, 0, 1)
+        if slot < listed.shape[1]:
+            listed[part, slot] = i
+
+
+@wp.kernel
+def count_deep_points(
+    points: wp.array(dtype=wp.vec3),
+    first: int,
+    part: int,
+    mesh: wp.uint64,
+    max_dist: float,
+    depth: float,
+    count: wp.array2d(dtype=wp.int32),
+    listed: wp.array2d(dtype=wp.int32),
+):
+    """Count and list the points the closest face's pseudo-normal puts deeper inside a closed mesh
+    than depth (a quality statistic: the host re-signs the listed ones by the winding number).
+
+    Launch: one thread per point from first (dim = points counted, first + dim <= len(points)).
+    Inputs:
+      points (vec3, per point, m): the points
+      first (int, index): the first point of the launch
+      part (int, index): the launch's row of count and listed
+      mesh (uint64): wp.Mesh id of a closed, outward-wound mesh
+      max_dist (float, m): query radius: deeper points are not seen
+      depth (float, m): how deep a point must lie to count
+    In/out:
+      count (int32, rows * 1): points counted (zero it first)
+    Outputs:
+      listed (int32, rows * any length): the first points counted (list_deep_point)
+    """
+    i = wp.tid() + first
+    list_deep_point(pseudo_normal_distance(mesh, points[i], max_dist), depth, i, part, count, listed)
+
+
 @wp.kernel
 def visible_from_eye(
     points: wp.array(dtype=wp.vec3),

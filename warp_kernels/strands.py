@@ -33,7 +33,8 @@ from ._options import MODULE_OPTIONS
 wp.set_module_options(MODULE_OPTIONS)
 
 from .collision import (COLLIDE_MESH, COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded,
-                        collide_point_listed, collide_point_listed_mesh, sphere_tree_nearest)
+                        collide_point_listed, collide_point_listed_mesh, list_deep_point, pseudo_normal_distance,
+                        sphere_tree_nearest)
 from .skinning import bound_position, face_frame, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
@@ -1991,6 +1992,63 @@ def count_unhealthy(
     if (not finite) or wp.length(vel) > max_speed:
         wp.atomic_add(bad_count, 0, 1)
         wp.atomic_min(first_bad, 0, i)
+
+
+@wp.kernel
+def strand_quality(
+    x: wp.array(dtype=wp.vec3),
+    first: int,
+    part: int,
+    rest_length: wp.array(dtype=float),
+    particle_strand: wp.array(dtype=wp.int32),
+    strand_start: wp.array(dtype=wp.int32),
+    mesh: wp.uint64,
+    max_dist: float,
+    depth: float,
+    band: float,
+    worst: wp.array2d(dtype=float),
+    roots_near: wp.array2d(dtype=wp.int32),
+    deep_count: wp.array2d(dtype=wp.int32),
+    deep_listed: wp.array2d(dtype=wp.int32),
+):
+    """A groom's quality statistics against the collider, queued with a frame (sim.quality): the
+    largest segment stretch, how far the roots lie from the surface, and the particles deeper
+    inside than depth by the closest face's pseudo-normal (listed for the host to re-sign by the
+    winding number, collision.list_deep_point).
+
+    Launch: one thread per particle from first (dim = particles counted).
+    Inputs:
+      x (vec3, per particle, m): positions
+      first (int, index): the first particle of the launch
+      part (int, index): the launch's row of the outputs (launches side by side on a CPU's cores
+          each reduce into their own: collision.list_deep_point)
+      rest_length (float, per particle, m): rest distance to the previous particle, 0 for a root
+      particle_strand (int32, per particle): each particle's strand
+      strand_start (int32, strands + 1): each strand's first particle
+      mesh (uint64): wp.Mesh id of the posed collider
+      max_dist (float, m): query radius: farther roots report it, deeper particles are not seen
+      depth (float, m): how deep a particle must lie to count
+      band (float, m): roots within this of the surface count as near
+    In/out:
+      worst (float, rows * 2): the largest |segment / rest - 1| (computed in float64) and the largest
+          |root distance| [m], by atomic max
+      roots_near (int32, rows * 1): roots within band of the surface
+      deep_count (int32, rows * 1): particles deeper than depth (all three zeroed before the launch)
+    Outputs:
+      deep_listed (int32, rows * any length): the first particles counted deep
+    """
+    i = wp.tid() + first
+    p = x[i]
+    rest = rest_length[i]
+    if rest > 0.0:
+        length = wp.length(wp.vec3d(p) - wp.vec3d(x[i - 1]))
+        wp.atomic_max(worst, part, 0, float(wp.abs(length / wp.float64(rest) - wp.float64(1.0))))
+    d = pseudo_normal_distance(mesh, p, max_dist)
+    if i == strand_start[particle_strand[i]]:
+        wp.atomic_max(worst, part, 1, wp.abs(d))
+        if wp.abs(d) <= band:
+            wp.atomic_add(roots_near, part, 0, 1)
+    list_deep_point(d, depth, i, part, deep_count, deep_listed)
 
 
 @wp.kernel

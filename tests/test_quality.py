@@ -1,0 +1,111 @@
+"""The per-frame quality statistics (sim.quality) against a float64 NumPy reference of each number."""
+
+import numpy as np
+import pytest
+import trimesh
+import warp as wp
+
+import sim.quality as quality
+from sim.collider import Collider
+from sim.scene import Scene, demo_scene
+from warp_kernels import collision
+
+
+def reference_stats(scene):
+    """The statistics computed on the host from the scene's arrays, one number at a time."""
+    m = scene.model
+    x = scene.state.x.numpy().astype(np.float64)
+    has_parent = m.rest_length_np > 0.0
+    previous = np.flatnonzero(has_parent) - 1
+    stretch = np.abs(np.linalg.norm(x[has_parent] - x[previous], axis=1) / m.rest_length_np[has_parent] - 1.0)
+    sdf = scene.collider.signed_distance(x, max_dist=quality.HAIR_SEARCH)  # winding-checked signs
+    roots = np.abs(sdf[m.strand_start_np[:-1]])
+    out = {"max_stretch": stretch.max(), "root_distance_max": roots.max(),
+           "root_within_5mm": np.mean(roots <= quality.ROOT_BAND), "inside_1mm": np.mean(sdf < -quality.HAIR_DEPTH)}
+    cm, st = scene.cloth_model, scene.cloth_state
+    c = st.x.numpy().astype(np.float64)
+    edges = cm.spring_pairs_np[cm.spring_kind_np == 0]
+    rest = cm.spring_rest_np[cm.spring_kind_np == 0]
+    moved = (cm.inv_mass_np[edges[:, 0]] > 0) | (cm.inv_mass_np[edges[:, 1]] > 0)
+    strain = np.linalg.norm(c[edges[moved, 0]] - c[edges[moved, 1]], axis=1) / rest[moved] - 1.0
+    body = scene.cloth_body
+    pts = scene.cloth_collider.points.numpy().astype(np.float64)
+    gap = np.linalg.norm(c[:, None] - pts[None], axis=2)
+    truth = gap.argmin(axis=1)
+    near = gap[np.arange(len(c)), truth]
+    walked = st.nearest.numpy()
+    counted = (cm.inv_mass_np > 0) & (near <= scene.cloth_solver.reseed_radius)
+    agree = (walked == truth) | np.isclose(gap[np.arange(len(c)), np.maximum(walked, 0)], near, rtol=1e-6, atol=1e-9)
+    detail = scene.cloth_detail
+    tested, bvh = detail.query_counts()
+    out.update(cloth_stretch_p99=np.percentile(strain, 99), cloth_stretch_max=strain.max(),
+               cloth_inside_2mm=np.mean(body.signed_distance(c, quality.CLOTH_SEARCH) < -quality.CLOTH_DEPTH),
+               walk_agreement=np.mean(agree[counted]) if counted.any() else 1.0,
+               detail_inside_2mm=np.mean(body.signed_distance(detail.positions.numpy(), quality.CLOTH_SEARCH)
+                                         < -quality.CLOTH_DEPTH),
+               detail_queries=tested / detail.surface.topology.num_vertices, detail_bvh=bvh / max(1, tested))
+    return out
+
+
+@pytest.fixture(scope="module")
+def walking():
+    scene = Scene(demo_scene({"scene": {"frames": 1, "preroll": 0.0}, "face": {"enabled": False},
+                              "hair": {"count": 200, "vertices": 12}, "cloth.detail": {"level": 2}}))
+    scene.advance(3 / 24, detail=True)
+    return scene
+
+
+def test_statistics_equal_the_host_reference(walking):
+    got, want = walking.measure(), reference_stats(walking)
+    assert set(got) == set(want)
+    for key in want:
+        np.testing.assert_allclose(got[key], want[key], rtol=1e-6, atol=1e-12, err_msg=key)
+    assert 0.0 < want["max_stretch"] < 0.01 and want["walk_agreement"] > 0.9 and want["detail_queries"] > 0.0
+    assert walking.cloth_stats() == {k: got[k] for k in ("cloth_stretch_p99", "cloth_stretch_max",
+                                                          "cloth_inside_2mm", "walk_agreement")}
+
+
+def test_deep_points_are_counted_and_checked_also_beyond_the_list(walking, monkeypatch):
+    """Hair pushed into the body: the listed deep points are re-signed on the host; with a list too
+    short for them every point is checked there instead, to the same count."""
+    state = walking.state
+    before = state.x.numpy().copy()
+    try:
+        x = before.copy()
+        start = walking.model.strand_start_np
+        roots, tips = x[start[:-1]], start[1:] - 1
+        # every tip 5 mm below its root, toward the middle of the scalp: inside the head
+        inward = roots.mean(axis=0) - roots
+        x[tips] = roots + 0.005 * inward / np.linalg.norm(inward, axis=1, keepdims=True)
+        state.x.assign(x)
+        want = reference_stats(walking)["inside_1mm"]
+        assert want > 0.5 * len(tips) / len(x)
+        assert walking.measure()["inside_1mm"] == pytest.approx(want)
+        monkeypatch.setattr(quality, "LISTED", 3)
+        walking.quality._buffers.clear()
+        assert walking.measure()["inside_1mm"] == pytest.approx(want)
+    finally:
+        state.x.assign(before)
+        walking.quality._buffers.clear()
+
+
+def test_points_a_self_intersecting_pose_puts_inside_by_mistake_are_not_counted():
+    # the folded shape of tests/test_collision.py: a ball, and outside it a small ball wound inside out
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    fold = trimesh.creation.icosphere(subdivisions=2, radius=0.05)
+    v = np.concatenate([ball.vertices, fold.vertices + [0.5, 0.0, 0.0]]).astype(np.float32)
+    f = np.concatenate([ball.faces, fold.faces[:, ::-1] + len(ball.vertices)]).astype(np.int32)
+    weights = np.zeros((len(v), 4))
+    weights[:, 0] = 1.0
+    body = Collider("folded", v, f, np.zeros((len(v), 4), np.int32), weights, 1, "cpu", sphere_leaves=0)
+    rng = np.random.default_rng(1)
+    u = rng.normal(size=(30, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    points = np.concatenate([[0.5, 0.0, 0.0] + 0.06 * u, 0.25 * u]).astype(np.float32)  # outside; 5 cm inside
+    count, listed = wp.zeros((1, 1), dtype=wp.int32), wp.zeros((1, 64), dtype=wp.int32)
+    wp.launch(collision.count_deep_points, len(points),
+              [wp.array(points, dtype=wp.vec3), 0, 0, body.mesh.id, 0.1, 0.005, count, listed])
+    assert count.numpy()[0, 0] == 60  # the pseudo-normal calls every point deeper than 5 mm
+    assert quality.deep_after_winding(points, v, f, count.numpy(), listed.numpy(), 0.1, 0.005) == 30
+    short = listed.numpy()[:, :10]
+    assert quality.deep_after_winding(points, v, f, count.numpy(), short, 0.1, 0.005) == 30
