@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The GPU benchmark and check session, one part per call (each must end inside 10 minutes):
-#   bash benchmarks/run_gpu.sh tests    # graph checks on cuda and cpu (tests/test_graphs.py)
+#   bash benchmarks/run_gpu.sh tests    # graph and statistics checks on cuda and cpu (tests/test_graphs.py, test_quality.py)
 #   bash benchmarks/run_gpu.sh hair     # benchmarks/hair.py on cuda with Newton chains (HAIR_ARGS: its
 #                                       # options, by default each case with lanes by root and as grown)
 #   bash benchmarks/run_gpu.sh fused    # the hair's substep as one launch (HairSolver.fused) against the
@@ -14,7 +14,7 @@ export PYTHONPATH=.${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
 nvidia-smi --query-gpu=name,memory.total,clocks.max.sm --format=csv,noheader | tee -a "$out/device.txt"
 for part in "$@"; do
   case $part in
-    tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_comb.py 2>&1 | tee "$out/tests.log" ;;
+    tests) timeout 400 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py tests/test_comb.py tests/test_quality.py 2>&1 | tee "$out/tests.log" ;;
     hair) timeout ${HAIR_TIMEOUT:-540} python3 benchmarks/hair.py --device cuda ${HAIR_ARGS:---lane-order both} 2>&1 |
         tee "$out/hair.log" ;;
     fused) for way in "--fused off" "--fused on" "--fused on --leaves-ahead off"; do

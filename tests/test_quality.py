@@ -7,8 +7,15 @@ import warp as wp
 
 import sim.quality as quality
 from sim.collider import Collider
-from sim.scene import Scene, demo_scene
+from sim.scene import Scene, demo_scene, run_scene
 from warp_kernels import collision
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="needs CUDA"))]
+
+
+def small_walk(device, frames=1):
+    return demo_scene({"scene": {"device": device, "frames": frames, "preroll": 0.0}, "face": {"enabled": False},
+                       "hair": {"count": 200, "vertices": 12}, "cloth.detail": {"level": 2}})
 
 
 def reference_stats(scene):
@@ -47,10 +54,9 @@ def reference_stats(scene):
     return out
 
 
-@pytest.fixture(scope="module")
-def walking():
-    scene = Scene(demo_scene({"scene": {"frames": 1, "preroll": 0.0}, "face": {"enabled": False},
-                              "hair": {"count": 200, "vertices": 12}, "cloth.detail": {"level": 2}}))
+@pytest.fixture(scope="module", params=DEVICES)
+def walking(request):
+    scene = Scene(small_walk(request.param))
     scene.advance(3 / 24, detail=True)
     return scene
 
@@ -109,3 +115,19 @@ def test_points_a_self_intersecting_pose_puts_inside_by_mistake_are_not_counted(
     assert quality.deep_after_winding(points, v, f, count.numpy(), listed.numpy(), 0.1, 0.005) == 30
     short = listed.numpy()[:, :10]
     assert quality.deep_after_winding(points, v, f, count.numpy(), short, 0.1, 0.005) == 30
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_run_reports_the_worst_of_its_frames_statistics(tmp_path, device):
+    """A run queues each frame's statistics and finishes them as it writes the frame: the worst over
+    the frames of what measure() gives at each frame."""
+    seen = []
+    result = run_scene(small_walk(device, frames=3), tmp_path / "walk.usdc", progress=False,
+                       on_frame=lambda frame, scene: seen.append(scene.measure()))
+    assert len(seen) == 3
+    for key in ("max_stretch", "root_distance_max", "inside_1mm", "cloth_stretch_p99", "cloth_inside_2mm",
+                "detail_inside_2mm", "detail_queries"):
+        assert result.stats[key] == pytest.approx(max(s[key] for s in seen)), key
+    assert result.stats["root_within_5mm"] == pytest.approx(min(s["root_within_5mm"] for s in seen))
+    assert result.stats["walk_agreement"] == pytest.approx(np.mean([s["walk_agreement"] for s in seen]))
+    assert result.stats["walk_agreement_worst_frame"] == pytest.approx(min(s["walk_agreement"] for s in seen))
