@@ -104,6 +104,7 @@ def cmd_lipsync(args):
 
     import sim
     from sim import lipsync
+    from sim.scene import _build_config
 
     samples = lipsync.load_audio(args.audio)
     seconds = len(samples) / lipsync.SAMPLE_RATE
@@ -116,7 +117,7 @@ def cmd_lipsync(args):
             "head": {"animation": args.head_motion}, "hair": {"enabled": bool(args.hair)}, "face": face}
     if args.device:
         data["scene"]["device"] = args.device
-    config = sim.scene._build_config("<lipsync>", data, None)
+    config = _build_config("<lipsync>", data, None)
     result = sim.run_scene(config, args.output, progress=not args.quiet)
     _report(result)
     if args.preview:

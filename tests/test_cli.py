@@ -143,6 +143,18 @@ def test_cfx_entry_point_runs_as_a_module():
     assert proc.returncode == 0 and "warp-cfx" in proc.stdout
 
 
+def test_the_package_loads_its_parts_on_first_use():
+    """`cfx --help` and `cfx info` start without Warp; `sim.X` loads X's submodule the first time."""
+    code = ("import sys, sim, sim.cli; assert 'warp' not in sys.modules and 'scipy' not in sys.modules; "
+            "assert 'HairParams' in dir(sim) and sim.HairParams().substeps > 0 and 'warp' in sys.modules; "
+            "from sim import Scene, run_scene; assert sim.Scene is Scene; "
+            "sim.no_such_name")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=os.getcwd(),
+                          env=dict(os.environ, PYTHONPATH=os.getcwd()))
+    assert proc.returncode == 1 and proc.stderr.strip().endswith("AttributeError: module 'sim' has no attribute "
+                                                                 "'no_such_name'"), proc.stderr
+
+
 def test_quiet_run_prints_nothing_to_stderr(tmp_path):
     """-q on a CPU machine: no progress bar and no Warp start-up lines (its native no-CUDA-driver
     warning included), only the summary."""
