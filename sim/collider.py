@@ -233,19 +233,17 @@ class Collider:
                   [pts, int(mode), self.shape, float(margin), float(search)], device=self.device)
         return pts.numpy()
 
-    def signed_distance(self, points, max_dist=1.0e6, checked_depth=0.0):
+    def signed_distance(self, points, max_dist=1.0e6):
         """Signed distance [m] of (N, 3) points to the posed mesh (negative inside).
 
         Points farther than max_dist from the surface report +max_dist. The closest face's
         pseudo-normal signs every point, and the mesh's winding number re-signs those it calls
         inside: a posed body intersects itself (an arm pressed to the side), where the pseudo-normal
-        can call a point between the two surfaces inside. checked_depth [m]: only points it calls
-        deeper inside than this are re-signed, for callers that count only those (the winding
-        numbers cost more than the query, and a resting groom has many points just inside).
+        can call a point between the two surfaces inside.
         """
         points = np.asarray(points)
         distance = signed_distance(points, self.fresh_mesh(), self.device, max_dist)[0]
-        inside = np.flatnonzero(distance < -checked_depth)
+        inside = np.flatnonzero(distance < 0.0)
         if inside.size:
             if self._winding is None:
                 self._winding = wp.Mesh(points=self.points, indices=self.indices, support_winding_number=True)

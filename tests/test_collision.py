@@ -635,12 +635,6 @@ def test_signed_distance_re_signs_points_a_self_intersecting_pose_puts_inside_by
     np.testing.assert_allclose(d[40:], -0.05, atol=2e-3)
     # the pseudo-normal alone calls the first ones inside
     assert np.all(signed_distance(around_fold, body.fresh_mesh())[0] < 0.0)
-    # a caller counting only points deeper than 2 cm re-signs only those: the same distances, the
-    # shallower points keep the pseudo-normal's sign
-    shallow = body.signed_distance(np.concatenate([around_fold, inside_ball]), checked_depth=0.02)
-    np.testing.assert_array_equal(np.abs(shallow), np.abs(d))
-    np.testing.assert_allclose(shallow[:40], -0.01, atol=2e-3)
-    np.testing.assert_array_equal(shallow[40:], d[40:])
 
 
 def test_signed_distance_in_slices_on_the_cores_equals_one_launch(head, head_collider, monkeypatch):
