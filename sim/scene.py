@@ -856,15 +856,6 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
 
         def write(frame, wait, weights, hair, finish_stats):
             data = wait()
-            if finish_stats is not None:
-                for key, value in finish_stats(data).items():
-                    if key == "walk_agreement":  # reported over the whole run and for the worst frame
-                        agreement.append(value)
-                        key = "walk_agreement_worst_frame"
-                    if key not in worst:
-                        worst[key] = value
-                    else:
-                        worst[key] = max(worst[key], value) if key in larger_is_worse else min(worst[key], value)
             curves = None
             if hair is not None:  # the hair's model and solver when the frame was queued (haircuts replace them)
                 model, solver = hair
@@ -875,6 +866,15 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
                                      "stage's curves: cut strands in a scene of their own")
             if scene.cloth_model is not None:
                 scene.cloth_solver.report_unhealthy(data["cloth_bad"], data["cloth_first"], frame, cloth_prim)
+            if finish_stats is not None:  # of a healthy frame only
+                for key, value in finish_stats(data).items():
+                    if key == "walk_agreement":  # reported over the whole run and for the worst frame
+                        agreement.append(value)
+                        key = "walk_agreement_worst_frame"
+                    if key not in worst:
+                        worst[key] = value
+                    else:
+                        worst[key] = max(worst[key], value) if key in larger_is_worse else min(worst[key], value)
             samples = {name: data[name] for name in (scene.collider_name, "hair", "cloth", "cloth_detail")
                        if name in data}
             normals = {"cloth_detail": data["cloth_detail_normals"]} if "cloth_detail_normals" in data else {}
