@@ -14,8 +14,8 @@ from scipy.spatial import cKDTree
 from warp_kernels import collision, skinning
 
 from .collision_proxy import blend_skin_weights, coarse_remesh
-from .graphs import refit_mesh
-from .sphere_tree import build_sphere_tree, empty_sphere_tree, signed_distance
+from .graphs import launch_on_cores, refit_mesh
+from .sphere_tree import POINTS_PER_SLICE, build_sphere_tree, empty_sphere_tree, signed_distance
 
 UNKNOWN_MOTION = 1.0e30  # Collider.moved after a pose that did not measure it: lowers every bound to nothing
 
@@ -229,8 +229,9 @@ class Collider:
         """
         pts = wp.array(np.asarray(points, np.float32), dtype=wp.vec3, device=self.device)
         self.fresh_mesh()
-        wp.launch(collision.push_points_out, len(pts),
-                  [pts, int(mode), self.shape, float(margin), float(search)], device=self.device)
+        # a groom's every point, many times while it grows: slices side by side on the CPU's cores
+        launch_on_cores(collision.push_points_out, len(pts), [pts, int(mode), self.shape, float(margin), float(search)],
+                        self.device, sliced={0}, per_core=POINTS_PER_SLICE)
         return pts.numpy()
 
     def signed_distance(self, points, max_dist=1.0e6):
