@@ -288,6 +288,9 @@ class _BodySections:
         self.mesh = trimesh.Trimesh(np.asarray(body.vertices, np.float64), np.asarray(body.faces, np.int64),
                                     process=False)
         self.wp_mesh = warp_mesh(self.mesh.vertices, self.mesh.faces)
+        # each face's height range: a section intersects only the faces spanning its height
+        heights = self.mesh.vertices[self.mesh.faces, 1]
+        self._face_low, self._face_high = heights.min(axis=1), heights.max(axis=1)
         self._cache = {}
         lm = self.landmarks
         cx = 0.5 * (float(lm["shoulder_l"][0]) + float(lm["shoulder_r"][0]))
@@ -304,7 +307,12 @@ class _BodySections:
         """Points (n, 2) of each connected loop of the section at height y."""
         import trimesh
 
-        lines = trimesh.intersections.mesh_plane(self.mesh, [0.0, 1.0, 0.0], [0.0, y, 0.0])[:, :, [0, 2]]
+        # the faces within a micrometre of the plane: the rest lie wholly on one side and give no line
+        spanning = np.flatnonzero((self._face_low <= y + 1e-6) & (self._face_high >= y - 1e-6))
+        if len(spanning) == 0:
+            return []
+        lines = trimesh.intersections.mesh_plane(self.mesh, [0.0, 1.0, 0.0], [0.0, y, 0.0],
+                                                 local_faces=spanning)[:, :, [0, 2]]
         if len(lines) == 0:
             return []
         # segments whose ends meet form a loop; matching ends by position (not by face adjacency)
