@@ -37,6 +37,7 @@ class QualityProbe:
     def __init__(self, scene):
         self.scene = scene
         self._buffers = {}
+        self._cloth_edges = None  # (cloth model, the edges its strain statistics measure, their rest lengths)
 
     def _zeros(self, arrays, name, shape, dtype):
         """A zeroed device buffer kept under `name` (reallocated when a haircut changes its shape),
@@ -96,7 +97,9 @@ class QualityProbe:
                              scene.cloth_solver.reseed_radius, agreement], device, first=1, part=2,
                             per_core=WALK_PER_CORE)
             arrays["cloth"] = st.x
-            parts.append(_cloth_part(cm, body_key, body.faces_np))
+            if self._cloth_edges is None or self._cloth_edges[0] is not cm:
+                self._cloth_edges = (cm, *_measured_edges(cm))
+            parts.append(_cloth_part(n, *self._cloth_edges[1:], body_key, body.faces_np))
         if detail:
             points = scene.cloth_detail.positions
             rows = core_slices(len(points), device, PER_CORE)
@@ -149,7 +152,8 @@ def _hair_part(particles, strand_count, body_key, faces):
     return hair
 
 
-def _cloth_part(cm, body_key, faces):
+def _measured_edges(cm):
+    """The cloth's stretch edges whose strain the statistics report, and their rest lengths."""
     edges = cm.spring_pairs_np[cm.spring_kind_np == 0]
     rest = cm.spring_rest_np[cm.spring_kind_np == 0]
     # the edges the solver moves: one between two pinned particles (a strap bound to a shoulder)
@@ -157,8 +161,10 @@ def _cloth_part(cm, body_key, faces):
     moved = (cm.inv_mass_np[edges[:, 0]] > 0) | (cm.inv_mass_np[edges[:, 1]] > 0)
     if moved.any():
         edges, rest = edges[moved], rest[moved]
-    n = cm.num_particles
+    return edges, rest
 
+
+def _cloth_part(n, edges, rest, body_key, faces):
     def cloth(data):
         x = data["cloth"].astype(np.float64)
         strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
