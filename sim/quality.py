@@ -38,6 +38,7 @@ class QualityProbe:
         self.scene = scene
         self._buffers = {}
         self._cloth_edges = None  # (cloth model, the edges its strain statistics measure, their rest lengths)
+        self.host_meshes = HostMeshes()  # the read-back poses that deep points are re-signed against
 
     def _zeros(self, arrays, name, shape, dtype):
         """A zeroed device buffer kept under `name` (reallocated when a haircut changes its shape),
@@ -73,7 +74,8 @@ class QualityProbe:
                              collider.fresh_mesh().id, HAIR_SEARCH, HAIR_DEPTH, ROOT_BAND, worst, near, count, listed],
                             device, first=1, part=2, per_core=PER_CORE)
             arrays.update({"hair": scene.state.x, scene.collider_name: collider.points})
-            parts.append(_hair_part(m.num_particles, m.num_strands, scene.collider_name, collider.faces_np))
+            parts.append(_hair_part(m.num_particles, m.num_strands, scene.collider_name, collider.faces_np,
+                                    self.host_meshes))
         cloth = cloth and scene.cloth_model is not None
         detail = detail and scene.cloth_detail is not None
         if cloth or detail:
@@ -99,7 +101,7 @@ class QualityProbe:
             arrays["cloth"] = st.x
             if self._cloth_edges is None or self._cloth_edges[0] is not cm:
                 self._cloth_edges = (cm, *_measured_edges(cm))
-            parts.append(_cloth_part(n, *self._cloth_edges[1:], body_key, body.faces_np))
+            parts.append(_cloth_part(n, *self._cloth_edges[1:], body_key, body.faces_np, self.host_meshes))
         if detail:
             points = scene.cloth_detail.positions
             rows = core_slices(len(points), device, PER_CORE)
@@ -108,7 +110,7 @@ class QualityProbe:
                             [points, 0, 0, body.fresh_mesh().id, CLOTH_SEARCH, CLOTH_DEPTH, count, listed], device,
                             first=1, part=2, per_core=PER_CORE)
             arrays.update({"cloth_detail": points, "quality_detail_queries": scene.cloth_detail.queries})
-            parts.append(_detail_part(len(points), body_key, body.faces_np))
+            parts.append(_detail_part(len(points), body_key, body.faces_np, self.host_meshes))
 
         def finish(data):
             stats = {}
@@ -119,32 +121,61 @@ class QualityProbe:
         return arrays, finish
 
 
-def deep_after_winding(points, body_points, faces, count, listed, search, depth):
+class HostMeshes:
+    """CPU wp.Meshes over read-back collider poses, one per triangle list and kind of sign, kept from
+    frame to frame and refitted to each new pose: building one that signs by the winding number takes
+    about 17 ms for the built-in body, refitting it 7 ms (a plain one 0.5 ms), and a walking body's
+    self-contact leaves a few points for the winding number to re-sign in most frames."""
+
+    def __init__(self):
+        self._meshes = {}  # (id(faces), winding) -> (faces, mesh, the points it was refitted to)
+
+    def get(self, points, faces, winding=False):
+        """A mesh of `faces` (kept alive here, so its id names it) over `points`, signing by the
+        winding number if asked."""
+        points = np.asarray(points, np.float32)
+        key = (id(faces), bool(winding))
+        entry = self._meshes.get(key)
+        if entry is None or entry[2].shape != points.shape:
+            mesh = warp_mesh(points, faces, "cpu", winding=winding)
+            self._meshes[key] = (faces, mesh, points.copy())
+            return mesh
+        _, mesh, fitted = entry
+        if not np.array_equal(fitted, points):
+            mesh.points.assign(points)
+            mesh.refit()  # also the winding number's data
+            fitted[...] = points
+        return mesh
+
+
+def deep_after_winding(points, body_points, faces, count, listed, search, depth, meshes=None):
     """How many points lie deeper inside the body than depth: of those the pseudo-normal called so
-    (count per row, the first of them listed in the row), the ones the winding number calls so too."""
+    (count per row, the first of them listed in the row), the ones the winding number calls so too.
+    meshes: a HostMeshes to take the body's meshes from (built afresh without)."""
     count = np.asarray(count).reshape(-1)
     if not count.any():
         return 0
-    wound_mesh = warp_mesh(body_points, faces, "cpu", winding=True)
+    meshes = meshes if meshes is not None else HostMeshes()
+    wound_mesh = meshes.get(body_points, faces, winding=True)
     if np.all(count <= listed.shape[1]):
         deep = np.concatenate([row[:c] for row, c in zip(listed, count)])
         wound = signed_distance(points[deep], wound_mesh, "cpu", search, winding=True)[0]
         return int(np.sum(wound < -depth))
     # more than the list holds: every point again, by both signs
-    pseudo = signed_distance(points, warp_mesh(body_points, faces, "cpu"), "cpu", search)[0]
+    pseudo = signed_distance(points, meshes.get(body_points, faces), "cpu", search)[0]
     wound = signed_distance(points, wound_mesh, "cpu", search, winding=True)[0]
     return int(np.sum((pseudo < -depth) & (wound < -depth)))
 
 
-def _deep(data, name, points, body_key, faces, search, depth):
+def _deep(data, name, points, body_key, faces, search, depth, meshes):
     return deep_after_winding(data[points], data[body_key], faces, data[f"quality_{name}_deep"],
-                              data[f"quality_{name}_listed"], search, depth)
+                              data[f"quality_{name}_listed"], search, depth, meshes)
 
 
-def _hair_part(particles, strand_count, body_key, faces):
+def _hair_part(particles, strand_count, body_key, faces, meshes):
     def hair(data):
         worst = data["quality_hair_worst"].max(axis=0)
-        deep = _deep(data, "hair", "hair", body_key, faces, HAIR_SEARCH, HAIR_DEPTH)
+        deep = _deep(data, "hair", "hair", body_key, faces, HAIR_SEARCH, HAIR_DEPTH, meshes)
         return {"max_stretch": float(worst[0]), "root_distance_max": float(worst[1]),
                 "root_within_5mm": int(data["quality_hair_roots_near"].sum()) / max(1, strand_count),
                 "inside_1mm": deep / max(1, particles)}
@@ -164,11 +195,11 @@ def _measured_edges(cm):
     return edges, rest
 
 
-def _cloth_part(n, edges, rest, body_key, faces):
+def _cloth_part(n, edges, rest, body_key, faces, meshes):
     def cloth(data):
         x = data["cloth"].astype(np.float64)
         strain = np.linalg.norm(x[edges[:, 0]] - x[edges[:, 1]], axis=1) / rest - 1.0
-        deep = _deep(data, "cloth", "cloth", body_key, faces, CLOTH_SEARCH, CLOTH_DEPTH)
+        deep = _deep(data, "cloth", "cloth", body_key, faces, CLOTH_SEARCH, CLOTH_DEPTH, meshes)
         agree, counted = (int(c) for c in data["quality_cloth_walk"].sum(axis=0))
         return {"cloth_stretch_p99": float(np.percentile(strain, 99)), "cloth_stretch_max": float(strain.max()),
                 "cloth_inside_2mm": deep / max(1, n), "walk_agreement": agree / counted if counted else 1.0}
@@ -176,9 +207,9 @@ def _cloth_part(n, edges, rest, body_key, faces):
     return cloth
 
 
-def _detail_part(vertices, body_key, faces):
+def _detail_part(vertices, body_key, faces, meshes):
     def detail(data):
-        deep = _deep(data, "detail", "cloth_detail", body_key, faces, CLOTH_SEARCH, CLOTH_DEPTH)
+        deep = _deep(data, "detail", "cloth_detail", body_key, faces, CLOTH_SEARCH, CLOTH_DEPTH, meshes)
         queries = data["quality_detail_queries"]
         tested, bvh = int(queries[0::2].sum()), int(queries[1::2].sum())
         return {"detail_inside_2mm": deep / max(1, vertices), "detail_queries": tested / max(1, vertices),

@@ -117,6 +117,28 @@ def test_points_a_self_intersecting_pose_puts_inside_by_mistake_are_not_counted(
     assert quality.deep_after_winding(points, v, f, count.numpy(), short, 0.1, 0.005) == 30
 
 
+def test_kept_host_meshes_refit_to_each_pose_and_sign_as_fresh_ones():
+    """HostMeshes keeps one mesh per triangle list and kind of sign, refitted when the pose changes:
+    the same signed distances as meshes built afresh for each pose, winding number included."""
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.3)
+    v0, f = ball.vertices.astype(np.float32), ball.faces.astype(np.int32)
+    rng = np.random.default_rng(4)
+    points = (0.35 * rng.uniform(-1.0, 1.0, size=(200, 3))).astype(np.float32)
+    meshes = quality.HostMeshes()
+    first = meshes.get(v0, f, winding=True)
+    for pose in range(3):
+        turn = trimesh.transformations.rotation_matrix(0.4 * pose, [0.3, 1.0, 0.2])[:3, :3]
+        v = (v0 @ turn.T * (1.0 + 0.1 * pose) + [0.02 * pose, 0.0, 0.0]).astype(np.float32)
+        for winding in (False, True):
+            kept = meshes.get(v, f, winding=winding)
+            fresh = quality.warp_mesh(v, f, "cpu", winding=winding)
+            got = quality.signed_distance(points, kept, "cpu", 0.1, winding=winding)[0]
+            want = quality.signed_distance(points, fresh, "cpu", 0.1, winding=winding)[0]
+            np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-7)
+        assert meshes.get(v, f, winding=True) is first  # refitted, not rebuilt
+    assert np.any(got < -0.01) and np.any(got > 0.01)
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_a_run_reports_the_worst_of_its_frames_statistics(tmp_path, device):
     """A run queues each frame's statistics and finishes them as it writes the frame: the worst over
