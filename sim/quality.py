@@ -28,6 +28,7 @@ CLOTH_SEARCH = 0.05  # m: the same for the cloth and its detail surface
 CLOTH_DEPTH = 0.002  # m (cloth_inside_2mm, detail_inside_2mm)
 LISTED = 1 << 16  # deep points listed per statistic; a frame with more re-checks every point on the host
 PER_CORE = 4096  # the fewest points a CPU core queries on its own (graphs.core_slices)
+STRANDS_PER_CORE = 128  # the same in strands of a groom
 WALK_PER_CORE = 64  # the same for the walk's brute force, each particle against every body vertex
 
 
@@ -65,14 +66,14 @@ class QualityProbe:
         device = scene.device
         if hair and scene.model is not None:
             m, collider = scene.model, scene.collider
-            rows = core_slices(m.num_particles, device, PER_CORE)
+            rows = core_slices(m.num_strands, device, STRANDS_PER_CORE)
             worst = self._zeros(arrays, "quality_hair_worst", (rows, 2), float)
             near = self._zeros(arrays, "quality_hair_roots_near", (rows, 1), wp.int32)
             count, listed = self._deep(arrays, "hair", m.num_particles, rows)
-            launch_on_cores(strands.strand_quality, m.num_particles,
-                            [scene.state.x, 0, 0, m.rest_length, m.particle_strand, m.strand_start,
-                             collider.fresh_mesh().id, HAIR_SEARCH, HAIR_DEPTH, ROOT_BAND, worst, near, count, listed],
-                            device, first=1, part=2, per_core=PER_CORE)
+            launch_on_cores(strands.strand_quality, m.num_strands,
+                            [scene.state.x, 0, 0, m.rest_length, m.strand_start, collider.fresh_mesh().id, HAIR_SEARCH,
+                             HAIR_DEPTH, ROOT_BAND, worst, near, count, listed],
+                            device, first=1, part=2, per_core=STRANDS_PER_CORE)
             arrays.update({"hair": scene.state.x, scene.collider_name: collider.points})
             parts.append(_hair_part(m.num_particles, m.num_strands, scene.collider_name, collider.faces_np,
                                     self.host_meshes))

@@ -9,6 +9,7 @@ import sim.quality as quality
 from sim.collider import Collider
 from sim.scene import Scene, demo_scene, run_scene
 from warp_kernels import collision
+from warp_kernels import strands as strands_kernels
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="needs CUDA"))]
 
@@ -115,6 +116,58 @@ def test_points_a_self_intersecting_pose_puts_inside_by_mistake_are_not_counted(
     assert quality.deep_after_winding(points, v, f, count.numpy(), listed.numpy(), 0.1, 0.005) == 30
     short = listed.numpy()[:, :10]
     assert quality.deep_after_winding(points, v, f, count.numpy(), short, 0.1, 0.005) == 30
+
+
+def test_strands_walked_from_the_root_count_every_deep_particle_a_query_of_each_would():
+    """strand_quality queries a particle only where the bound carried from its parent leaves room
+    for it to lie deeper than the depth counted, and no farther than that room: strands crossing a
+    ball at every depth, lying on it, hovering over it and far from it give the roots, the stretch
+    and the deep particles (counted and listed) of an exact query of every particle."""
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
+    v, f = ball.vertices.astype(np.float32), ball.faces.astype(np.int32)
+    rng = np.random.default_rng(12)
+    strands, counts = [], []
+    for k in range(400):
+        u = rng.normal(size=3)
+        u /= np.linalg.norm(u)
+        root = 0.1 * u if k % 4 else (0.1 + rng.uniform(0.0, 0.05)) * u  # most on the ball, some off it
+        # heading in, along, or out of the ball, in segments of 2 to 15 mm
+        turn = rng.normal(size=3)
+        heading = (turn - np.dot(turn, u) * u) / np.linalg.norm(turn - np.dot(turn, u) * u)
+        heading = heading * np.cos(rng.uniform(-1.2, 1.2)) - u * np.sin(rng.uniform(-0.6, 1.2))
+        n = int(rng.integers(4, 20))
+        steps = rng.uniform(0.002, 0.015) * (heading + 0.3 * rng.normal(size=(n - 1, 3)))
+        strands.append(np.concatenate([[root], root + np.cumsum(steps, axis=0)]))
+        counts.append(n)
+    x = np.concatenate(strands).astype(np.float32)
+    start = np.r_[0, np.cumsum(counts)].astype(np.int32)
+    rest = np.zeros(len(x), np.float32)
+    segment = np.linalg.norm(np.diff(x.astype(np.float64), axis=0), axis=1)
+    inner = np.setdiff1d(np.arange(len(x)), start[:-1])
+    rest[inner] = segment[inner - 1] / rng.uniform(0.98, 1.02, size=len(inner))
+    depth, search, band = 0.001, 0.03, 0.005
+    rows = 2
+    worst = wp.zeros((rows, 2), dtype=float)
+    near, count = wp.zeros((rows, 1), dtype=wp.int32), wp.zeros((rows, 1), dtype=wp.int32)
+    listed = wp.zeros((rows, len(x)), dtype=wp.int32)
+    mesh = quality.warp_mesh(v, f)
+    half = len(counts) // 2
+    for row, (a, b) in enumerate(((0, half), (half, len(counts)))):  # two launches, as on two cores
+        wp.launch(strands_kernels.strand_quality, b - a,
+                  [wp.array(x, dtype=wp.vec3), a, row, wp.array(rest), wp.array(start), mesh.id, search, depth,
+                   band, worst, near, count, listed])
+    sdf = quality.signed_distance(x, mesh, "cpu", search)[0]  # every particle queried to search
+    seen = np.abs(sdf) < search
+    deep = np.flatnonzero(seen & (sdf < -depth))
+    roots = np.abs(sdf[start[:-1]])
+    assert 50 < len(deep) < 0.5 * len(x)  # deep and shallow, inside and out
+    assert np.sum(count.numpy()) == len(deep)
+    got = np.sort(np.concatenate([listed.numpy()[r, :c] for r, c in enumerate(count.numpy()[:, 0])]))
+    np.testing.assert_array_equal(got, deep)
+    stretch = np.abs(segment[inner - 1] / rest[inner].astype(np.float64) - 1.0).max()
+    assert worst.numpy()[:, 0].max() == pytest.approx(stretch, rel=1e-6)
+    assert worst.numpy()[:, 1].max() == pytest.approx(roots.max(), rel=1e-6)
+    assert near.numpy().sum() == np.sum(roots <= band)
 
 
 def test_kept_host_meshes_refit_to_each_pose_and_sign_as_fresh_ones():

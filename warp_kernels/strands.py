@@ -42,6 +42,8 @@ TAUT = wp.constant(0.995)  # hold_in_comb: a root-to-comb chain this close to st
 SHAPE_FULL = wp.constant(1)
 NO_BOUND = wp.constant(-1.0e30)  # a contact bound that says nothing: the next query looks as far as it can
 MOTION_GRID = wp.constant(16)  # cells per axis of ContactMotion.cells
+# m: strand_quality's queries look this much beyond what a particle's distance bound leaves in doubt
+QUALITY_QUERY_SLACK = wp.constant(0.005)
 
 
 @wp.struct
@@ -2000,7 +2002,6 @@ def strand_quality(
     first: int,
     part: int,
     rest_length: wp.array(dtype=float),
-    particle_strand: wp.array(dtype=wp.int32),
     strand_start: wp.array(dtype=wp.int32),
     mesh: wp.uint64,
     max_dist: float,
@@ -2016,14 +2017,24 @@ def strand_quality(
     inside than depth by the closest face's pseudo-normal (listed for the host to re-sign by the
     winding number, collision.list_deep_point).
 
-    Launch: one thread per particle from first (dim = particles counted).
+    A thread walks a strand from its root, carrying a lower bound of each particle's signed
+    distance: a signed distance changes by at most the distance moved (it changes sign only where
+    it is zero), so a particle's is at least its parent's less the segment between them. A particle
+    whose bound shows it cannot lie deeper than depth is not queried; the others are queried no
+    farther than the bound leaves in doubt. A query that finds nothing within radius r proves the
+    particle at least r outside when its bound is above -r. A query's cost grows with its radius,
+    and most particles of a groom lie a few centimetres out, where a query of max_dist finds nothing
+    only after searching all of it: the distances counted are the same as querying every particle
+    out to max_dist, except where a self-intersecting pose gives the pseudo-normal's sign jumps
+    away from the surface.
+
+    Launch: one thread per strand from first (dim = strands counted).
     Inputs:
       x (vec3, per particle, m): positions
-      first (int, index): the first particle of the launch
+      first (int, index): the first strand of the launch
       part (int, index): the launch's row of the outputs (launches side by side on a CPU's cores
           each reduce into their own: collision.list_deep_point)
       rest_length (float, per particle, m): rest distance to the previous particle, 0 for a root
-      particle_strand (int32, per particle): each particle's strand
       strand_start (int32, strands + 1): each strand's first particle
       mesh (uint64): wp.Mesh id of the posed collider
       max_dist (float, m): query radius: farther roots report it, deeper particles are not seen
@@ -2037,18 +2048,39 @@ def strand_quality(
     Outputs:
       deep_listed (int32, rows * any length): the first particles counted deep
     """
-    i = wp.tid() + first
-    p = x[i]
-    rest = rest_length[i]
-    if rest > 0.0:
-        length = wp.length(wp.vec3d(p) - wp.vec3d(x[i - 1]))
-        wp.atomic_max(worst, part, 0, float(wp.abs(length / wp.float64(rest) - wp.float64(1.0))))
-    d = pseudo_normal_distance(mesh, p, max_dist)
-    if i == strand_start[particle_strand[i]]:
-        wp.atomic_max(worst, part, 1, wp.abs(d))
-        if wp.abs(d) <= band:
-            wp.atomic_add(roots_near, part, 0, 1)
-    list_deep_point(d, depth, i, part, deep_count, deep_listed)
+    s = wp.tid() + first
+    start = strand_start[s]
+    end = strand_start[s + 1]
+    stretch = wp.float64(0.0)
+    lower = float(-1.0e30)  # a lower bound of the particle's signed distance: none yet
+    for i in range(start, end):
+        p = x[i]
+        if i == start:
+            d = pseudo_normal_distance(mesh, p, max_dist)
+            wp.atomic_max(worst, part, 1, wp.abs(d))
+            if wp.abs(d) <= band:
+                wp.atomic_add(roots_near, part, 0, 1)
+            if d < max_dist:
+                lower = d
+            list_deep_point(d, depth, i, part, deep_count, deep_listed)
+            continue
+        segment = wp.length(p - x[i - 1])
+        rest = rest_length[i]
+        if rest > 0.0:
+            length = wp.length(wp.vec3d(p) - wp.vec3d(x[i - 1]))
+            stretch = wp.max(stretch, wp.abs(length / wp.float64(rest) - wp.float64(1.0)))
+        lower -= segment
+        if lower < -depth:
+            # a little beyond the doubt, so that finding nothing leaves a bound that lasts a segment
+            radius = wp.min(max_dist, -lower + QUALITY_QUERY_SLACK)
+            q = wp.mesh_query_point_sign_normal(mesh, p, radius)
+            if q.result:
+                d = q.sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+                lower = d
+                list_deep_point(d, depth, i, part, deep_count, deep_listed)
+            elif lower > -radius:
+                lower = radius
+    wp.atomic_max(worst, part, 0, float(stretch))
 
 
 @wp.kernel
