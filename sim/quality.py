@@ -29,7 +29,8 @@ CLOTH_DEPTH = 0.002  # m (cloth_inside_2mm, detail_inside_2mm)
 LISTED = 1 << 16  # deep points listed per statistic; a frame with more re-checks every point on the host
 PER_CORE = 4096  # the fewest points a CPU core queries on its own (graphs.core_slices)
 STRANDS_PER_CORE = 128  # the same in strands of a groom
-WALK_PER_CORE = 64  # the same for the walk's brute force, each particle against every body vertex
+WALK_PER_CORE = 256  # the same for the walk's check, each particle against the body vertices near it
+WALK_GRID = 64  # hash grid cells per axis over the body vertices (walk_agreement)
 
 
 class QualityProbe:
@@ -40,6 +41,14 @@ class QualityProbe:
         self._buffers = {}
         self._cloth_edges = None  # (cloth model, the edges its strain statistics measure, their rest lengths)
         self.host_meshes = HostMeshes()  # the read-back poses that deep points are re-signed against
+        # the body vertices near each cloth particle (walk_agreement); built on first use, it allocates
+        self._walk_grid = None
+
+    @property
+    def _grid(self):
+        if self._walk_grid is None:
+            self._walk_grid = wp.HashGrid(WALK_GRID, WALK_GRID, WALK_GRID, device=self.scene.device)
+        return self._walk_grid
 
     def _zeros(self, arrays, name, shape, dtype):
         """A zeroed device buffer kept under `name` (reallocated when a haircut changes its shape),
@@ -91,14 +100,16 @@ class QualityProbe:
             launch_on_cores(collision.count_deep_points, n,
                             [st.x, 0, 0, body.fresh_mesh().id, CLOTH_SEARCH, CLOTH_DEPTH, count, listed], device,
                             first=1, part=2, per_core=PER_CORE)
-            # every particle against every vertex of the mesh the walk runs on (the collision proxy's,
-            # if any): a few ms on the CPU, so slices on the cores
+            # every particle against the vertices near it of the mesh the walk runs on (the collision
+            # proxy's, if any), found by a hash grid
+            radius = scene.cloth_solver.reseed_radius
+            walked_on = scene.cloth_collider.points
+            self._grid.build(walked_on, radius)
             rows = core_slices(n, device, WALK_PER_CORE)
             agreement = self._zeros(arrays, "quality_cloth_walk", (rows, 2), wp.int32)
             launch_on_cores(cloth_kernels.walk_agreement, n,
-                            [st.x, 0, 0, scene.cloth_collider.points, st.nearest, cm.inv_mass,
-                             scene.cloth_solver.reseed_radius, agreement], device, first=1, part=2,
-                            per_core=WALK_PER_CORE)
+                            [st.x, 0, 0, walked_on, self._grid.id, st.nearest, cm.inv_mass, radius, agreement],
+                            device, first=1, part=2, per_core=WALK_PER_CORE)
             arrays["cloth"] = st.x
             if self._cloth_edges is None or self._cloth_edges[0] is not cm:
                 self._cloth_edges = (cm, *_measured_edges(cm))

@@ -930,17 +930,20 @@ def walk_agreement(
     first: int,
     part: int,
     points: wp.array(dtype=wp.vec3),
+    grid: wp.uint64,
     walked: wp.array(dtype=wp.int32),
     inv_mass: wp.array(dtype=float),
     radius: float,
     counts: wp.array2d(dtype=wp.int32),
 ):
     """Count how often the nearest-vertex walk (body_collide's follow) found the nearest body
-    vertex, against an exhaustive search (a quality statistic).
+    vertex, against an exhaustive search of the vertices within radius (a quality statistic).
 
     Only free particles within radius of the body count: farther ones neither touch nor follow it,
-    and their walk is not kept exact. A walk that ends on another vertex equally near (within 1e-6
-    of the distance, relative, or 1e-9 m) agrees. Distances are compared in float64.
+    and their walk is not kept exact. So the truth is the nearest of the vertices a hash grid over
+    the posed body lists near the particle, the first of equally near ones as nearest_vertex picks
+    it. A walk that ends on another vertex equally near (within 1e-6 of the distance, relative, or
+    1e-9 m) agrees. Distances are compared in float64.
 
     Launch: one thread per particle from first (dim = particles counted).
     Inputs:
@@ -949,6 +952,7 @@ def walk_agreement(
       part (int, index): the launch's row of counts (launches side by side on a CPU's cores each
           count in their own: collision.list_deep_point)
       points (vec3, per body vertex, m): the posed vertices the walk runs on
+      grid (uint64): wp.HashGrid id over points, built with cells of radius or larger
       walked (int32, per particle): the walk's vertex (ClothState.nearest), -1 for none
       inv_mass (float, per particle): 0 marks pinned particles
       radius (float, m): particles farther from the nearest vertex are not counted
@@ -958,8 +962,19 @@ def walk_agreement(
     p = wp.tid() + first
     if inv_mass[p] <= 0.0:
         return
-    q = wp.vec3d(x[p])
-    truth = nearest_vertex(x[p], points)
+    xp = x[p]
+    truth = int(-1)
+    best = float(0.0)
+    query = wp.hash_grid_query(grid, xp, radius)
+    i = int(0)
+    while wp.hash_grid_query_next(query, i):
+        di = wp.length_sq(xp - points[i])
+        if truth < 0 or di < best or (di == best and i < truth):
+            truth = i
+            best = di
+    if truth < 0:
+        return
+    q = wp.vec3d(xp)
     near = wp.length(q - wp.vec3d(points[truth]))
     if near > wp.float64(radius):
         return
