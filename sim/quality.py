@@ -136,8 +136,8 @@ class QualityProbe:
 class HostMeshes:
     """CPU wp.Meshes over read-back collider poses, one per triangle list and kind of sign, kept from
     frame to frame and refitted to each new pose: building one that signs by the winding number takes
-    about 17 ms for the built-in body, refitting it 7 ms (a plain one 0.5 ms), and a walking body's
-    self-contact leaves a few points for the winding number to re-sign in most frames."""
+    about 17 ms for the built-in body, refitting it 7 ms (a plain one 0.5 ms), and a pose whose
+    self-contact leaves points to re-sign (an arm pressed to the side) mostly lasts for frames."""
 
     def __init__(self):
         self._meshes = {}  # (id(faces), winding) -> (faces, mesh, the points it was refitted to)
