@@ -2064,18 +2064,16 @@ def strand_quality(
                 lower = d
             list_deep_point(d, depth, i, part, deep_count, deep_listed)
             continue
-        segment = wp.length(p - x[i - 1])
+        length = wp.length(wp.vec3d(p) - wp.vec3d(x[i - 1]))
         rest = rest_length[i]
         if rest > 0.0:
-            length = wp.length(wp.vec3d(p) - wp.vec3d(x[i - 1]))
             stretch = wp.max(stretch, wp.abs(length / wp.float64(rest) - wp.float64(1.0)))
-        lower -= segment
+        lower -= float(length)
         if lower < -depth:
             # a little beyond the doubt, so that finding nothing leaves a bound that lasts a segment
             radius = wp.min(max_dist, -lower + QUALITY_QUERY_SLACK)
-            q = wp.mesh_query_point_sign_normal(mesh, p, radius)
-            if q.result:
-                d = q.sign * wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+            d = pseudo_normal_distance(mesh, p, radius)  # radius itself when nothing is that near
+            if d < radius:
                 lower = d
                 list_deep_point(d, depth, i, part, deep_count, deep_listed)
             elif lower > -radius:
