@@ -176,7 +176,9 @@ class HairSolver:
         self.set_parts(parts)
         # per-window rotation of the full variant, refined from its last value (warm start)
         self.rotations = wp.zeros(max(self.windows.count, 1), dtype=wp.quat, device=device)
-        self.centroids = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
+        # and what its goals need of it (strands.window_frame), for the passes launched apart
+        self.frames = wp.zeros(max(self.windows.count, 1), dtype=wp.mat33, device=device)
+        self.translations = wp.zeros(max(self.windows.count, 1), dtype=wp.vec3, device=device)
         self._rotations_exact = True
         # contact bounds of the length pass (see strands.follow_the_leader), per particle in the pass's
         # order (set with lanes): clearance (NO_BOUND = unknown, a full query), the four sphere-tree leaves
@@ -290,14 +292,17 @@ class HairSolver:
         per.window_at = arranged(win.at_np.astype(np.int32), wp.int32, fill=-1)
         # each window's size values at the slot of its first particle, the k-th at k * slots + that slot
         offsets = np.zeros((win.size, slots), np.float32)
-        rest = np.zeros((win.size, slots, 3), np.float32)
         starts = slot[win.first_np]
         offsets[:, starts] = win.offsets_np.reshape(-1, win.size).T
-        rest[:, starts] = win.rest_np.reshape(-1, win.size, 3).transpose(1, 0, 2)
         per.offsets = wp.array(offsets.reshape(-1), dtype=float, device=dev)
-        per.rest = wp.array(rest.reshape(-1, 3), dtype=wp.vec3, device=dev)
+        per.rest_local = arranged(win.rest_local_np, wp.vec3)
+        rest_centroid = np.zeros((slots, 3), np.float32)
+        rest_centroid[starts] = win.rest_centroid_np
+        per.rest_centroid = wp.array(rest_centroid, dtype=wp.vec3, device=dev)
         per.centroids = wp.zeros(slots, dtype=wp.vec3, device=dev)
         per.axes = wp.zeros(slots, dtype=wp.vec3, device=dev)
+        per.frames = wp.zeros(slots, dtype=wp.mat33, device=dev)
+        per.translations = wp.zeros(slots, dtype=wp.vec3, device=dev)
         return per
 
     def particle_bounds(self):
@@ -392,12 +397,12 @@ class HairSolver:
             lane_x, lane_order = (lane.x, order) if lanes and last else (None, self._particle_order)
             if variant == SHAPE_MATCHING["full"] and r.windows > 0:
                 wp.launch(strands.shape_match_rotations, r.windows,
-                          [src, win.first, win.size, win.rest, exact, p.rotation_iterations, self.rotations,
-                           self.centroids, r.first_window], device=dev)
+                          [src, win.first, win.size, win.rest_local, win.rest_centroid, exact, p.rotation_iterations,
+                           self.rotations, self.frames, self.translations, r.first_window], device=dev)
                 exact = 0
             wp.launch(strands.shape_match_step, r.particles,
-                      [src, m.inv_mass, m.particle_strand, win.at, win.size, win.rest, win.offsets, self.rotations,
-                       self.centroids, variant, p.shape_stiffness, m.strand_start, dst, lane_x, lane_order,
+                      [src, m.inv_mass, m.particle_strand, win.at, win.size, win.offsets, win.rest_local, self.frames,
+                       self.translations, variant, p.shape_stiffness, m.strand_start, dst, lane_x, lane_order,
                        r.first_particle], device=dev)
             src, dst = dst, src
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):

@@ -170,8 +170,12 @@ def _triangle_frames(tri):
 class ShapeWindows:
     """Every run of `size` consecutive particles inside a strand, with its rest data.
 
-    window_rest: rest offsets r_k = X_k - C0 from the window's rest centroid (full variant).
-    window_offsets: d_k = r_k . U0, the offsets along the rest first-to-last direction (simplified).
+    rest_local (per particle) and rest_centroid (per window): rest positions X and the windows' rest
+    centroids C0 from the strand's root, what the full variant's windows are solved and applied with
+    (warp_kernels.strands.window_rotation, window_frame).
+    offsets: d_k = r_k . U0 with r_k = X_k - C0, the offsets along the rest first-to-last direction
+    (simplified).
+    rest_np: the offsets r_k themselves, on the host (a reference for tests).
     """
 
     def __init__(self, model, size):
@@ -191,11 +195,15 @@ class ShapeWindows:
         self.first_np, self.at_np = first, at
         self.rest_np = r.reshape(-1, 3).astype(np.float32)
         self.offsets_np = np.einsum("wkj,wj->wk", r, u).reshape(-1).astype(np.float32)
+        root = rest[model.strand_start_np[model.particle_strand_np]]
+        self.rest_local_np = (rest - root).astype(np.float32)
+        self.rest_centroid_np = (pts.mean(axis=1) - root[first]).astype(np.float32)
         d = model.device
         self.first = wp.array(first, dtype=wp.int32, device=d)
         self.at = wp.array(at, dtype=wp.int32, device=d)
-        self.rest = wp.array(self.rest_np, dtype=wp.vec3, device=d)
         self.offsets = wp.array(self.offsets_np, dtype=float, device=d)
+        self.rest_local = wp.array(self.rest_local_np, dtype=wp.vec3, device=d)
+        self.rest_centroid = wp.array(self.rest_centroid_np, dtype=wp.vec3, device=d)
 
 
 class StrandBuilder:

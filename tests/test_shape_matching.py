@@ -66,18 +66,19 @@ def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1,
     if rotations is None:
         rotations = wp.zeros(win.count, dtype=wp.quat)
     xs = wp.array(x, dtype=wp.vec3)
-    centroids = wp.zeros(win.count, dtype=wp.vec3)
+    frames = wp.zeros(win.count, dtype=wp.mat33)
+    translations = wp.zeros(win.count, dtype=wp.vec3)
     refined = wp.zeros(win.count, dtype=wp.quat)
     wp.copy(refined, rotations)
+    # without refine, no refinement step: the windows' goals from the rotations given
     wp.launch(kernels.shape_match_rotations, win.count,
-              [xs, win.first, win.size, win.rest, int(exact), iterations, refined, centroids, 0])
-    if refine:
-        rotations = refined
+              [xs, win.first, win.size, win.rest_local, win.rest_centroid, int(exact and refine),
+               iterations if refine else 0, refined, frames, translations, 0])
     out = wp.zeros_like(xs)
     wp.launch(kernels.shape_match_step, model.num_particles,
-              [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.rest, win.offsets, rotations,
-               centroids, variant, stiffness, model.strand_start, out, lane_x, order, 0])
-    return out.numpy(), rotations
+              [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.offsets, win.rest_local, frames,
+               translations, variant, stiffness, model.strand_start, out, lane_x, order, 0])
+    return out.numpy(), refined
 
 
 def fused_pass(x, model, size, variant, stiffness, lanes=False):

@@ -44,6 +44,9 @@ NO_BOUND = wp.constant(-1.0e30)  # a contact bound that says nothing: the next q
 MOTION_GRID = wp.constant(16)  # cells per axis of ContactMotion.cells
 # m: strand_quality's queries look this much beyond what a particle's distance bound leaves in doubt
 QUALITY_QUERY_SLACK = wp.constant(0.005)
+# rad^2: below this a turn's series (small_turn) needs two terms: the third, a^4 / 3840, is under
+# float rounding of the first
+SHORT_TURN_SQ = wp.constant(1.0e-3)
 
 
 @wp.struct
@@ -348,16 +351,23 @@ def small_turn(omega: wp.vec3, angle_sq: float):
 
     sin(a/2)/a and cos(a/2) as series in a^2, cut where the next term is below float rounding for
     a <= 1: no square root, division, sine or cosine (refine_rotation takes one per window and pass).
+    Below SHORT_TURN_SQ, the turns between substeps, two terms already are.
 
     Inputs:
       omega (vec3, rad): the rotation vector, no longer than 1
       angle_sq (float, rad^2): |omega|^2
     Returns:
-      quat: the rotation
+      quat: the rotation, unit to float rounding
     """
     a2 = angle_sq
-    s = 0.5 + a2 * (-1.0 / 48.0 + a2 * (1.0 / 3840.0 + a2 * (-1.0 / 645120.0 + a2 * (1.0 / 185794560.0))))
-    c = 1.0 + a2 * (-1.0 / 8.0 + a2 * (1.0 / 384.0 + a2 * (-1.0 / 46080.0 + a2 * (1.0 / 10321920.0))))
+    s = float(0.0)
+    c = float(0.0)
+    if a2 < SHORT_TURN_SQ:
+        s = 0.5 - a2 * (1.0 / 48.0)
+        c = 1.0 - a2 * (1.0 / 8.0)
+    else:
+        s = 0.5 + a2 * (-1.0 / 48.0 + a2 * (1.0 / 3840.0 + a2 * (-1.0 / 645120.0 + a2 * (1.0 / 185794560.0))))
+        c = 1.0 + a2 * (-1.0 / 8.0 + a2 * (1.0 / 384.0 + a2 * (-1.0 / 46080.0 + a2 * (1.0 / 10321920.0))))
     return wp.quat(omega[0] * s, omega[1] * s, omega[2] * s, c)
 
 
@@ -404,7 +414,7 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
             c11 = h00 * h22 - h02 * h02
             c12 = h01 * h02 - h00 * h12
             omega = wp.vec3(c00 * g[0] + c01 * g[1] + c02 * g[2], c01 * g[0] + c11 * g[1] + c12 * g[2],
-                            c02 * g[0] + c12 * g[1] + minor * g[2]) / det
+                            c02 * g[0] + c12 * g[1] + minor * g[2]) * (1.0 / det)
         else:
             # the step of Müller et al.; its guard relative to A's size (A is not normalised)
             omega = g / wp.max(wp.abs(tr) + 1.0e-9 * wp.sqrt(wp.ddot(A, A)), 1.0e-30)
@@ -414,7 +424,10 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
         if angle_sq > 1.0:
             omega = omega / wp.sqrt(angle_sq)
             angle_sq = 1.0
-        q = wp.normalize(small_turn(omega, angle_sq) * q)
+        q = small_turn(omega, angle_sq) * q
+        # both factors are unit to rounding, so |q|^2 = 1 + e with e tiny: one Newton step of the
+        # norm, q (3 - |q|^2) / 2, leaves an error of e^2, without wp.normalize's root and divisions
+        q = q * (1.5 - 0.5 * wp.dot(q, q))
     return q
 
 
@@ -439,7 +452,7 @@ def window_centroid(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: i
 
 @wp.func
 def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: int,
-                    rest: wp.array(dtype=wp.vec3), base: int, rest_stride: int, q: wp.quat, exact: int,
+                    rest_local: wp.array(dtype=wp.vec3), rest_centroid: wp.vec3, q: wp.quat, exact: int,
                     iterations: int):
     """A window's optimal rotation of its rest offsets onto its current particles, and its centroid
     (full variant): solved outright (exact != 0) or refined from q, its last rotation.
@@ -449,10 +462,9 @@ def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: i
       first (int, index): element of the window's first particle
       stride (int): elements from one particle to the next (window_centroid)
       size (int): particles in the window
-      rest (vec3, size per window, m): rest offsets from the window's rest centroid
-      base (int, index): the window's first element of rest (window * size)
-      rest_stride (int): elements of rest from one of the window's offsets to the next (1 for
-          ShapeWindows.rest; StrandSlots.rest keeps them per slot)
+      rest_local (vec3, per particle or lane slot, m): rest positions from the strand's root, in the
+          order of x
+      rest_centroid (vec3, m): the window's rest centroid from the strand's root
       q (quat): the window's last rotation; read only when exact == 0
       exact (int, flag): non-zero solves from scratch (float64 SVD)
       iterations (int): refinement steps when exact == 0
@@ -468,11 +480,72 @@ def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: i
     for k in range(1, size):
         p = x[first + k * stride]
         c += p
-        A += wp.outer(p - x0, rest[base + k * rest_stride])
+        A += wp.outer(p - x0, rest_local[first + k * stride] - rest_centroid)
     centroid = c / float(size)
     if exact != 0:
         return wp.quat_from_matrix(rotation_from_covariance(A)), centroid
     return refine_rotation(q, A, iterations), centroid
+
+
+@wp.func
+def window_frame(q: wp.quat, centroid: wp.vec3, rest_centroid: wp.vec3):
+    """A full window's goals as one map of its particles' rest positions.
+
+    Its goal for a particle, c + R (X - C0) with X the particle's rest position and C0 the window's
+    rest centroid, is R L + t with L = X - root, the rest position from the strand's root, and
+    t = c - R (C0 - root). A particle's mean goal over its windows is then (sum R) L + sum t: the
+    windows' matrices are summed and applied once, instead of every window rotating an offset of
+    its own (shape_match_step, shaped_position). Rest positions from the root, not from the world's
+    origin, keep the terms that cancel in that sum no longer than a strand.
+
+    Inputs:
+      q (quat): the window's rotation
+      centroid (vec3, m): its current centroid c
+      rest_centroid (vec3, m): its rest centroid from the strand's root, C0 - root
+    Returns:
+      mat33: R
+      vec3 (m): t
+    """
+    R = wp.quat_to_matrix(q)
+    return R, centroid - R * rest_centroid
+
+
+@wp.func
+def full_shaped_position(p: wp.vec3, k: int, count: int, window_size: int, stiffness: float,
+                         frames: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3), at: int,
+                         stride: int, rest_local: wp.vec3):
+    """A free particle moved toward the mean goal of the full windows holding it (window_frame).
+
+    The windows holding the k-th particle of a strand start at its k - window_size + 1 .. k, those
+    inside the strand; the sums run over exactly those, with no test per window, so the matrix sum
+    is not carried through branches.
+
+    Inputs:
+      p (vec3, m): the particle's position before the pass
+      k (int, index): its place along its strand
+      count (int): the strand's particles
+      window_size (int): particles per window
+      stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
+      frames (mat33, per window or slot): the windows' rotations
+      translations (vec3, per window or slot, m): the windows' goal translations
+      at (int, index): where frames and translations hold the window starting at the particle
+          (whether or not one does); the one starting j particles before is at at - j * stride
+      stride (int): elements from one window of the strand to the next
+      rest_local (vec3, m): the particle's rest position from its strand's root
+    Returns:
+      vec3 (m): the particle's position after the pass; p itself when no window holds it
+    """
+    nearest = k - wp.min(k, count - window_size)
+    farthest = wp.min(k, window_size - 1)
+    if farthest < nearest:
+        return p
+    frame_sum = wp.mat33(0.0)
+    goal = wp.vec3(0.0)
+    for j in range(nearest, farthest + 1):
+        frame_sum += frames[at - j * stride]
+        goal += translations[at - j * stride]
+    goal += frame_sum * rest_local
+    return p + stiffness * (goal / float(farthest - nearest + 1) - p)
 
 
 @wp.kernel
@@ -480,38 +553,48 @@ def shape_match_rotations(
     x: wp.array(dtype=wp.vec3),
     window_first: wp.array(dtype=wp.int32),
     window_size: int,
-    window_rest: wp.array(dtype=wp.vec3),
+    rest_local: wp.array(dtype=wp.vec3),
+    window_rest_centroid: wp.array(dtype=wp.vec3),
     exact: int,
     iterations: int,
     rotations: wp.array(dtype=wp.quat),
-    centroids: wp.array(dtype=wp.vec3),
+    frames: wp.array(dtype=wp.mat33),
+    translations: wp.array(dtype=wp.vec3),
     first: int,
 ):
     """Per-window optimal rotation of the rest offsets onto the current window (full variant).
 
-    Also stores the window's centroid, which shape_match_step reads instead of summing the window
-    again. exact = 1 solves it outright (float64 SVD); otherwise iterations refinement steps
-    continue from the rotation stored last time, which is cheaper and, between substeps, as good.
+    Also stores the window's goals as a map of rest positions (window_frame), which shape_match_step
+    reads instead of solving the window again. exact = 1 solves it outright (float64 SVD); otherwise
+    iterations refinement steps continue from the rotation stored last time, which is cheaper and,
+    between substeps, as good.
 
     Launch: one thread per window of a range of whole strands (dim = windows in the range).
     Inputs:
       x (vec3, per particle, m): current positions
       window_first (int32, per window): first particle of each window
       window_size (int): particles per window
-      window_rest (vec3, window_size per window, m): rest offsets from the window's rest centroid
+      rest_local (vec3, per particle, m): rest positions from each strand's root
+          (sim.strands.ShapeWindows.rest_local)
+      window_rest_centroid (vec3, per window, m): the window's rest centroid from its strand's root
+          (sim.strands.ShapeWindows.rest_centroid)
       exact (int, flag): non-zero solves from scratch (first substep, after a reset)
       iterations (int): refinement steps when exact == 0
       first (int, index): the range's first window; thread t works on window first + t (0 for all of them)
     In/out:
       rotations (quat, per window): last rotations in (read only when exact == 0), new ones out
     Outputs:
-      centroids (vec3, per window, m): current centroid of each window
+      frames (mat33, per window): each window's rotation as a matrix (window_frame)
+      translations (vec3, per window, m): the translation of each window's goals (window_frame)
     """
     w = wp.tid() + first
-    q, centroid = window_rotation(x, window_first[w], 1, window_size, window_rest, w * window_size, 1,
-                                  rotations[w], exact, iterations)
+    rest_centroid = window_rest_centroid[w]
+    q, centroid = window_rotation(x, window_first[w], 1, window_size, rest_local, rest_centroid, rotations[w], exact,
+                                  iterations)
     rotations[w] = q
-    centroids[w] = centroid
+    R, t = window_frame(q, centroid, rest_centroid)
+    frames[w] = R
+    translations[w] = t
 
 
 @wp.func
@@ -535,38 +618,31 @@ def window_direction(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: 
 
 
 @wp.func
-def window_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, rest: wp.array(dtype=wp.vec3),
-                offsets: wp.array(dtype=float), rotations: wp.array(dtype=wp.quat),
-                centroids: wp.array(dtype=wp.vec3), variant: int, w: int):
-    """Goal position of slot k of window w (its particles first .. first + size - 1).
+def simplified_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, offsets: wp.array(dtype=float),
+                    w: int):
+    """Goal position of slot k of window w (its particles first .. first + size - 1), simplified variant.
 
     simplified (Hayashimoto et al. §3.6, window of 3): g_k = c + d_k u along the current first-to-last
     direction u, with d_k the rest offset along the rest first-to-last direction. No rotation, so
-    curls straighten. full (Mueller et al. 2005): g_k = c + R r_k with r_k the rest offset from the
-    rest centroid, and R and c the window's optimal rotation and centroid from shape_match_rotations.
-    A window of 3 holds bend angles only; wider windows also hold torsion, so helices keep their shape.
+    curls straighten. The full variant (Mueller et al. 2005) has g_k = c + R r_k with r_k the rest
+    offset from the rest centroid, and R and c the window's optimal rotation and centroid
+    (shape_match_rotations, window_frame); a window of 3 holds bend angles only, wider windows also
+    hold torsion, so helices keep their shape.
 
     Inputs:
       x (vec3, per particle, m): current positions
       first (int, index): first particle of the window
       size (int): particles per window
       k (int, index): slot within the window, 0 .. size - 1
-      rest (vec3, size per window, m): rest offsets from the rest centroid (full variant)
       offsets (float, size per window, m): rest offsets along the rest first-to-last direction
-          (simplified variant)
-      rotations (quat, per window): window rotations (full variant)
-      centroids (vec3, per window, m): window centroids (full variant)
-      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       w (int, index): the window
     Returns:
-      vec3 (m): the goal; the particle's own position for a degenerate simplified window
+      vec3 (m): the goal; the particle's own position for a degenerate window
     """
-    if variant == SHAPE_SIMPLIFIED:
-        u, straight = window_direction(x, first, 1, size)
-        if not straight:
-            return x[first + k]
-        return window_centroid(x, first, 1, size) + offsets[w * size + k] * u
-    return centroids[w] + wp.quat_rotate(rotations[w], rest[w * size + k])
+    u, straight = window_direction(x, first, 1, size)
+    if not straight:
+        return x[first + k]
+    return window_centroid(x, first, 1, size) + offsets[w * size + k] * u
 
 
 @wp.kernel
@@ -576,10 +652,10 @@ def shape_match_step(
     particle_strand: wp.array(dtype=wp.int32),
     window_at: wp.array(dtype=wp.int32),
     window_size: int,
-    window_rest: wp.array(dtype=wp.vec3),
     window_offsets: wp.array(dtype=float),
-    rotations: wp.array(dtype=wp.quat),
-    centroids: wp.array(dtype=wp.vec3),
+    rest_local: wp.array(dtype=wp.vec3),
+    frames: wp.array(dtype=wp.mat33),
+    translations: wp.array(dtype=wp.vec3),
     variant: int,
     stiffness: float,
     strand_start: wp.array(dtype=wp.int32),
@@ -603,15 +679,15 @@ def shape_match_step(
       particle_strand (int32, per particle): strand of each particle
       window_at (int32, per particle): window starting at each particle, -1 when none
       window_size (int): particles per window
-      window_rest (vec3, window_size per window, m): rest offsets from the rest centroid (full)
       window_offsets (float, window_size per window, m): rest offsets along the rest first-to-last
           direction (simplified)
-      rotations (quat, per window): from shape_match_rotations (full variant only)
-      centroids (vec3, per window, m): from shape_match_rotations (full variant only)
+      rest_local (vec3, per particle, m): rest positions from each strand's root (full;
+          sim.strands.ShapeWindows.rest_local)
+      frames (mat33, per window): from shape_match_rotations (full variant only)
+      translations (vec3, per window, m): from shape_match_rotations (full variant only)
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
-      strand_start (int32, num_strands + 1): first particle of each strand, then the total count; read
-          only in lane order
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       order (LaneOrder): particle order, or the length pass's lane order: then the pass also writes
           its result to lane_x for follow_the_leader (the last pass of a substep)
       first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
@@ -628,18 +704,24 @@ def shape_match_step(
         if order.lanes > 0:
             lane_x[lane_slot(0, order.lane_of[strand], i - strand_start[strand], order.lanes)] = p
         return
-    goal = wp.vec3(0.0)
-    count = float(0.0)
-    for k in range(window_size):
-        j = i - k
-        if j >= 0:
-            if particle_strand[j] == strand:
-                w = window_at[j]
-                if w >= 0:
-                    goal += window_goal(x, j, window_size, k, window_rest, window_offsets, rotations, centroids, variant, w)
-                    count += 1.0
-    if count > 0.0:
-        p = p + stiffness * (goal / count - p)
+    if variant == SHAPE_SIMPLIFIED:
+        goal = wp.vec3(0.0)
+        count = float(0.0)
+        for k in range(window_size):
+            j = i - k
+            if j >= 0:
+                if particle_strand[j] == strand:
+                    w = window_at[j]
+                    if w >= 0:
+                        goal += simplified_goal(x, j, window_size, k, window_offsets, w)
+                        count += 1.0
+        if count > 0.0:
+            p = p + stiffness * (goal / count - p)
+    else:
+        # a strand's windows are numbered in order from its root
+        start = strand_start[strand]
+        p = full_shaped_position(p, i - start, strand_start[strand + 1] - start, window_size, stiffness, frames,
+                                 translations, window_at[start] + i - start, 1, rest_local[i])
     x_out[i] = p
     if order.lanes > 0:
         lane_x[lane_slot(0, order.lane_of[strand], i - strand_start[strand], order.lanes)] = p
@@ -1401,9 +1483,15 @@ class StrandSlots:
       window_at (int32, per slot): the window starting at the slot's particle, -1 for none (or past a
           strand's tip)
       offsets (float, window_size * slots, m): rest offsets along the rest axis (simplified variant)
-      rest (vec3, window_size * slots, m): rest offsets from the rest centroid (full variant)
+      rest_local (vec3, per slot, m): rest position from the strand's root (full variant)
+      rest_centroid (vec3, per slot, m): the rest centroid from the strand's root of the window
+          starting at the slot (full variant)
       centroids (vec3, per slot, m): scratch, the centroid of the window starting at the slot
+          (simplified variant)
       axes (vec3, per slot): scratch, that window's axis, zero when degenerate (simplified variant)
+      frames (mat33, per slot): scratch, that window's rotation (full variant, window_frame)
+      translations (vec3, per slot, m): scratch, that window's goal translation (full variant,
+          window_frame)
     """
 
     slots: int
@@ -1413,9 +1501,12 @@ class StrandSlots:
     root_local: wp.array(dtype=wp.vec3)
     window_at: wp.array(dtype=wp.int32)
     offsets: wp.array(dtype=float)
-    rest: wp.array(dtype=wp.vec3)
+    rest_local: wp.array(dtype=wp.vec3)
+    rest_centroid: wp.array(dtype=wp.vec3)
     centroids: wp.array(dtype=wp.vec3)
     axes: wp.array(dtype=wp.vec3)
+    frames: wp.array(dtype=wp.mat33)
+    translations: wp.array(dtype=wp.vec3)
 
 
 @wp.func(inline=True)
@@ -1431,8 +1522,9 @@ def update_window(
     per: StrandSlots,
 ):
     """Solve the window that starts at the particle in `slot`, if one does, and keep what its goals
-    need at that slot: its centroid, and its axis (simplified variant, zero when degenerate) or its
-    rotation (full variant, as shape_match_rotations, kept per window for the next warm start).
+    need at that slot: its centroid and axis (simplified variant, the axis zero when degenerate), or
+    its goals' map (full variant, as shape_match_rotations: window_frame), its rotation kept per
+    window for the next warm start.
 
     Inputs:
       x (vec3, per slot, m): positions before the shape pass
@@ -1445,7 +1537,8 @@ def update_window(
     In/out:
       rotations (quat, per window): the window's last rotation in, its new one out (full)
     Outputs:
-      per (StrandSlots): the window's centroid and axis, written at the slot (its windows read)
+      per (StrandSlots): the window's centroid and axis, or its frame and translation, written at
+          the slot (its particles read them)
     """
     w = per.window_at[slot]
     if w >= 0:
@@ -1454,10 +1547,13 @@ def update_window(
             per.centroids[slot] = window_centroid(x, slot, stride, window_size)
             per.axes[slot] = u
         else:
-            q, c = window_rotation(x, slot, stride, window_size, per.rest, slot, per.slots, rotations[w], exact,
+            rest_centroid = per.rest_centroid[slot]
+            q, c = window_rotation(x, slot, stride, window_size, per.rest_local, rest_centroid, rotations[w], exact,
                                    iterations)
             rotations[w] = q
-            per.centroids[slot] = c
+            R, t = window_frame(q, c, rest_centroid)
+            per.frames[slot] = R
+            per.translations[slot] = t
 
 
 @wp.func(inline=True)
@@ -1466,10 +1562,10 @@ def shaped_position(
     slot: int,
     stride: int,
     k: int,
+    count: int,
     window_size: int,
     variant: int,
     stiffness: float,
-    rotations: wp.array(dtype=wp.quat),
     per: StrandSlots,
 ):
     """The particle in `slot`, k-th of its strand, moved toward the mean goal of the windows that hold
@@ -1480,34 +1576,34 @@ def shaped_position(
       slot (int, index): its slot
       stride (int): slots from one particle of a strand to the next (window_centroid)
       k (int, index): its place along the strand
+      count (int): the strand's particles
       window_size (int): particles per window
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
-      rotations (quat, per window): window rotations (full)
-      per (StrandSlots): inverse masses, the windows and their centroids and axes
+      per (StrandSlots): inverse masses, the rest positions, and the windows as update_window left them
     Returns:
       vec3 (m): the particle's position after the pass; a pinned particle's stays where it was
     """
     if per.inv_mass[slot] == 0.0:
         return p
+    if variant != SHAPE_SIMPLIFIED:
+        return full_shaped_position(p, k, count, window_size, stiffness, per.frames, per.translations, slot, stride,
+                                    per.rest_local[slot])
     goal = wp.vec3(0.0)
-    count = float(0.0)
+    held = float(0.0)
     for j in range(window_size):
         if k - j >= 0:
             first = slot - j * stride
             w = per.window_at[first]
             if w >= 0:
-                if variant == SHAPE_SIMPLIFIED:
-                    u = per.axes[first]
-                    if u == wp.vec3(0.0):
-                        goal += p  # a degenerate window holds its particles where they are
-                    else:
-                        goal += per.centroids[first] + per.offsets[j * per.slots + first] * u
+                u = per.axes[first]
+                if u == wp.vec3(0.0):
+                    goal += p  # a degenerate window holds its particles where they are
                 else:
-                    goal += per.centroids[first] + wp.quat_rotate(rotations[w], per.rest[j * per.slots + first])
-                count += 1.0
-    if count > 0.0:
-        p = p + stiffness * (goal / count - p)
+                    goal += per.centroids[first] + per.offsets[j * per.slots + first] * u
+                held += 1.0
+    if held > 0.0:
+        p = p + stiffness * (goal / held - p)
     return p
 
 
@@ -1541,14 +1637,15 @@ def shape_strand(
       iterations (int): rotation refinement steps when exact == 0 (full)
     In/out:
       rotations (quat, per window): the strand's window rotations (full)
-      per (StrandSlots): the windows; their centroids and axes written
+      per (StrandSlots): the windows; their centroids and axes (simplified) or frames and translations
+          (full) written
     Outputs:
       x_out (vec3, per slot, m): positions after the pass; must not alias x
     """
     for k in range(count):
         slot = first + k * stride
         update_window(x, slot, stride, window_size, variant, exact, iterations, rotations, per)
-        x_out[slot] = shaped_position(x[slot], slot, stride, k, window_size, variant, stiffness, rotations, per)
+        x_out[slot] = shaped_position(x[slot], slot, stride, k, count, window_size, variant, stiffness, per)
 
 
 @wp.func
@@ -1743,7 +1840,8 @@ def step_strands(
       first (int, index): the range's first strand; thread t works on strand first + t
     In/out:
       rotations (quat, per window): window rotations, refined from their last values (full)
-      per (StrandSlots): the particles and windows per slot; the windows' centroids and axes written
+      per (StrandSlots): the particles and windows per slot; the windows' centroids and axes, or frames
+          and translations, written
       clearance (float, per slot, m): contact bounds at x in, at x_out out (follow_the_leader)
       near_leaves (vec4i, per slot): listed leaf spheres (follow_the_leader)
       beyond (float, per slot, m): bound on every unlisted leaf (follow_the_leader)
@@ -1806,7 +1904,7 @@ def step_strands(
         p = shaped[i]
         if passes > 0:
             update_window(shaped, i, stride, window_size, variant, last_exact, rotation_iterations, rotations, per)
-            p = shaped_position(p, i, stride, k, window_size, variant, stiffness, rotations, per)
+            p = shaped_position(p, i, stride, k, count, window_size, variant, stiffness, per)
         correction = wp.vec3(0.0)
         if k >= pinned_per_strand:
             predicted = p
