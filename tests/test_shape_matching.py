@@ -237,3 +237,20 @@ def test_refinement_is_scale_free_and_lands_on_the_polar_rotation():
         R = Rotation.from_quat(q.astype(np.float64)).as_matrix()
         assert np.abs(R - polar).max() < 1e-6, scale
         np.testing.assert_allclose(np.abs(np.sum(q * found[1e-2], 1)), 1.0, atol=1e-6)
+
+
+@wp.kernel
+def _rotation_matrices(q: wp.array(dtype=wp.quat), out: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    out[i] = kernels.rotation_matrix(q[i])
+
+
+def test_rotation_matrix_of_a_quaternion_matches_scipy():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(2)
+    q = rng.normal(size=(500, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    out = wp.zeros(len(q), dtype=wp.mat33)
+    wp.launch(_rotation_matrices, len(q), [wp.array(q.astype(np.float32), dtype=wp.quat), out])
+    np.testing.assert_allclose(out.numpy(), Rotation.from_quat(q).as_matrix(), atol=5e-7)  # (x, y, z, w) order

@@ -372,6 +372,35 @@ def small_turn(omega: wp.vec3, angle_sq: float):
 
 
 @wp.func
+def rotation_matrix(q: wp.quat):
+    """The rotation matrix of a unit quaternion, from its ten pairwise products: wp.quat_to_matrix
+    rotates the three axes one by one, about four times the arithmetic, and shape matching takes
+    two per window and pass.
+
+    Inputs:
+      q (quat): a unit quaternion (x, y, z, w)
+    Returns:
+      mat33: its rotation
+    """
+    x = q[0]
+    y = q[1]
+    z = q[2]
+    w = q[3]
+    xx = x * x
+    yy = y * y
+    zz = z * z
+    xy = x * y
+    xz = x * z
+    yz = y * z
+    wx = w * x
+    wy = w * y
+    wz = w * z
+    return wp.mat33(1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy),
+                    2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx),
+                    2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy))
+
+
+@wp.func
 def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
     """Turn q toward argmax_R trace(R^T A), warm-started from the last solution.
 
@@ -391,7 +420,7 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
       quat: the refined unit rotation
     """
     for _it in range(iterations):
-        R = wp.quat_to_matrix(q)
+        R = rotation_matrix(q)
         M = A * wp.transpose(R)
         g = wp.vec3(M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1])
         tr = M[0, 0] + M[1, 1] + M[2, 2]
@@ -506,7 +535,7 @@ def window_frame(q: wp.quat, centroid: wp.vec3, rest_centroid: wp.vec3):
       mat33: R
       vec3 (m): t
     """
-    R = wp.quat_to_matrix(q)
+    R = rotation_matrix(q)
     return R, centroid - R * rest_centroid
 
 
