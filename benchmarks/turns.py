@@ -10,6 +10,7 @@ median and fastest frame and the median and quartiles of the pair ratios.
 
     python benchmarks/turns.py BEFORE_DIR AFTER_DIR --scene examples/scenes/walk_dress.toml
     python benchmarks/turns.py BEFORE_DIR AFTER_DIR --hair full+mesh --strands 1000 --frames 40
+    python benchmarks/turns.py BEFORE_DIR AFTER_DIR --realtime simplified1+spheres "proxy 2.5 cm"
 
 A checkout to compare with is made by `git worktree add /tmp/before <commit>`; each side runs with
 its own directory as the working directory and on PYTHONPATH, with this interpreter.
@@ -43,6 +44,16 @@ def build(args):
         return lambda: scene.advance(dt, detail=detail), wp.synchronize
 
     sys.path.insert(0, os.path.join(os.getcwd(), "benchmarks"))
+    if args.realtime:
+        import realtime
+
+        hair_case, cloth_case = args.realtime
+        scene = realtime.build("cpu", realtime.HAIR.get(hair_case), realtime.CLOTH.get(cloth_case), True)
+        scene.advance(0.25)  # mid-stride, as realtime.time_scene starts
+        for _ in range(args.warmup):
+            scene.advance(1.0 / realtime.FPS, detail=True)
+        return lambda: scene.advance(1.0 / realtime.FPS, detail=True), wp.synchronize
+
     import hair
 
     scene = hair.build_scene(args.strands, "cpu", args.substeps)
@@ -80,7 +91,8 @@ def worker(args):
 
 
 def side(checkout, read_fd, write_fd, args):
-    case = ["--scene", args.scene] if args.scene else ["--hair", args.hair, "--strands", str(args.strands)]
+    case = (["--scene", args.scene] if args.scene else ["--realtime", *args.realtime] if args.realtime
+            else ["--hair", args.hair, "--strands", str(args.strands)])
     command = [sys.executable, os.path.abspath(__file__), "--worker", str(read_fd), str(write_fd), *case,
                "--frames", str(args.frames), "--warmup", str(args.warmup), "--substeps", str(args.substeps)]
     env = dict(os.environ, PYTHONPATH=os.path.abspath(checkout))
@@ -117,6 +129,9 @@ def arguments():
     parser.add_argument("--hair", default="full+mesh",
                         help="without --scene: a case of benchmarks/hair.py (its CASES: straight strands on the "
                              "turning head)")
+    parser.add_argument("--realtime", nargs=2, metavar=("HAIR", "CLOTH"),
+                        help="the real-time case of benchmarks/realtime.py with these of its HAIR and CLOTH tables "
+                             "(\"none\" for neither), 1/60 s frames")
     parser.add_argument("--strands", type=int, default=1000)
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--frames", type=int, default=30, help="timed frames per side")
@@ -138,7 +153,8 @@ def main():
     ta, tb = 1e3 * np.diff(spans_a, axis=1)[:, 0], 1e3 * np.diff(spans_b, axis=1)[:, 0]
     pairs = min(len(ta), len(tb))
     ratio = tb[:pairs] / ta[:pairs]
-    case = args.scene or f"hair {args.hair}, {args.strands} strands, {args.substeps} substeps"
+    case = (args.scene or (f"real time: hair {args.realtime[0]}, dress {args.realtime[1]}" if args.realtime else
+                           f"hair {args.hair}, {args.strands} strands, {args.substeps} substeps"))
     print("| side | checkout | frames | median ms/frame | fastest ms/frame |\n| --- | --- | --- | --- | --- |")
     for name, checkout, t in (("A", args.checkouts[0], ta), ("B", args.checkouts[1], tb)):
         print(f"| {name} | {checkout} | {len(t)} | {np.median(t):.1f} | {t.min():.1f} |")
