@@ -122,9 +122,8 @@ def race(checkout_a, checkout_b, args):
     return spans_of(out_a, "A"), spans_of(out_b, "B")
 
 
-def arguments():
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("checkouts", nargs="*", metavar="DIR", help="the two checkouts, A then B")
+def case_arguments(parser):
+    """The options that choose and size the case (shared with benchmarks/cpu_profile.py)."""
     parser.add_argument("--scene", help="a scene file (relative to each checkout): frames of Scene.advance")
     parser.add_argument("--hair", default="full+mesh",
                         help="without --scene: a case of benchmarks/hair.py (its CASES: straight strands on the "
@@ -136,6 +135,13 @@ def arguments():
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--frames", type=int, default=30, help="timed frames per side")
     parser.add_argument("--warmup", type=int, default=3, help="frames run before timing")
+    return parser
+
+
+def arguments():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkouts", nargs="*", metavar="DIR", help="the two checkouts, A then B")
+    case_arguments(parser)
     parser.add_argument("--worker", nargs=2, type=int, metavar=("READ_FD", "WRITE_FD"), help=argparse.SUPPRESS)
     return parser
 

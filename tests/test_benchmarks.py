@@ -152,3 +152,23 @@ def test_two_checkouts_take_turns_frame_by_frame():
     order = np.stack([spans_a, spans_b], axis=1).reshape(-1)  # A0 start, A0 end, B0 start, B0 end, A1 ...
     assert np.all(np.diff(order) > 0.0)
     assert np.all(spans_a[:, 1] > spans_a[:, 0])
+
+
+def test_cpu_profile_maps_generated_lines_to_python_and_samples_to_funcs(tmp_path):
+    """benchmarks/cpu_profile.py: each line of Warp's generated C++ goes to the Python line it
+    quotes (function headers and <L n> comments), and each sampled address to the innermost
+    generated function of its inlined chain (helpers of Warp's headers skipped)."""
+    import cpu_profile
+
+    cpp = tmp_path / "m.cpp"
+    cpp.write_text("#include x\n// /a/b/strands.py:10\nstatic void f_0()\n{\n    // y = 1   <L 12>\n    y = 1;\n"
+                   "    // z = y   <L 14>\n    z = y;\n}\n")
+    lines = cpu_profile.python_lines(cpp)
+    assert lines[6] == ("strands.py", 12) and lines[8] == ("strands.py", 14) and lines[3] == ("strands.py", 10)
+    out = ("0x10\nwp::vec_t<3u, float> wp::add<float>(wp::vec_t<3u, float>)\nvec.h:14\n"
+           "refine_rotation_0(wp::quat_t<float>, int)\nm.cpp:120\n"
+           "void step_strands_095e7ab2_cpu_kernel_forward<true>(int)\nm.cpp:900\n"
+           "0x20\nvoid step_strands_095e7ab2_cpu_kernel_forward<true>(int)\nm.cpp:950\n")
+    functions, by_line = cpu_profile.attribute(out, {0x10: 3, 0x20: 2})
+    assert functions == {"refine_rotation": 3, "step_strands": 2}
+    assert by_line == {120: 3, 950: 2}
