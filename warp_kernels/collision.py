@@ -26,9 +26,11 @@ SPHERE_LEAF = wp.constant(-2147483648)  # ColliderShape.links: the flag bit of a
 SPHERE_SKIP = wp.constant(2147483647)  # ColliderShape.links: the skip pointer's bits
 # listed faces (collide_point_listed_mesh): closest points this close count as one point (above the
 # rounding of closest points computed on different faces), and a list is gathered this much beyond
-# the nearest face last listed (1 and 2 mm measured alike, 5 mm slower: BENCHMARKS.md, session 25)
+# the nearest face last listed: a smaller box costs less to gather than a list that lasts longer saves
+# (in turns against 2 mm: 1 mm 0.96x, 0.5 mm 0.95x, 0.2 mm 0.93x, 0.1 mm 0.91x, none 1.29x, when no
+# list can decide; BENCHMARKS.md, sessions 25 and 29)
 MESH_TIE = wp.constant(1.0e-5)  # m
-MESH_LIST_SLACK = wp.constant(0.002)  # m
+MESH_LIST_SLACK = wp.constant(0.0002)  # m
 
 
 @wp.struct
