@@ -322,7 +322,9 @@ class ClothSolver:
         return self.candidates
 
     def step(self, state_in, state_out, body, dt):
-        """One step of dt. `body` (a Collider or None) must be posed for the end of the step."""
+        """One step of dt. `body` (a Collider or None) must be posed for the end of the step, its
+        triangle boxes holding that pose (Collider.apply_pose refits them, or a sweep of the frame's
+        poses holds them all: Collider.sweep)."""
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
         pins = body is not None and m.bind_particle is not None
         wp.launch(kernels.begin_step, n,
@@ -362,7 +364,7 @@ class ClothSolver:
         candidates = self._candidates_for(body)
         wp.launch(kernels.body_collide, m.num_particles,
                   [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
-                   adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, p.walk_steps,
+                   adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id, p.walk_steps,
                    p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), p.reseed_drift,
                    self.step_count, body.moved, int(first), p.collision_margin, p.friction, dt, state_prev.nearest,
                    state_prev.clearance, p.candidate_slack, adj.tie, int(record), state.nearest, state.clearance,

@@ -3,6 +3,10 @@
 Poses are uploaded once per frame for every substep (`set_poses`), and `apply_pose(k)` skins the
 mesh and the sphere-tree centres to pose k with kernels only, so a frame's substeps need no host
 work (the prerequisite for capturing a frame in a CUDA graph).
+
+The cloth's body queries read a second BVH, over boxes of the triangles (`triangle_bvh`): `sweep()`
+bounds each triangle over all the uploaded poses at once, so one refit serves a frame's every
+substep, where the wp.Mesh BVH, fitted to one pose, needs one per substep.
 """
 
 import copy
@@ -14,7 +18,7 @@ from scipy.spatial import cKDTree
 from warp_kernels import collision, skinning
 
 from .collision_proxy import blend_skin_weights, coarse_remesh
-from .graphs import launch_on_cores, refit_mesh
+from .graphs import launch_on_cores, refit_bvh
 from .sphere_tree import POINTS_PER_SLICE, build_sphere_tree, empty_sphere_tree, signed_distance
 
 UNKNOWN_MOTION = 1.0e30  # Collider.moved after a pose that did not measure it: lowers every bound to nothing
@@ -73,6 +77,8 @@ class Collider:
         self._embedding = None  # a proxy's (corners, barycentric, source vertex count): see proxy()
         self.bvh_stale = False  # the BVH lags the points: the next host query refits it first (fresh_mesh)
         self._winding = None  # a mesh over the same points signing by winding numbers, built on demand
+        self._boxes = None  # the triangle boxes and their BVH (triangle_bvh), built on demand
+        self._swept = None  # (pose points, motion into each pose) of the last sweep of the uploaded poses
 
     def _shape(self):
         """What the collision kernels take: the mesh and the sphere tree (arrays refitted in place)."""
@@ -102,6 +108,7 @@ class Collider:
         twin._adjacency = self.adjacency()
         twin.bvh_stale = False
         twin._winding = None
+        twin._boxes = twin._swept = None
         return twin
 
     def proxy(self, spacing):
@@ -134,12 +141,14 @@ class Collider:
             raise ValueError(f"{self.name}: point poses must have {len(self.rest_points_np)} points each")
         self._pose_points = self._pose_buffer(pts, wp.vec3)
         self.bone_matrices = None
+        self._swept = None
 
     def set_poses(self, matrices):
         """matrices: (K, num_bones, 4, 4) bone transforms for K upcoming poses (e.g. substeps)."""
         m = np.ascontiguousarray(np.asarray(matrices, np.float32).reshape(-1, 4, 4))
         self.bone_matrices = self._pose_buffer(m, wp.mat44)
         self._pose_points = None
+        self._swept = None
 
     def _pose_buffer(self, values, dtype):
         """One device buffer per pose count, refilled in place: solvers with different substep counts
@@ -156,23 +165,33 @@ class Collider:
         """Pose the mesh, its BVH and the sphere tree to pose k of the uploaded ones; the pose before
         stays in prev_points and prev_sphere_centers (surface velocities, hair contact bounds).
         refit=False leaves the BVH at an earlier pose, which saves most of the cost: for steps that
-        read only the points and the sphere tree (hair colliding with the sphere tree), never for
-        mesh queries; the caller marks it stale (bvh_stale) once the frame is done, and the host
-        queries below refit it first. listed (an int32 array of vertices, with refit=False): a
-        skinned pose moves only those, the rest keep an earlier pose, for steps that read only them
-        (a pose the host may read, such as a frame's last, must move all)."""
+        read only the points and the sphere tree (hair colliding with the sphere tree), or the
+        triangle BVH of a sweep, never for mesh queries; the caller marks it stale (bvh_stale) once
+        the frame is done, and the host queries below refit it first. listed (an int32 array of
+        vertices, with refit=False): a skinned pose moves only those, the rest keep an earlier pose,
+        for steps that read only them (a pose the host may read, such as a frame's last, must move
+        all). After a sweep of the uploaded poses, pose k is the swept one, its motion measured
+        there, and only the mesh moves (see sweep)."""
         if listed is not None and refit:
             raise ValueError("a pose of listed vertices leaves the others behind: its BVH cannot be refitted")
         wp.copy(self.prev_points, self.points)
-        wp.copy(self.prev_sphere_centers, self.sphere_centers)
         self.bvh_stale = not refit
+        n = len(self.rest_points_np)
+        if self._swept is not None:
+            if listed is not None:
+                raise ValueError("a swept pose moves every vertex: it takes no list")
+            poses, moved = self._swept
+            wp.copy(self.points, poses, 0, k * n, n)
+            wp.copy(self.moved, moved, 0, k, 1)
+            if refit:
+                refit_bvh(self.mesh)
+            return
+        wp.copy(self.prev_sphere_centers, self.sphere_centers)
         self.moved.fill_(UNKNOWN_MOTION)  # until measured below
         if self._pose_points is not None:
-            n = len(self.rest_points_np)
             wp.copy(self.points, self._pose_points, 0, k * n, n)
             if refit:
-                refit_mesh(self.mesh)
-                self._measure_motion()
+                self._refit_pose()
         else:  # the sphere tree follows skinned poses only
             offset = k * self.num_bones
             if listed is not None:
@@ -184,8 +203,7 @@ class Collider:
                           [self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices, offset,
                            self.points], device=self.device)
             if refit:
-                refit_mesh(self.mesh)
-                self._measure_motion()
+                self._refit_pose()
             wp.launch(skinning.skin_points, len(self.sphere_centers),
                       [self.sphere_rest_centers, self.sphere_skin_indices, self.sphere_skin_weights,
                        self.bone_matrices, offset, self.sphere_centers], device=self.device)
@@ -202,6 +220,41 @@ class Collider:
         if self._adjacency is None:
             self._adjacency = _Adjacency(self.rest_points_np, self.faces_np, self.device)
         return self._adjacency
+
+    def _refit_pose(self):
+        """The BVHs refitted to a pose just applied (not swept), and its motion measured."""
+        refit_bvh(self.mesh)
+        if self._boxes is not None:  # the triangle boxes follow a refitted pose where no sweep bounds them
+            self._boxes.fit(self.points, self.points, self.indices)
+        self._measure_motion()
+
+    @property
+    def triangle_bvh(self):
+        """A wp.Bvh over boxes of the triangles (in face order): of the current pose where
+        apply_pose refits, of every uploaded pose after sweep(). Built at first use."""
+        if self._boxes is None:
+            self._boxes = _TriangleBoxes(len(self.rest_points_np), len(self.faces_np), self.device)
+            self._boxes.fit(self.points, self.points, self.indices, build=True)
+        return self._boxes.bvh
+
+    def sweep(self):
+        """Bound each triangle over all the uploaded poses (triangle_bvh), so that queries of it hold
+        at every one of them with one refit: a frame's substeps need no refit each. The poses are
+        skinned here, at once, with the motion into each measured, and until the next upload
+        apply_pose(k) takes pose k from them and moves the mesh only: the sphere tree stays where it
+        was, and the wp.Mesh BVH moves only where apply_pose refits it."""
+        self.triangle_bvh  # noqa: B018  (built at first use)
+        b, n = self._boxes, len(self.rest_points_np)
+        skinned = self._pose_points is None
+        count = len(self.bone_matrices) // self.num_bones if skinned else len(self._pose_points) // n
+        poses = b.buffer(("poses", count), count * n, wp.vec3) if skinned else self._pose_points
+        moved = b.buffer(("moved", count), count, float)
+        moved.zero_()
+        wp.launch(collision.sweep_poses, n,
+                  [int(skinned), self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices,
+                   self.num_bones, n, count, poses, b.point_lower, b.point_upper, moved], device=self.device)
+        b.fit(b.point_lower, b.point_upper, self.indices)
+        self._swept = (poses, moved)
 
     def _measure_motion(self):
         """moved for the pose just applied: a pose with a refitted BVH is one mesh queries read, and the
@@ -293,6 +346,33 @@ class Collider:
 
     def posed_points(self):
         return self.points.numpy()
+
+
+class _TriangleBoxes:
+    """Boxes of a collider's triangles, the wp.Bvh over them, and the buffers a sweep fills."""
+
+    def __init__(self, num_points, num_triangles, device):
+        z = lambda count: wp.zeros(count, dtype=wp.vec3, device=device)  # noqa: E731
+        self.device = device
+        self.point_lower, self.point_upper = z(num_points), z(num_points)
+        self.lower, self.upper = z(num_triangles), z(num_triangles)
+        self.bvh = None
+        self._buffers = {}  # per pose count: captured frames read the ones they were captured with
+
+    def fit(self, lower, upper, indices, build=False):
+        """The triangle boxes from their corners' boxes (lower, upper per point), and the BVH refitted
+        (or built) over them."""
+        wp.launch(collision.triangle_bounds, len(self.lower), [indices, lower, upper, self.lower, self.upper],
+                  device=self.device)
+        if build:
+            self.bvh = wp.Bvh(self.lower, self.upper)
+        else:
+            refit_bvh(self.bvh)
+
+    def buffer(self, key, count, dtype):
+        if key not in self._buffers:
+            self._buffers[key] = wp.zeros(count, dtype=dtype, device=self.device)
+        return self._buffers[key]
 
 
 def _parents(skip):

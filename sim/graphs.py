@@ -10,9 +10,9 @@ captured; those references are part of the key, and a replay restores what the c
 an odd number of swaps per frame simply alternates between two graphs.
 
 On a CUDA device a frame is one CUDA graph. On the CPU Warp records a frame's operations and
-replays them in a loop in C++, without Python's cost per launch; a mesh refit is the one operation
-it does not record there, so a CPU frame is split into recorded pieces with the refits between
-them (refit_mesh). Work on disjoint data can be split into branches (run_parallel) that a CPU
+replays them in a loop in C++, without Python's cost per launch; a mesh's BVH refit is the one
+operation it does not record there, so a CPU frame is split into recorded pieces with the refits
+between them (refit_bvh). Work on disjoint data can be split into branches (run_parallel) that a CPU
 frame replays on several threads at once, and whole frames of different solvers can be replayed
 side by side (run_side_by_side). With graphs disabled `run` calls the frame's function
 directly, so every path shares one definition of the frame.
@@ -26,7 +26,7 @@ from functools import partial
 
 import warp as wp
 
-_cpu_frame = None  # the CPU frame being captured, which refit_mesh and run_parallel split
+_cpu_frame = None  # the CPU frame being captured, which refit_bvh and run_parallel split
 _pool = None  # worker threads replaying the branches of parallel steps
 _sharing = None  # the _SharedCores of the frames running side by side, if any
 
@@ -217,13 +217,14 @@ def launch_on_cores(kernel, dim, inputs, device, sliced=(), first=None, part=Non
     run_on_cores([launch.launch for launch in launches])
 
 
-def refit_mesh(mesh):
-    """mesh.refit(), in order also inside a frame being captured on the CPU: Warp does not record a
-    mesh refit there, so the capture is split around it and the refit runs between the pieces."""
-    if _cpu_frame is not None and _cpu_frame.device == mesh.device:
-        _cpu_frame.split(mesh.refit)
+def refit_bvh(structure):
+    """structure.refit() (a wp.Mesh or a wp.Bvh), in order also inside a frame being captured on the
+    CPU: Warp records a wp.Bvh's refit there but not a wp.Mesh's, so the capture is split around a
+    mesh's and its refit runs between the pieces."""
+    if isinstance(structure, wp.Mesh) and _cpu_frame is not None and _cpu_frame.device == structure.device:
+        _cpu_frame.split(structure.refit)
     else:
-        mesh.refit()
+        structure.refit()
 
 
 class _CudaFrame:
@@ -307,7 +308,7 @@ class FrameGraphs:
     """Per-key captured frames on one device.
 
     run(key, frame, refs) executes `frame()` (a function that only launches work, refits meshes with
-    refit_mesh and rebinds buffer references). The first time a key is seen the frame runs eagerly
+    refit_bvh and rebinds buffer references). The first time a key is seen the frame runs eagerly
     (modules load, caches are built); the second time it is captured and launched; later it is
     replayed. refs = (get, set) reads and restores the Python-side references `frame` rebinds, so a
     replay leaves them as a real run would.

@@ -543,8 +543,12 @@ class Scene:
                                                 listed=None if mesh else self._hair_root_vertices()))
             if self.cloth_model is not None:
                 body = self.cloth_body if self.cloth_body is not self.cloth_collider else None
+                # the cloth queries the body's triangle boxes, swept over the frame; the detail's lift
+                # queries the mesh of the body after the frame (end_pose, or the collider's last pose)
                 tasks.append(self._solver_frame("cloth", self.cloth_collider, poses[self.cloth_substeps],
-                                                frame_dt, animate, self._step_cloth, self._cloth_refs, end_pose=body))
+                                                frame_dt, animate, self._step_cloth, self._cloth_refs, bvh=False,
+                                                end_pose=body, sweep=True,
+                                                refit_last=body is None and self.cloth_detail is not None))
             # only replays run side by side: a capture records every launch on the device
             together = (self.side_by_side and len(tasks) > 1 and not wp.get_device(self.device).is_cuda
                         and all(self.graphs.captured(key) for key, _ in tasks))
@@ -569,15 +573,17 @@ class Scene:
                 self.time = t0 + frame_dt
 
     def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True, end_pose=None,
-                      listed=None):
+                      listed=None, sweep=False, refit_last=False):
         """One solver's frame against `collider`, substep_poses = (times, poses) at the start and the
         end of each substep: the poses are uploaded now, and the returned (graph key, task) runs the
         frame. bvh=False: the solver makes no mesh queries, so the BVH is not refitted at all, and the
         collider is left marked stale: a host query after the frame refits it first
         (Collider.fresh_mesh), most frames none does. listed (with bvh=False): the only collider
         vertices the solver reads; every pose but the frame's last, which the host may read, moves
-        only those. end_pose: another collider the frame poses once, at its end (the body beside a
-        cloth's collision proxy)."""
+        only those. sweep (with bvh=False): the solver queries the triangle boxes only, bounded once
+        over all the frame's poses (Collider.sweep); refit_last: the mesh BVH is refitted at the
+        frame's last pose all the same (for the detail surface's lift after it). end_pose: another
+        collider the frame poses once, at its end (the body beside a cloth's collision proxy)."""
         times, poses = substep_poses
         substeps = len(times) - 1
         dt = frame_dt / substeps
@@ -589,17 +595,20 @@ class Scene:
             # start from the frame's first pose: the collider was left at the last frame's end, or
             # at another time by a reset, and surface velocities (cloth friction) come from
             # consecutive poses; nothing queries this pose, so its BVH is not refitted
+            if sweep:
+                collider.sweep()
             collider.apply_pose(0, refit=False, listed=listed)
             collider.reset_motion()
             for k in range(1, substeps + 1):
-                collider.apply_pose(k, refit=bvh, listed=listed if k < substeps else None)
+                last = k == substeps
+                collider.apply_pose(k, refit=bvh or (refit_last and last), listed=None if last else listed)
                 step(dt, float(times[k]))
             if end_pose is not None:
                 end_pose.apply_pose(0)
 
         def run():
             self.graphs.run(key, frame, refs)
-            collider.bvh_stale = not bvh
+            collider.bvh_stale = not (bvh or refit_last)
 
         key = (name, animate, id(refs[0]()[0]))
         return key, run

@@ -244,6 +244,92 @@ def test_collider_moved_is_the_largest_vertex_displacement_of_the_last_pose():
     assert body.moved.numpy()[0] == np.float32(UNKNOWN_MOTION)
 
 
+def _sliding_ball_poses(steps):
+    """Poses of a ball that slides along x and rises into cloth above it, one per step."""
+    poses = np.repeat(np.eye(4)[None, None], steps + 1, axis=0)
+    poses[:, 0, 0, 3] = 0.0015 * np.arange(steps + 1)
+    poses[:, 0, 1, 3] = 0.0004 * np.arange(steps + 1)
+    angle = 0.004 * np.arange(steps + 1)  # and turns, so that its triangles do not just translate
+    poses[:, 0, 0, 0], poses[:, 0, 0, 1] = np.cos(angle), -np.sin(angle)
+    poses[:, 0, 1, 0], poses[:, 0, 1, 1] = np.sin(angle), np.cos(angle)
+    return poses
+
+
+def test_a_sweep_poses_as_the_skinned_path_and_its_boxes_hold_every_pose():
+    """Collider.sweep skins every uploaded pose at once: apply_pose(k) then gives the points and the
+    motion of the skinned path bit for bit, and each triangle's swept box holds it in every pose; a
+    sweep of the same poses given as points (a point cache) gives the same boxes."""
+    steps = 6
+    poses = _sliding_ball_poses(steps)
+    skinned, swept, cached = (sphere_body(subdivisions=2) for _ in range(3))
+    for body in (skinned, swept):
+        body.set_poses(poses)
+    points = []
+    for k in range(steps + 1):
+        points.append(_skinned(skinned, k))
+    cached.set_point_poses(np.stack(points))
+    swept.sweep()
+    cached.sweep()
+    lower, upper = swept._boxes.lower.numpy(), swept._boxes.upper.numpy()
+    np.testing.assert_array_equal(cached._boxes.lower.numpy(), lower)
+    np.testing.assert_array_equal(cached._boxes.upper.numpy(), upper)
+    skinned.apply_pose(0)
+    for k in range(steps + 1):
+        skinned.apply_pose(k)
+        for body in (swept, cached):
+            body.apply_pose(k, refit=False)
+            np.testing.assert_array_equal(body.points.numpy(), skinned.points.numpy())
+            if k > 0:
+                assert body.moved.numpy()[0] == skinned.moved.numpy()[0] > 0.0015
+        corners = swept.points.numpy()[swept.faces_np]
+        assert np.all(corners.min(axis=1) >= lower) and np.all(corners.max(axis=1) <= upper)
+    # the boxes bound the poses and no more: the first and last poses' corners reach every face of them
+    first, last = (poses[[0, -1], 0, :3, :3] @ swept.rest_points_np.T).transpose(0, 2, 1) + poses[[0, -1], 0, :3, 3][:, None]
+    ends = np.concatenate([first[swept.faces_np], last[swept.faces_np]], axis=1)
+    np.testing.assert_allclose(lower, ends.min(axis=1), atol=1e-4)  # the arc between bulges them by 2e-5 m
+    np.testing.assert_allclose(upper, ends.max(axis=1), atol=1e-4)
+    swept.set_poses(poses)  # a new upload ends the sweep: poses are skinned one by one again
+    swept.apply_pose(2)
+    np.testing.assert_array_equal(swept.points.numpy(), _skinned(skinned, 2))
+
+
+def _skinned(body, k):
+    body.apply_pose(k)
+    return body.points.numpy().copy()  # on the CPU numpy() is a view of the array, which the next pose overwrites
+
+
+def test_cloth_on_a_swept_body_steps_as_on_one_refitted_every_step():
+    """The cloth's queries of triangle boxes swept over all the steps' poses (one refit) find what
+    boxes fitted to each pose find: cloth on a ball that slides, turns and rises into it ends where
+    it ends with a refit per step."""
+    pts, tris, edges, shear, bend = grid(12, 0.8, 0.36)
+    model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams(walk_refresh=2))
+    dt, steps = model.stable_dt, 120
+    poses = _sliding_ball_poses(steps)
+    finals, queries = [], []
+    for sweep in (False, True):
+        body = sphere_body()
+        body.set_poses(poses)
+        if sweep:
+            body.sweep()
+        solver = ClothSolver(model)
+        s0, s1 = model.state(), model.state()
+        body.apply_pose(0, refit=not sweep)
+        body.reset_motion()
+        contacts = 0
+        for k in range(1, steps + 1):
+            body.apply_pose(k, refit=not sweep)
+            solver.step(s0, s1, body, dt)
+            s0, s1 = s1, s0
+            contacts += int(s0.contact.numpy().sum())
+        finals.append(s0.x.numpy())
+        queries.append(int(solver.fallbacks.numpy()[0]))
+        assert contacts > 100  # the ball pushed into the cloth
+        assert body.signed_distance(s0.x.numpy()).min() > 0.0
+    assert queries[0] == queries[1] > 0
+    np.testing.assert_allclose(finals[1], finals[0], atol=1e-6)
+
+
 def test_body_clearance_stays_a_lower_bound_of_the_distance_on_a_moving_body():
     """The bounds that let body_collide skip queries never claim more room than there is: cloth
     falls on a ball that slides and rises into it, re-seeded every other step."""
@@ -320,30 +406,35 @@ def test_dress_at_rest_skips_the_queries_its_clearance_and_gatherings_rule_out()
 
 @wp.kernel
 def _gathered_against_the_bvh(centers: wp.array(dtype=wp.vec3), queries: wp.array(dtype=wp.vec3), radius: float,
-                              search: float, body_motion: float, tie: float, mesh: wp.uint64,
+                              search: float, body_motion: float, tie: float, mesh: wp.uint64, bvh: wp.uint64,
                               points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32),
                               candidates: kernels.BodyCandidates, listed: wp.array(dtype=wp.vec4),
-                              queried: wp.array(dtype=wp.vec4), corners: wp.array(dtype=wp.vec2i)):
+                              boxed: wp.array(dtype=wp.vec4), queried: wp.array(dtype=wp.vec4),
+                              corners: wp.array(dtype=wp.vec3i)):
     p = wp.tid()
-    kernels.gather_candidates(centers[p], radius, mesh, points, indices, p, candidates)
+    kernels.gather_candidates(centers[p], radius, bvh, points, indices, p, candidates)
     candidates.body_motion[p] = body_motion
     xq = queries[p]
     if candidates.count[p] >= 0:
         found, sd, n, corner = kernels.closest_candidate(xq, search, tie, points, p, candidates)
         listed[p] = wp.vec4(sd, n[0], n[1], n[2]) if found else wp.vec4(1.0e30)
-        corners[p] = wp.vec2i(corner, -1)
+        corners[p] = wp.vec3i(corner, -1, -1)
+    found, sd, n, corner = kernels.closest_in_boxes(xq, search, tie, bvh, points, indices)
+    boxed[p] = wp.vec4(sd, n[0], n[1], n[2]) if found else wp.vec4(1.0e30)
+    corners[p] = wp.vec3i(corners[p][0], corner, -1)
     q = wp.mesh_query_point_sign_normal(mesh, xq, search)
     queried[p] = wp.vec4(1.0e30)
     if q.result:
         n = wp.mesh_eval_face_normal(mesh, q.face)
         queried[p] = wp.vec4(q.sign * wp.length(xq - wp.mesh_eval_position(mesh, q.face, q.u, q.v)), n[0], n[1], n[2])
-        corners[p] = wp.vec2i(corners[p][0], kernels.closest_corner(xq, q.face, points, indices))
+        corners[p] = wp.vec3i(corners[p][0], corners[p][1], kernels.closest_corner(xq, q.face, points, indices))
 
 
 def test_gathered_triangles_answer_as_the_bvh_query_at_concave_vertices():
-    """closest_candidate over a particle's gathered triangles gives wp.mesh_query_point_sign_normal's
-    distance, sign and normal wherever the gathering's slack covers the particle's and the body's
-    motion: points around the body's concave vertices (armpits, crotch, neck), inside and out."""
+    """closest_candidate over a particle's gathered triangles, and closest_in_boxes over the
+    triangle boxes, give wp.mesh_query_point_sign_normal's distance, sign and normal (the gathering
+    wherever its slack covers the particle's and the body's motion): points around the body's
+    concave vertices (armpits, crotch, neck), inside and out."""
     from sim.body import procedural_body
 
     body_mesh = procedural_body()
@@ -358,23 +449,26 @@ def test_gathered_triangles_answer_as_the_bvh_query_at_concave_vertices():
     step *= (rng.uniform(0.0, slack - motion, (n, 1)) / np.linalg.norm(step, axis=1, keepdims=True))
     capacity = 160
     candidates = body_candidates(n, capacity, "cpu")
-    listed, queried, corners = wp.zeros(n, dtype=wp.vec4), wp.zeros(n, dtype=wp.vec4), wp.zeros(n, dtype=wp.vec2i)
+    listed, boxed, queried = (wp.zeros(n, dtype=wp.vec4) for _ in range(3))
+    corners = wp.zeros(n, dtype=wp.vec3i)
     wp.launch(_gathered_against_the_bvh, n,
               [wp.array(centers, dtype=wp.vec3), wp.array(centers + step, dtype=wp.vec3), search + slack, search,
-               motion, adj.tie, body.mesh.id, body.points, body.indices, candidates, listed, queried, corners])
+               motion, adj.tie, body.mesh.id, body.triangle_bvh.id, body.points, body.indices, candidates, listed,
+               boxed, queried, corners])
     count = candidates.count.numpy()
     assert count.min() >= 0 and count.max() < capacity
-    listed, queried = listed.numpy(), queried.numpy()
+    queried = queried.numpy()
     found = queried[:, 0] < 1e29
     assert found.mean() > 0.9 and (queried[found, 0] < 0.0).mean() > 0.3  # near the surface, on both sides
-    np.testing.assert_array_equal(listed[:, 0] < 1e29, found)
-    np.testing.assert_allclose(listed[found, 0], queried[found, 0], atol=1e-6)  # the signed distance
-    # the closest point's nearest body vertex, where a walk restarts; the triangle, and so the normal,
-    # may differ where the closest point is on an edge or corner shared by equally close triangles
-    corners = corners.numpy()[found]
-    assert np.mean(corners[:, 0] == corners[:, 1]) > 0.999
-    same = np.linalg.norm(listed[found, 1:] - queried[found, 1:], axis=1) < 1e-5
-    assert same.mean() > 0.9
+    for k, answer in enumerate((listed.numpy(), boxed.numpy())):
+        np.testing.assert_array_equal(answer[:, 0] < 1e29, found)
+        np.testing.assert_allclose(answer[found, 0], queried[found, 0], atol=1e-6)  # the signed distance
+        # the closest point's nearest body vertex, where a walk restarts; the triangle, and so the
+        # normal, may differ where the closest point is on an edge or corner shared by equally close
+        # triangles
+        assert np.mean(corners.numpy()[found, k] == corners.numpy()[found, 2]) > 0.999
+        same = np.linalg.norm(answer[found, 1:] - queried[found, 1:], axis=1) < 1e-5
+        assert same.mean() > 0.9
     # nearest first, which lets the test stop at the first that cannot come closer than the best found
     distance = candidates.distance.numpy().reshape(n, capacity)
     both = np.arange(1, capacity) < count[:, None]

@@ -25,6 +25,10 @@ wp.set_module_options(MODULE_OPTIONS)
 
 from .skinning import bound_position, face_frame, face_point
 
+# closest_in_boxes: the first radius of its growing box queries, about a body's contact range (a
+# query of the whole body's boxes would test every triangle)
+BOX_QUERY_START = wp.constant(0.01)  # m
+
 
 @wp.func
 def spring_force(xi: wp.vec3, xj: wp.vec3, vi: wp.vec3, vj: wp.vec3, rest: float, k_stretch: float,
@@ -516,14 +520,15 @@ class BodyCandidates:
 
 
 @wp.func
-def gather_candidates(xp: wp.vec3, radius: float, mesh: wp.uint64, points: wp.array(dtype=wp.vec3),
+def gather_candidates(xp: wp.vec3, radius: float, bvh: wp.uint64, points: wp.array(dtype=wp.vec3),
                       indices: wp.array(dtype=wp.int32), p: int, candidates: BodyCandidates):
     """Gather the body triangles within radius of xp for particle p (BodyCandidates), nearest first.
 
     Inputs:
       xp (vec3, m): where to gather
       radius (float, m): how far to look
-      mesh (uint64): wp.Mesh id over points, its BVH refitted to this pose
+      bvh (uint64): wp.Bvh id over boxes of the body triangles, in face order, that hold them in this
+          pose (sim.Collider.triangle_bvh)
       points (vec3, per body vertex, m): posed body vertices
       indices (int32, 3 per body triangle): body triangles
       p (int, index): the particle, whose slots are written
@@ -535,9 +540,9 @@ def gather_candidates(xp: wp.vec3, radius: float, mesh: wp.uint64, points: wp.ar
     base = p * candidates.capacity
     n = int(0)
     full = bool(False)
-    query = wp.mesh_query_aabb(mesh, xp - wp.vec3(radius), xp + wp.vec3(radius))
+    query = wp.bvh_query_aabb(bvh, xp - wp.vec3(radius), xp + wp.vec3(radius))
     f = int(0)
-    while wp.mesh_query_aabb_next(query, f):
+    while wp.bvh_query_next(query, f):
         corners = wp.vec3i(indices[3 * f + 0], indices[3 * f + 1], indices[3 * f + 2])
         a = points[corners[0]]
         b = points[corners[1]]
@@ -570,15 +575,65 @@ def gather_candidates(xp: wp.vec3, radius: float, mesh: wp.uint64, points: wp.ar
 
 
 @wp.func
-def closest_candidate(xp: wp.vec3, max_dist: float, tie: float, points: wp.array(dtype=wp.vec3), p: int,
-                      candidates: BodyCandidates):
-    """The closest point of particle p's gathered body triangles to xp within max_dist, signed as
-    wp.mesh_query_point_sign_normal signs it.
+def signed_closest_step(xp: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3, corners: wp.vec3i,
+                        points: wp.array(dtype=wp.vec3), tie: float, best: float, found: bool, closest: wp.vec3,
+                        normal: wp.vec3, corner: int, weighted: wp.vec3):
+    """One triangle's turn in a search for the closest body point, signed as
+    wp.mesh_query_point_sign_normal signs it (closest_candidate, closest_in_boxes).
 
     The sign is that of the angle-weighted pseudo-normal (Baerentzen and Aanaes) at the closest
     feature: the normals of the triangles equally close (within tie) are summed, weighted by the
-    angle each has at a shared corner, pi at a shared edge, 2 pi inside. The gathering must hold
-    every triangle within max_dist of xp (BodyCandidates).
+    angle each has at a shared corner, pi at a shared edge, 2 pi inside (pseudo_normal_weight).
+
+    Inputs:
+      xp (vec3, m): query point
+      a (vec3, m): the triangle's first corner
+      b (vec3, m): its second
+      c (vec3, m): its third
+      corners (vec3i): the triangle's body vertices, a's, b's and c's
+      points (vec3, per body vertex, m): posed body vertices
+      tie (float, m): distances this close count as equal (1e-3 of the body's mean edge, as Warp's)
+      best (float, m): the distance to beat, the search's radius at first
+      found (bool): whether any triangle beat it
+      closest (vec3, m): the closest point so far
+      normal (vec3): its triangle's unit normal
+      corner (int, index): its triangle's corner nearest xp (where a walk restarts)
+      weighted (vec3): the weighted normals of the triangles that tie with it
+    Returns:
+      float, bool, vec3, vec3, int, vec3: best, found, closest, normal, corner and weighted after
+          this triangle's turn
+    """
+    e0 = b - a
+    e1 = c - a
+    e2 = c - b
+    n = wp.cross(e0, e1)
+    if wp.length(n) < 1.0e-6 * (wp.dot(e0, e0) + wp.dot(e1, e1) + wp.dot(e2, e2)):
+        return best, found, closest, normal, corner, weighted  # a sliver: no trustworthy normal (nor for Warp)
+    w = closest_on_triangle(xp, a, b, c)
+    q = w[0] * a + w[1] * b + w[2] * c
+    d = wp.length(xp - q)
+    if d < best + tie:
+        unit = wp.normalize(n)
+        weight = pseudo_normal_weight(q, w, a, b, c, tie)
+        if d > best - tie:
+            weighted = weighted + weight * unit
+        else:
+            weighted = weight * unit
+        if d < best:
+            best = d
+            found = True
+            closest = q
+            normal = unit
+            corner = nearest_corner(xp, corners, points)
+    return best, found, closest, normal, corner, weighted
+
+
+@wp.func
+def closest_candidate(xp: wp.vec3, max_dist: float, tie: float, points: wp.array(dtype=wp.vec3), p: int,
+                      candidates: BodyCandidates):
+    """The closest point of particle p's gathered body triangles to xp within max_dist, signed as
+    wp.mesh_query_point_sign_normal signs it (signed_closest_step). The gathering must hold every
+    triangle within max_dist of xp (BodyCandidates).
 
     Inputs:
       xp (vec3, m): query point
@@ -606,30 +661,67 @@ def closest_candidate(xp: wp.vec3, max_dist: float, tie: float, points: wp.array
         if candidates.distance[base + k] - slack > best + tie:
             break  # this one and every later one are farther than the best
         corners = candidates.corners[base + k]
-        a = points[corners[0]]
-        b = points[corners[1]]
-        c = points[corners[2]]
-        e0 = b - a
-        e1 = c - a
-        e2 = c - b
-        n = wp.cross(e0, e1)
-        if wp.length(n) < 1.0e-6 * (wp.dot(e0, e0) + wp.dot(e1, e1) + wp.dot(e2, e2)):
-            continue  # a sliver has no trustworthy normal (skipped by Warp's query too)
-        w = closest_on_triangle(xp, a, b, c)
-        q = w[0] * a + w[1] * b + w[2] * c
-        d = wp.length(xp - q)
-        if d < best + tie:
-            weight = pseudo_normal_weight(q, w, a, b, c, tie)
-            if d > best - tie:
-                weighted += weight * wp.normalize(n)
-            else:
-                weighted = weight * wp.normalize(n)
-            if d < best:
-                best = d
-                found = True
-                closest = q
-                normal = wp.normalize(n)
-                corner = nearest_corner(xp, corners, points)
+        best, found, closest, normal, corner, weighted = signed_closest_step(
+            xp, points[corners[0]], points[corners[1]], points[corners[2]], corners, points, tie, best, found,
+            closest, normal, corner, weighted)
+    sign = float(-1.0)
+    if wp.dot(weighted, xp - closest) > 0.0:
+        sign = 1.0
+    return found, sign * best, normal, corner
+
+
+@wp.func
+def closest_in_boxes(xp: wp.vec3, max_dist: float, tie: float, bvh: wp.uint64, points: wp.array(dtype=wp.vec3),
+                     indices: wp.array(dtype=wp.int32)):
+    """The closest body point to xp within max_dist, signed as wp.mesh_query_point_sign_normal signs
+    it (signed_closest_step): the answer of a wp.Mesh query, from boxes that need only hold the
+    triangles (swept over a frame's poses, sim.Collider.sweep) rather than fit one pose.
+
+    A box query has no nearest-first pruning: it returns every triangle whose box meets the query's.
+    So the radius starts at BOX_QUERY_START and grows fourfold up to max_dist until a triangle lies
+    within it (the closest within a radius is the closest of all), and a triangle whose own box in
+    this pose lies farther than the best so far is passed over untested.
+
+    Inputs:
+      xp (vec3, m): query point
+      max_dist (float, m): how far to look
+      tie (float, m): distances this close count as equal (1e-3 of the body's mean edge, as Warp's)
+      bvh (uint64): wp.Bvh id over boxes of the body triangles, in face order, that hold them in this
+          pose (sim.Collider.triangle_bvh)
+      points (vec3, per body vertex, m): posed body vertices
+      indices (int32, 3 per body triangle): body triangles
+    Returns:
+      bool: whether any triangle lies within max_dist
+      float (m): signed distance, negative inside the body
+      vec3: the closest triangle's unit normal
+      int: the closest triangle's corner nearest xp (where a walk restarts)
+    """
+    found = bool(False)
+    best = float(0.0)
+    closest = wp.vec3(0.0)
+    normal = wp.vec3(0.0)
+    corner = int(-1)
+    weighted = wp.vec3(0.0)
+    radius = wp.min(max_dist, BOX_QUERY_START)
+    searching = bool(True)
+    while searching:
+        best = radius
+        query = wp.bvh_query_aabb(bvh, xp - wp.vec3(radius), xp + wp.vec3(radius))
+        f = int(0)
+        while wp.bvh_query_next(query, f):
+            corners = wp.vec3i(indices[3 * f + 0], indices[3 * f + 1], indices[3 * f + 2])
+            a = points[corners[0]]
+            b = points[corners[1]]
+            c = points[corners[2]]
+            outside = wp.max(wp.max(wp.min(wp.min(a, b), c) - xp, xp - wp.max(wp.max(a, b), c)), wp.vec3(0.0))
+            reach = best + tie
+            if wp.length_sq(outside) <= reach * reach:
+                best, found, closest, normal, corner, weighted = signed_closest_step(
+                    xp, a, b, c, corners, points, tie, best, found, closest, normal, corner, weighted)
+        if found or radius >= max_dist:
+            searching = False
+        else:
+            radius = wp.min(max_dist, 4.0 * radius)
     sign = float(-1.0)
     if wp.dot(weighted, xp - closest) > 0.0:
         sign = 1.0
@@ -650,7 +742,7 @@ def body_collide(
     vf_start: wp.array(dtype=wp.int32),
     vf_face: wp.array(dtype=wp.int32),
     concave: wp.array(dtype=wp.int32),
-    mesh: wp.uint64,
+    bvh: wp.uint64,
     max_steps: int,
     teleport: float,
     trust_distance: float,
@@ -714,7 +806,8 @@ def body_collide(
       vf_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> face adjacency
       vf_face (int32, 3 per body triangle): faces incident to each vertex
       concave (int32, per body vertex): 1 where the vertex is concave or a saddle (walk not trusted)
-      mesh (uint64): wp.Mesh id over the same posed points, its BVH refitted to this pose
+      bvh (uint64): wp.Bvh id over boxes of the body triangles, in face order, that hold them in this
+          pose (sim.Collider.triangle_bvh: swept over the frame's poses, or fitted to this one)
       max_steps (int): most steps of the walk before falling back to the BVH
       teleport (float, m): a particle that moved farther in one step restarts from the BVH
       trust_distance (float, m): beyond this distance from its vertex a particle is re-seeded
@@ -844,19 +937,14 @@ def body_collide(
                     4.0 * body_moved[0] <= candidate_slack):
                 wp.atomic_add(fallbacks, 0, 1)
                 # not valid when more triangles were near than it has room for
-                valid = gather_candidates(xp, search + candidate_slack, mesh, points, indices, p, candidates) >= 0
+                valid = gather_candidates(xp, search + candidate_slack, bvh, points, indices, p, candidates) >= 0
             if valid:
                 found, sd, nf, corner = closest_candidate(xp, search, tie, points, p, candidates)
             else:
                 listed = False
         if not listed:
             wp.atomic_add(fallbacks, 0, 1)
-            q = wp.mesh_query_point_sign_normal(mesh, xp, search)
-            if q.result:
-                found = True
-                sd = q.sign * wp.length(xp - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
-                nf = wp.mesh_eval_face_normal(mesh, q.face)
-                corner = closest_corner(xp, q.face, points, indices)
+            found, sd, nf, corner = closest_in_boxes(xp, search, tie, bvh, points, indices)
         if found:
             measured = sd
             # restart the cache at the closest corner of the closest face, then settle it locally

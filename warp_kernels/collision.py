@@ -19,6 +19,8 @@ from ._options import MODULE_OPTIONS
 
 wp.set_module_options(MODULE_OPTIONS)
 
+from .skinning import skinned_point  # noqa: E402
+
 COLLIDE_NONE = wp.constant(0)
 COLLIDE_SPHERE_TREE = wp.constant(1)
 COLLIDE_MESH = wp.constant(2)
@@ -1055,3 +1057,92 @@ def largest_displacement(before: wp.array(dtype=wp.vec3), after: wp.array(dtype=
     d = wp.length(after[i] - before[i])
     if d > moved[0]:
         wp.atomic_max(moved, 0, d)
+
+
+@wp.kernel
+def sweep_poses(
+    skinned: int,
+    rest_points: wp.array(dtype=wp.vec3),
+    skin_indices: wp.array(dtype=wp.vec4i),
+    skin_weights: wp.array(dtype=wp.vec4),
+    bone_matrices: wp.array(dtype=wp.mat44),
+    num_bones: int,
+    num_points: int,
+    num_poses: int,
+    poses: wp.array(dtype=wp.vec3),
+    lower: wp.array(dtype=wp.vec3),
+    upper: wp.array(dtype=wp.vec3),
+    moved: wp.array(dtype=float),
+):
+    """Each point's bounding box over a run of poses, and how far the points moved into each pose;
+    the poses skinned here (skinning.skin_points for every pose at once) or given.
+
+    Launch: one thread per point (dim = num_points).
+    Inputs:
+      skinned (int, flag): non-zero skins the poses of bone_matrices into poses; zero reads poses
+      rest_points (vec3, per point, m): points in the bind pose (skinned; may be None otherwise)
+      skin_indices (vec4i, per point): bone of each influence, within one pose (skinned)
+      skin_weights (vec4, per point): weight of each influence; 0 skips it (skinned)
+      bone_matrices (mat44, num_poses * num_bones, m): per pose and bone, bind pose to posed (skinned)
+      num_bones (int): matrices per pose
+      num_points (int): points per pose
+      num_poses (int): poses, at least 1
+    In/out:
+      poses (vec3, num_poses * num_points, m): the poses' points back to back: written (skinned) or
+          read
+      moved (float, per pose, m): raised to the largest distance a point moved from pose k - 1 to
+          pose k (as largest_displacement); zero it first; element 0 is left as it is
+    Outputs:
+      lower (vec3, per point, m): each point's box over the poses, its least corner
+      upper (vec3, per point, m): and its greatest
+    """
+    i = wp.tid()
+    p = wp.vec3(0.0)
+    lo = p
+    hi = p
+    for k in range(num_poses):
+        q = wp.vec3(0.0)
+        if skinned != 0:
+            q = skinned_point(rest_points, skin_indices, skin_weights, bone_matrices, k * num_bones, i)
+            poses[k * num_points + i] = q
+        else:
+            q = poses[k * num_points + i]
+        if k == 0:
+            lo = q
+            hi = q
+        else:
+            d = wp.length(q - p)
+            if d > moved[k]:  # most threads skip the atomic once a large motion is in (largest_displacement)
+                wp.atomic_max(moved, k, d)
+            lo = wp.min(lo, q)
+            hi = wp.max(hi, q)
+        p = q
+    lower[i] = lo
+    upper[i] = hi
+
+
+@wp.kernel
+def triangle_bounds(
+    indices: wp.array(dtype=wp.int32),
+    lower: wp.array(dtype=wp.vec3),
+    upper: wp.array(dtype=wp.vec3),
+    triangle_lower: wp.array(dtype=wp.vec3),
+    triangle_upper: wp.array(dtype=wp.vec3),
+):
+    """Each triangle's bounding box from its corners' boxes (points: lower = upper), for a wp.Bvh.
+
+    Launch: one thread per triangle (dim = len(indices) // 3).
+    Inputs:
+      indices (int32, 3 per triangle): corners
+      lower (vec3, per point, m): each point's box, its least corner
+      upper (vec3, per point, m): and its greatest
+    Outputs:
+      triangle_lower (vec3, per triangle, m): each triangle's box, its least corner
+      triangle_upper (vec3, per triangle, m): and its greatest
+    """
+    f = wp.tid()
+    a = indices[3 * f + 0]
+    b = indices[3 * f + 1]
+    c = indices[3 * f + 2]
+    triangle_lower[f] = wp.min(wp.min(lower[a], lower[b]), lower[c])
+    triangle_upper[f] = wp.max(wp.max(upper[a], upper[b]), upper[c])
