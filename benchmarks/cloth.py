@@ -135,9 +135,9 @@ def run_ours(model, body, frames):
 
     with counting_launch_bytes() as moved:
         step()
-    before = int(solver.fallbacks.numpy()[0])  # counted on the device across replays, never zeroed here
+    before = solver.fallback_count()  # counted on the device across replays, never zeroed here
     ms = time_frames(step, model.device, frames=frames, min_seconds=0.0, max_frames=frames)
-    queries = (int(solver.fallbacks.numpy()[0]) - before) / (frames + 2)  # time_frames warms up with 2
+    queries = (solver.fallback_count() - before) / (frames + 2)  # time_frames warms up with 2
     if PROFILE:
         graphs.enabled = False
         print("\n".join(kernel_profile(step, model.device)), flush=True)

@@ -7,6 +7,7 @@ kernel launches. The body is a sim.Collider posed for the end of the step.
 """
 
 from dataclasses import asdict, dataclass
+from functools import partial
 
 import numpy as np
 import warp as wp
@@ -15,6 +16,11 @@ from warp_kernels import cloth as kernels
 from warp_kernels import collision, skinning
 
 from .errors import SimulationError
+from .graphs import core_slices, run_parallel
+
+# the body collision of a step is split among the CPU's cores in ranges of at least this many
+# particles: a range costs its launch and a hand-over between threads, tens of microseconds
+COLLIDE_PARTICLES_PER_CORE = 128
 
 STRETCH, SHEAR, BEND = 0, 1, 2
 
@@ -293,14 +299,16 @@ class ClothSolver:
     """Explicit RK4 (every stage a full force evaluation), then strain limiting, body collision and
     the record for following the body."""
 
-    def __init__(self, model, params=None):
+    def __init__(self, model, params=None, parts=None):
+        """parts: how many ranges of particles the body collision of a step is split into (set_parts);
+        by default one per CPU core with at least COLLIDE_PARTICLES_PER_CORE particles, one on a GPU."""
         self.model = model
         self.params = params or model.params
         d, n = model.device, model.num_particles
         z = lambda: wp.zeros(n, dtype=wp.vec3, device=d)  # noqa: E731
         self.x_stage, self.v_stage, self.x_scratch, self.v_scratch = z(), z(), z(), z()
         self.acc_x, self.acc_v = z(), z()
-        self.fallbacks = wp.zeros(1, dtype=wp.int32, device=d)
+        self.set_parts(core_slices(n, d, per_core=COLLIDE_PARTICLES_PER_CORE) if parts is None else parts)
         # far particles re-seed their nearest vertex from the BVH only within this radius: beyond it
         # they neither collide nor follow the body
         p = self.params
@@ -310,6 +318,16 @@ class ClothSolver:
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
         self.candidates = body_candidates(0, 0, d)  # kernels.BodyCandidates, allocated for the first body
         self._candidates_body = None
+
+    def set_parts(self, count):
+        """Collide the particles with the body as `count` ranges from now on, side by side on the CPU's
+        cores (sim.graphs.run_parallel): the same result, bit for bit. Frames captured with the old
+        ranges must be forgotten. Each range counts its BVH queries and gatherings in an element of
+        fallbacks of its own, which zeroes them."""
+        n = self.model.num_particles
+        count = max(1, min(int(count), n))
+        self._collide_cuts = [n * k // count for k in range(count + 1)]
+        self.fallbacks = wp.zeros(count, dtype=wp.int32, device=self.model.device)
 
     def _candidates_for(self, body):
         """The gatherings of body triangles for this body: allocated at its first step (a frame's
@@ -362,14 +380,20 @@ class ClothSolver:
     def _collide(self, state_prev, state, body, adj, dt, record, first):
         m, p = self.model, self.params
         candidates = self._candidates_for(body)
-        wp.launch(kernels.body_collide, m.num_particles,
-                  [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
-                   adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id, p.walk_steps,
-                   p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), p.reseed_drift,
-                   self.step_count, body.moved, int(first), p.collision_margin, p.friction, dt, state_prev.nearest,
-                   state_prev.clearance, p.candidate_slack, adj.tie, int(record), state.nearest, state.clearance,
-                   candidates, state.contact, self.fallbacks, state.follow_face, state.follow_barycentric,
-                   state.follow_local], device=m.device)
+        inputs = [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
+                  adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id, p.walk_steps,
+                  p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), p.reseed_drift,
+                  self.step_count, body.moved, int(first), p.collision_margin, p.friction, dt, state_prev.nearest,
+                  state_prev.clearance, p.candidate_slack, adj.tie, int(record), state.nearest, state.clearance,
+                  candidates, state.contact, self.fallbacks, state.follow_face, state.follow_barycentric,
+                  state.follow_local]
+        cuts = self._collide_cuts
+        run_parallel([partial(wp.launch, kernels.body_collide, b - a, [*inputs, a, k], device=m.device)
+                      for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:]))])
+
+    def fallback_count(self):
+        """BVH queries and gatherings of the body collisions since fallbacks was last zeroed."""
+        return int(self.fallbacks.numpy().sum())
 
     def _limit_strain(self, state, dt):
         """The strain limit's passes on state.x, ping-ponging through the scratch buffers so that the

@@ -10,6 +10,7 @@ substep, where the wp.Mesh BVH, fitted to one pose, needs one per substep.
 """
 
 import copy
+from functools import partial
 
 import numpy as np
 import warp as wp
@@ -18,9 +19,12 @@ from scipy.spatial import cKDTree
 from warp_kernels import collision, skinning
 
 from .collision_proxy import blend_skin_weights, coarse_remesh
-from .graphs import launch_on_cores, refit_bvh
+from .graphs import core_slices, launch_on_cores, refit_bvh, run_parallel
 from .sphere_tree import POINTS_PER_SLICE, build_sphere_tree, empty_sphere_tree, signed_distance
 
+# a sweep of the poses is split among the CPU's cores in ranges of at least this many points: a
+# range's launch costs a few microseconds, a point about 15 ns per pose
+SWEEP_POINTS_PER_CORE = 2048
 UNKNOWN_MOTION = 1.0e30  # Collider.moved after a pose that did not measure it: lowers every bound to nothing
 
 
@@ -249,10 +253,17 @@ class Collider:
         count = len(self.bone_matrices) // self.num_bones if skinned else len(self._pose_points) // n
         poses = b.buffer(("poses", count), count * n, wp.vec3) if skinned else self._pose_points
         moved = b.buffer(("moved", count), count, float)
-        moved.zero_()
-        wp.launch(collision.sweep_poses, n,
-                  [int(skinned), self.rest_points, self.skin_indices, self.skin_weights, self.bone_matrices,
-                   self.num_bones, n, count, poses, b.point_lower, b.point_upper, moved], device=self.device)
+        # ranges of the points side by side on the CPU's cores, each raising its own row of motions
+        parts = core_slices(n, self.device, per_core=SWEEP_POINTS_PER_CORE)
+        cuts = [n * k // parts for k in range(parts + 1)]
+        rows = moved if parts == 1 else b.buffer(("moved rows", count, parts), count * parts, float)
+        rows.zero_()
+        run_parallel([partial(wp.launch, collision.sweep_poses, cuts[k + 1] - cuts[k],
+                              [int(skinned), self.rest_points, self.skin_indices, self.skin_weights,
+                               self.bone_matrices, self.num_bones, n, count, poses, b.point_lower, b.point_upper,
+                               rows, cuts[k], k], device=self.device) for k in range(parts)])
+        if parts > 1:
+            wp.launch(collision.largest_of_rows, count, [rows, parts, count, moved], device=self.device)
         b.fit(b.point_lower, b.point_upper, self.indices)
         self._swept = (poses, moved)
 

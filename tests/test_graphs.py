@@ -167,6 +167,34 @@ def test_hair_in_strand_ranges_side_by_side_equals_one_range():
     assert np.abs(results[0] - Scene(_hair_config("cpu", True)).state.x.numpy()).max() > 0.01  # the hair moved
 
 
+def test_cloth_in_particle_ranges_with_a_split_sweep_equals_one_range(monkeypatch):
+    """A CPU frame of the cloth alone sweeps the body's poses in ranges of its points and collides
+    its particles in ranges, each a branch replayed on threads at once: three ranges of each give the
+    garment, the detail surface and the count of BVH queries of one range bit for bit, and the
+    replayed frames do hold the parallel steps."""
+    import sim.collider as collider_module
+
+    results = []
+    for parts in (1, 3):
+        monkeypatch.setattr(collider_module, "SWEEP_POINTS_PER_CORE", 1 if parts > 1 else 10**9)
+        monkeypatch.setattr(collider_module, "core_slices", lambda dim, device, per_core=1, n=parts: n)
+        scene = Scene(_cloth_config("cpu", True))
+        scene.cloth_solver.set_parts(parts)
+        scene.cloth_detail.split_levels(1)  # the detail's lift in one range: only the cloth's branches are counted
+        for _ in range(6):
+            scene.advance(1.0 / scene.config.timing.fps, detail=True)
+        steps = [step for graph, _ in scene.graphs._graphs.values() for step in graph.steps]
+        branched = [len(step) for step in steps if isinstance(step, tuple)]
+        # per frame one sweep and a collision per cloth substep (with strain limiting, two)
+        assert len(branched) >= scene.cloth_substeps + 1 if parts > 1 else branched == []
+        assert set(branched) <= {parts}
+        results.append((scene.cloth_state.x.numpy(), scene.detail_surface()[0].numpy(),
+                        scene.cloth_solver.fallback_count(), scene.cloth_collider.moved.numpy()))
+    for one, split in zip(*results):
+        np.testing.assert_array_equal(one, split)
+    assert results[0][2] > 0  # the walk did fall back to the BVH
+
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_async_readback_caches_equal(tmp_path, device):
     from io_usd.cache import CacheReader

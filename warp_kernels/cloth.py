@@ -768,6 +768,8 @@ def body_collide(
     follow_face: wp.array(dtype=wp.int32),
     follow_barycentric: wp.array(dtype=wp.vec3),
     follow_local: wp.array(dtype=wp.vec3),
+    first: int,
+    part: int,
 ):
     """Vertex-only body collision of Oshita & Makinouchi §3.3, with friction and the follow record.
 
@@ -793,7 +795,10 @@ def body_collide(
     re-seed. With record != 0 the final position is also recorded against the nearest body face
     (follow_record) for begin_step of the next step.
 
-    Launch: one thread per particle (dim = num_particles).
+    Each particle touches only its own entries, so ranges of them may run side by side (one per CPU
+    core, sim.cloth.ClothSolver); each counts its queries in a row of fallbacks of its own.
+
+    Launch: one thread per particle of a range (dim = particles in the range).
     Inputs:
       x_prev (vec3, per particle, m): positions at the start of the step, for the teleport test
       inv_mass (float, per particle, 1/kg): inverse masses; pinned particles (0) are not collided
@@ -830,13 +835,15 @@ def body_collide(
           it lasts until the particle and the body have moved this far between them
       tie (float, m): distances this close count as equal when signing (closest_candidate)
       record (int, flag): non-zero records the follow data
+      first (int, index): the range's first particle; thread t collides particle first + t
+      part (int, index): the range's element of fallbacks
     In/out:
       x (vec3, per particle, m): positions, pushed outside the body
       v (vec3, per particle, m/s): velocities, made non-penetrating relative to the body
       candidates (BodyCandidates): the triangles gathered near particles at concave vertices;
           capacity 0 queries the BVH instead
-      fallbacks (int32, 1 element): incremented once per BVH query or gathering (zero it to count one
-          launch)
+      fallbacks (int32, per range): element `part` incremented once per BVH query or gathering (zero
+          them to count one launch)
     Outputs:
       nearest (int32, per particle): nearest body vertex after this pass; may be nearest_in itself
       clearance (BodyClearance): the clearances after this pass
@@ -845,7 +852,7 @@ def body_collide(
       follow_barycentric (vec3, per particle): weights of the recorded face's corners; record != 0 only
       follow_local (vec3, per particle, m): offset in the recorded face's frame; record != 0 only
     """
-    p = wp.tid()
+    p = wp.tid() + first
     contact[p] = 0
     # the last query's distance carried to this pose and position
     xp = x[p]
@@ -935,7 +942,7 @@ def body_collide(
             # a few steps: the BVH answers instead
             if (not valid or (step_count[0] % refresh == 0 and used > 0.5 * candidate_slack)) and (
                     4.0 * body_moved[0] <= candidate_slack):
-                wp.atomic_add(fallbacks, 0, 1)
+                wp.atomic_add(fallbacks, part, 1)
                 # not valid when more triangles were near than it has room for
                 valid = gather_candidates(xp, search + candidate_slack, bvh, points, indices, p, candidates) >= 0
             if valid:
@@ -943,7 +950,7 @@ def body_collide(
             else:
                 listed = False
         if not listed:
-            wp.atomic_add(fallbacks, 0, 1)
+            wp.atomic_add(fallbacks, part, 1)
             found, sd, nf, corner = closest_in_boxes(xp, search, tie, bvh, points, indices)
         if found:
             measured = sd

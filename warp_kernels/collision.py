@@ -1073,11 +1073,17 @@ def sweep_poses(
     lower: wp.array(dtype=wp.vec3),
     upper: wp.array(dtype=wp.vec3),
     moved: wp.array(dtype=float),
+    first: int,
+    part: int,
 ):
     """Each point's bounding box over a run of poses, and how far the points moved into each pose;
     the poses skinned here (skinning.skin_points for every pose at once) or given.
 
-    Launch: one thread per point (dim = num_points).
+    A range of the points may be swept on its own (one per CPU core, sim.Collider.sweep): each range
+    raises a row of moved of its own, since a CPU's atomics are not atomic across launches running
+    at once, and largest_of_rows takes the largest over the rows.
+
+    Launch: one thread per point of a range (dim = points in the range).
     Inputs:
       skinned (int, flag): non-zero skins the poses of bone_matrices into poses; zero reads poses
       rest_points (vec3, per point, m): points in the bind pose (skinned; may be None otherwise)
@@ -1087,16 +1093,20 @@ def sweep_poses(
       num_bones (int): matrices per pose
       num_points (int): points per pose
       num_poses (int): poses, at least 1
+      first (int, index): the range's first point; thread t sweeps point first + t
+      part (int, index): the row of moved the range raises
     In/out:
       poses (vec3, num_poses * num_points, m): the poses' points back to back: written (skinned) or
           read
-      moved (float, per pose, m): raised to the largest distance a point moved from pose k - 1 to
-          pose k (as largest_displacement); zero it first; element 0 is left as it is
+      moved (float, num_poses per row, m): row `part` raised to the largest distance a point of the
+          range moved from pose k - 1 to pose k (as largest_displacement); zero it first; element 0
+          of a row is left as it is
     Outputs:
       lower (vec3, per point, m): each point's box over the poses, its least corner
       upper (vec3, per point, m): and its greatest
     """
-    i = wp.tid()
+    i = wp.tid() + first
+    row = part * num_poses
     p = wp.vec3(0.0)
     lo = p
     hi = p
@@ -1112,13 +1122,33 @@ def sweep_poses(
             hi = q
         else:
             d = wp.length(q - p)
-            if d > moved[k]:  # most threads skip the atomic once a large motion is in (largest_displacement)
-                wp.atomic_max(moved, k, d)
+            if d > moved[row + k]:  # most threads skip the atomic once a large motion is in (largest_displacement)
+                wp.atomic_max(moved, row + k, d)
             lo = wp.min(lo, q)
             hi = wp.max(hi, q)
         p = q
     lower[i] = lo
     upper[i] = hi
+
+
+@wp.kernel
+def largest_of_rows(rows: wp.array(dtype=float), count: int, columns: int, largest: wp.array(dtype=float)):
+    """The largest value of each column over rows of values (the rows of ranges swept side by side,
+    sweep_poses).
+
+    Launch: one thread per column (dim = columns).
+    Inputs:
+      rows (float, count * columns): the rows back to back
+      count (int): rows
+      columns (int): values per row
+    Outputs:
+      largest (float, per column): each column's largest value
+    """
+    k = wp.tid()
+    best = rows[k]
+    for r in range(1, count):
+        best = wp.max(best, rows[r * columns + k])
+    largest[k] = best
 
 
 @wp.kernel
