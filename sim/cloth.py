@@ -19,8 +19,11 @@ from .errors import SimulationError
 from .graphs import core_slices, run_parallel
 
 # the body collision of a step is split among the CPU's cores in ranges of at least this many
-# particles: a range costs its launch and a hand-over between threads, tens of microseconds
-COLLIDE_PARTICLES_PER_CORE = 128
+# particles. A collision costs about 0.7 us per particle, a hand-over between threads tens of
+# microseconds, more when the other core has been idle: the paper's dress (332 particles) split in
+# two ran 17% faster in frames back to back, but 5% slower with 20 ms idle between frames and 2%
+# slower through `cfx run`, so it stays one range (BENCHMARKS.md, session 31)
+COLLIDE_PARTICLES_PER_CORE = 2048
 
 STRETCH, SHEAR, BEND = 0, 1, 2
 
