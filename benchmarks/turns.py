@@ -8,6 +8,11 @@ each waiting (blocked on a pipe, taking no CPU) while the other runs: a drift hi
 pair alike, and the ratio B/A of each pair keeps what the code changed. The table gives each side's
 median and fastest frame and the median and quartiles of the pair ratios.
 
+Each frame starts after the other side's, with this side's cores idle meanwhile: that is the case
+of a paced real-time loop, not of frames run back to back. Work split among the cores (graphs
+run_parallel) pays a hand-over to a woken core per split step, so a change that adds split steps can
+show nothing here and gain in benchmarks/realtime.py (BENCHMARKS.md, session 31): time both.
+
     python benchmarks/turns.py BEFORE_DIR AFTER_DIR --scene examples/scenes/walk_dress.toml
     python benchmarks/turns.py BEFORE_DIR AFTER_DIR --hair full+mesh --strands 1000 --frames 40
     python benchmarks/turns.py BEFORE_DIR AFTER_DIR --realtime simplified1+spheres "proxy 2.5 cm"
