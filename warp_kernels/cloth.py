@@ -377,6 +377,25 @@ def least_inside_plane(p: wp.vec3, vtx: int, points: wp.array(dtype=wp.vec3), in
 
 
 @wp.func
+def face_corners(points: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.int32), f: int):
+    """A body triangle's three vertices and their posed positions (what a box query's candidate
+    needs before its distance is taken).
+
+    Inputs:
+      points (vec3, per body vertex, m): posed body vertices
+      indices (int32, 3 per body triangle): body triangles
+      f (int, index): the triangle
+    Returns:
+      vec3i: its body vertices
+      vec3 (m): the first vertex's position
+      vec3 (m): the second's
+      vec3 (m): the third's
+    """
+    corners = wp.vec3i(indices[3 * f + 0], indices[3 * f + 1], indices[3 * f + 2])
+    return corners, points[corners[0]], points[corners[1]], points[corners[2]]
+
+
+@wp.func
 def nearest_corner(p: wp.vec3, corners: wp.vec3i, points: wp.array(dtype=wp.vec3)):
     """The one of a triangle's three body vertices nearest p: where a walk restarts after a query.
 
@@ -406,7 +425,8 @@ def closest_corner(p: wp.vec3, face: int, points: wp.array(dtype=wp.vec3), indic
     Returns:
       int: the body vertex
     """
-    return nearest_corner(p, wp.vec3i(indices[3 * face], indices[3 * face + 1], indices[3 * face + 2]), points)
+    corners, _a, _b, _c = face_corners(points, indices, face)
+    return nearest_corner(p, corners, points)
 
 
 @wp.func
@@ -543,10 +563,7 @@ def gather_candidates(xp: wp.vec3, radius: float, bvh: wp.uint64, points: wp.arr
     query = wp.bvh_query_aabb(bvh, xp - wp.vec3(radius), xp + wp.vec3(radius))
     f = int(0)
     while wp.bvh_query_next(query, f):
-        corners = wp.vec3i(indices[3 * f + 0], indices[3 * f + 1], indices[3 * f + 2])
-        a = points[corners[0]]
-        b = points[corners[1]]
-        c = points[corners[2]]
+        corners, a, b, c = face_corners(points, indices, f)
         w = closest_on_triangle(xp, a, b, c)
         d = wp.length(xp - (w[0] * a + w[1] * b + w[2] * c))
         if d <= radius:
@@ -709,10 +726,7 @@ def closest_in_boxes(xp: wp.vec3, max_dist: float, tie: float, bvh: wp.uint64, p
         query = wp.bvh_query_aabb(bvh, xp - wp.vec3(radius), xp + wp.vec3(radius))
         f = int(0)
         while wp.bvh_query_next(query, f):
-            corners = wp.vec3i(indices[3 * f + 0], indices[3 * f + 1], indices[3 * f + 2])
-            a = points[corners[0]]
-            b = points[corners[1]]
-            c = points[corners[2]]
+            corners, a, b, c = face_corners(points, indices, f)
             outside = wp.max(wp.max(wp.min(wp.min(a, b), c) - xp, xp - wp.max(wp.max(a, b), c)), wp.vec3(0.0))
             reach = best + tie
             if wp.length_sq(outside) <= reach * reach:
