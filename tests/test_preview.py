@@ -93,6 +93,32 @@ def test_project_agrees_with_the_renderer(tmp_path):
     np.testing.assert_allclose([cols.mean() + 0.5, rows.mean() + 0.5], cam.project([centre])[0], atol=1.0)
 
 
+def test_supersampled_frame_is_the_large_frame_averaged_with_strands_as_wide(cache):
+    """A frame is drawn SUPERSAMPLE times larger with one sample per pixel and box-filtered down;
+    strands keep their on-screen width in the final image's pixels, so they darken it as much as
+    strands drawn at the final size do."""
+    from io_usd.preview import HAIR_PIXELS, FrameRenderer
+
+    reader = CacheReader(cache)
+    cam = auto_camera(reader, W, H)
+    with FrameRenderer(reader, W, H, supersample=2) as renderer:
+        image = renderer.render(2, cam)
+    assert image.shape == (H, W, 3) and image.dtype == np.uint8
+    large = Camera(cam.yfov, 2 * W, 2 * H, cam.pose, cam.znear, cam.zfar)
+    with FrameRenderer(reader, 2 * W, 2 * H, hair_pixels=2 * HAIR_PIXELS, supersample=1) as renderer:
+        drawn = renderer.render(2, large).astype(np.int64)
+    averaged = (drawn.reshape(H, 2, W, 2, 3).sum(axis=(1, 3)) + 2) // 4
+    assert np.abs(image.astype(np.int64) - averaged).max() <= 1
+
+    def darkening(supersample):
+        with FrameRenderer(reader, W, H, names=["hair"], shadows=False, supersample=supersample) as renderer:
+            return float(np.sum(BG - renderer.render(2, cam).astype(np.int64)))
+
+    one, four = darkening(1), darkening(2)
+    assert one > 0.0
+    assert abs(four / one - 1.0) < 0.1
+
+
 def test_frame_bounds_keeps_the_box_in_view():
     lo, hi = np.array([-0.2, 0.0, -0.15]), np.array([0.2, 0.6, 0.1])
     cam = Camera.frame_bounds(lo, hi, W, H, yaw_degrees=25, pitch_degrees=10)
