@@ -33,6 +33,7 @@ from .preview import (
     BACKGROUND,
     Camera,
     SceneBuilder,
+    SupersampledOffscreen,
     _font,
     _pyrender,
     build_scene,
@@ -249,7 +250,7 @@ class _Renderer:
 
     def __init__(self, width, height):
         self.pyrender = _pyrender()
-        self.gl = self.pyrender.OffscreenRenderer(int(width), int(height))
+        self.gl = SupersampledOffscreen(width, height)
 
     def render(self, builder, side, camera, shaded=True):
         """(shaded image or None, hair mask, head mask). The flat pass costs a few percent of the
@@ -258,11 +259,10 @@ class _Renderer:
         scene = build_scene(builder, side.frame, camera)
         image = None
         if shaded:
-            image, _ = self.gl.render(scene, flags=pr.RenderFlags.SHADOWS_DIRECTIONAL)
-            image = np.ascontiguousarray(image[:, :, :3])
+            image = self.gl.render(scene, pr.RenderFlags.SHADOWS_DIRECTIONAL)
         hair = set(side.hair)
         colours = {node: ((255, 0, 0) if node.name in hair else (0, 255, 0)) for node in scene.mesh_nodes}
-        seg, _ = self.gl.render(scene, flags=pr.RenderFlags.SEG, seg_node_map=colours)
+        seg = self.gl.render(scene, pr.RenderFlags.SEG, seg_node_map=colours)
         return image, seg[:, :, 0] > 127, seg[:, :, 1] > 127
 
     def close(self):

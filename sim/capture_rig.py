@@ -344,21 +344,22 @@ class Studio:
     (replacing what had that name), and each render returns the image and the depth buffer."""
 
     def __init__(self, cameras, width, height):
-        from io_usd.preview import _pyrender
+        from io_usd.preview import SupersampledOffscreen, _pyrender
 
         pyrender = self._pyrender = _pyrender()
         self.cameras = list(cameras)
         self.width, self.height = int(width), int(height)
+        self._gl = SupersampledOffscreen(self.width, self.height)
         self.scene = pyrender.Scene(bg_color=np.array([*BACKDROP, 1.0]), ambient_light=np.full(3, AMBIENT))
         self._camera_nodes = []
         for cam in self.cameras:
-            (fx, _, cx), (_, fy, cy) = cam.K[0], cam.K[1]
+            # in the drawn image's pixels, with (0, 0) its corner: K's entries scaled
+            (fx, _, cx), (_, fy, cy) = self._gl.supersample * cam.K[:2]
             lens = pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=0.02, zfar=50.0)
             self._camera_nodes.append(self.scene.add(lens, pose=cam.gl_pose(), name=cam.name))
         self._light = self.scene.add(pyrender.DirectionalLight(color=np.ones(3), intensity=HEADLIGHT))
         self._nodes = {}
         self._materials = {}
-        self._gl = pyrender.OffscreenRenderer(self.width, self.height)
 
     def show(self, name, vertices, faces, normals, colors=None, color=None, double_sided=True):
         """Draw a triangle mesh under `name`: per-vertex linear RGB `colors` or one `color`."""
@@ -383,11 +384,11 @@ class Studio:
             self.scene.remove_node(node)
 
     def render(self, camera_index):
-        """(H, W, 3) uint8 image and (H, W) float32 depth along the view axis [m] (0: backdrop)."""
+        """(H, W, 3) uint8 image and (H, W) float32 depth along the view axis [m] of the nearest
+        surface in each pixel (0: backdrop)."""
         self.scene.main_camera_node = self._camera_nodes[camera_index]
         self.scene.set_pose(self._light, self.cameras[camera_index].gl_pose())
-        color, depth = self._gl.render(self.scene, flags=self._pyrender.RenderFlags.NONE)
-        return np.ascontiguousarray(color[:, :, :3]), depth
+        return self._gl.render_with_depth(self.scene, self._pyrender.RenderFlags.NONE)
 
     def close(self):
         if self._gl is not None:

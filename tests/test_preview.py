@@ -119,6 +119,41 @@ def test_supersampled_frame_is_the_large_frame_averaged_with_strands_as_wide(cac
     assert abs(four / one - 1.0) < 0.1
 
 
+def test_supersampled_depth_is_the_nearest_surface_a_pixels_samples_saw(tmp_path):
+    """The depth a capture's visibility test reads: along the view axis to the ball's front at its
+    centre, 0 off it, and at its rim the ball wherever one of the pixel's four samples hit it."""
+    import trimesh
+
+    from io_usd.preview import SupersampledOffscreen, _pyrender
+
+    pyrender = _pyrender()
+    radius, distance = 0.05, 0.5
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    cam = Camera.look_at(eye=(0.0, 0.0, distance), target=(0.0, 0.0, 0.0), yfov=0.3, width=W, height=H)
+
+    def draw(width, height, supersample):  # a scene's meshes belong to the one GL context that drew them
+        scene = pyrender.Scene()
+        scene.add(pyrender.Mesh.from_trimesh(ball, smooth=False))
+        scene.add(pyrender.PerspectiveCamera(yfov=cam.yfov, aspectRatio=W / H, znear=0.01, zfar=10.0), pose=cam.pose)
+        gl = SupersampledOffscreen(width, height, supersample)
+        try:
+            return gl.render_with_depth(scene, pyrender.RenderFlags.NONE)
+        finally:
+            gl.delete()
+
+    image, depth = draw(W, H, 2)
+    _, drawn = draw(2 * W, 2 * H, 1)
+    assert image.shape == (H, W, 3) and depth.shape == (H, W)
+    assert depth[H // 2, W // 2] == pytest.approx(distance - radius, abs=1e-3)
+    assert depth[0, 0] == 0.0
+    samples = np.where(drawn > 0.0, drawn, np.inf).reshape(H, 2, W, 2).min(axis=(1, 3))
+    np.testing.assert_array_equal(depth, np.where(np.isfinite(samples), samples, 0.0))
+    hit_by_some = (drawn > 0.0).reshape(H, 2, W, 2).any(axis=(1, 3))
+    hit_by_all = (drawn > 0.0).reshape(H, 2, W, 2).all(axis=(1, 3))
+    assert np.count_nonzero(hit_by_some & ~hit_by_all) > 20  # the rim is there, and counts as the ball
+    np.testing.assert_array_equal(depth > 0.0, hit_by_some)
+
+
 def test_frame_bounds_keeps_the_box_in_view():
     lo, hi = np.array([-0.2, 0.0, -0.15]), np.array([0.2, 0.6, 0.1])
     cam = Camera.frame_bounds(lo, hi, W, H, yaw_degrees=25, pitch_degrees=10)
