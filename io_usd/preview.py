@@ -210,7 +210,8 @@ def hair_ribbons(points, counts, widths, eye, min_width=0.0, roundness=0.6, twis
     to face the eye. Normals start from the view direction (made perpendicular to the tangent),
     turned about the tangent by the per-strand angle `twist` (radians, optional) so neighbouring
     strands catch the light differently, then lean towards -a and +a by `roundness` so a ribbon
-    shades like a thin cylinder.
+    shades like a thin cylinder. Segments come nearest the eye first, so that a depth test rejects
+    the strands behind before they are shaded (llvmpipe: a close-up of the demo's hair 960 -> 760 ms).
 
     Returns (vertices (2N, 3) float32, faces (2 * segments, 3) int32, normals (2N, 3) float32).
     """
@@ -220,7 +221,8 @@ def hair_ribbons(points, counts, widths, eye, min_width=0.0, roundness=0.6, twis
     if int(counts.sum()) != n:
         raise ValueError(f"hair_ribbons: counts add up to {int(counts.sum())}, but there are {n} points")
     tangent = _normalize(strand_tangents(points, counts))
-    view = _normalize(np.asarray(eye, np.float64) - points, fallback=np.array([0.0, 0.0, 1.0]))
+    to_eye = np.asarray(eye, np.float64) - points
+    view = _normalize(to_eye, fallback=np.array([0.0, 0.0, 1.0]))
     # a strand seen end-on has no defined across-direction; any perpendicular to the view will do
     side = np.where(np.abs(view[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
     across = _normalize(np.cross(tangent, view), fallback=_normalize(np.cross(side, view)))
@@ -240,7 +242,8 @@ def hair_ribbons(points, counts, widths, eye, min_width=0.0, roundness=0.6, twis
 
     has_next = np.ones(n, bool)
     has_next[(np.cumsum(counts) - 1)[counts > 0]] = False
-    i = 2 * np.flatnonzero(has_next)
+    first = np.flatnonzero(has_next)
+    i = 2 * first[np.argsort(np.einsum("ij,ij->i", to_eye[first], to_eye[first]), kind="stable")]
     faces = np.stack([np.stack([i, i + 1, i + 3], 1), np.stack([i, i + 3, i + 2], 1)], 1).reshape(-1, 3)
     return vertices.astype(np.float32), faces.astype(np.int32), normals.astype(np.float32)
 

@@ -195,6 +195,10 @@ def test_hair_ribbons_face_the_eye():
     facing = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     assert np.all(np.sum(facing * (eye - tri.mean(1)), 1) > 0)
     assert np.all(np.sum(normals * np.repeat(view, 2, 0), 1) > 0)
+    # every segment's two triangles, the segments nearest the eye first
+    np.testing.assert_array_equal(faces[0::2, 0], faces[1::2, 0])
+    assert sorted(faces[0::2, 0] // 2) == [p for p in range(counts.sum()) if p + 1 not in np.cumsum(counts)]
+    assert np.all(np.diff(np.linalg.norm(points[faces[0::2, 0] // 2] - eye, axis=1)) >= 0.0)
 
 
 def test_strand_tangents_are_one_sided_at_the_ends():
