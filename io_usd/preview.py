@@ -467,9 +467,31 @@ class FrameRenderer:
 
     def render(self, frame, camera):
         """(camera.height, camera.width, 3) uint8 image of `frame`."""
+        return self._draw(camera, build_scene(self.builder, frame, camera, self.background))
+
+    def render_sequence(self, frames, camera_of):
+        """The images of `frames` in order, each seen by camera_of(frame). The next frame's scene is
+        built on a second thread while the GL draws this one: its NumPy work and the wait for the
+        GL both release the GIL."""
+        from concurrent.futures import ThreadPoolExecutor
+
+        frames = list(frames)
+
+        def build(frame):
+            camera = camera_of(frame)
+            return camera, build_scene(self.builder, frame, camera, self.background)
+
+        with ThreadPoolExecutor(1) as pool:
+            pending = [pool.submit(build, f) for f in frames[:1]]
+            for k in range(len(frames)):
+                camera, scene = pending.pop().result()
+                pending += [pool.submit(build, f) for f in frames[k + 1:k + 2]]
+                yield self._draw(camera, scene)
+
+    def _draw(self, camera, scene):
         if (self._gl.width, self._gl.height) != (camera.width, camera.height):
             self._gl.resize(camera.width, camera.height)
-        return self._gl.render(build_scene(self.builder, frame, camera, self.background), self.flags)
+        return self._gl.render(scene, self.flags)
 
     def close(self):
         if self._gl is not None:
@@ -636,15 +658,19 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     folder = os.path.dirname(os.path.abspath(out_path))
     os.makedirs(folder, exist_ok=True)
     tmp = os.path.join(folder, f".{os.path.basename(out_path)}.partial-{os.getpid()}{ext}")
-    bar = tqdm(chosen, desc=f"preview {os.path.basename(out_path)}", unit="frame", file=sys.stderr,
+    bar = tqdm(total=len(chosen), desc=f"preview {os.path.basename(out_path)}", unit="frame", file=sys.stderr,
                disable=not progress or len(chosen) < 2, leave=False)
     try:
         with FrameRenderer(reader, camera.width, camera.height, shadows=shadows) as renderer:
             def view(f):
                 return auto_camera(reader, camera.width, camera.height, [f], names) if follow else camera
 
-            images = (renderer.render(f, view(f)) for f in bar)
-            write_images(images, [f"frame {f}" for f in chosen], tmp, ext, reader.fps or 24.0, columns)
+            def images():
+                for image in renderer.render_sequence(chosen, view):
+                    bar.update(1)
+                    yield image
+
+            write_images(images(), [f"frame {f}" for f in chosen], tmp, ext, reader.fps or 24.0, columns)
         os.replace(tmp, out_path)
     finally:
         bar.close()

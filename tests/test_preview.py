@@ -154,6 +154,23 @@ def test_supersampled_depth_is_the_nearest_surface_a_pixels_samples_saw(tmp_path
     np.testing.assert_array_equal(depth > 0.0, hit_by_some)
 
 
+def test_a_sequence_renders_each_frame_as_render_does_while_building_the_next(cache):
+    """render_sequence builds frame k+1's scene on a second thread while frame k is drawn: the same
+    images in the same order, each with its own camera (llvmpipe's threads may settle a tie of
+    equal depths differently, so a few pixels may differ)."""
+    from io_usd.preview import FrameRenderer
+
+    reader = CacheReader(cache)
+    cameras = {f: auto_camera(reader, W, H, [f]) for f in (1, 2, 3)}
+    with FrameRenderer(reader, W, H) as renderer:
+        one_by_one = [renderer.render(f, cameras[f]) for f in (3, 1, 2)]
+        sequence = list(renderer.render_sequence([3, 1, 2], cameras.__getitem__))
+    assert len(sequence) == 3
+    for a, b in zip(one_by_one, sequence):
+        assert np.mean(np.abs(a.astype(int) - b).max(axis=2) > 0) < 0.002
+    assert np.abs(sequence[0].astype(int) - sequence[1]).max() > 40  # the frames do differ
+
+
 def test_frame_bounds_keeps_the_box_in_view():
     lo, hi = np.array([-0.2, 0.0, -0.15]), np.array([0.2, 0.6, 0.1])
     cam = Camera.frame_bounds(lo, hi, W, H, yaw_degrees=25, pitch_degrees=10)
@@ -294,10 +311,10 @@ def test_bad_requests_raise_value_error(cache, tmp_path):
 def test_failed_render_leaves_nothing(cache, tmp_path, monkeypatch):
     from io_usd import preview as module
 
-    def broken(self, frame, camera):
+    def broken(self, camera, scene):
         raise RuntimeError("GL went away")
 
-    monkeypatch.setattr(module.FrameRenderer, "render", broken)
+    monkeypatch.setattr(module.FrameRenderer, "_draw", broken)
     for name in ("x.png", "x.gif", "x.mp4"):
         with pytest.raises(RuntimeError, match="GL went away"):
             preview(cache, str(tmp_path / name), width=W, height=H)
