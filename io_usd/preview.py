@@ -411,12 +411,20 @@ class SupersampledOffscreen:
     principal point must be given in drawn pixels, `supersample` times the image's."""
 
     def __init__(self, width, height, supersample=SUPERSAMPLE):
-        self.supersample = int(supersample)
-        if self.supersample < 1:
+        """Near the GL's largest framebuffer, fewer samples are drawn; beyond it, ValueError."""
+        from OpenGL.GL import GL_MAX_RENDERBUFFER_SIZE, glGetIntegerv
+
+        if int(supersample) < 1:
             raise ValueError(f"supersample must be 1 or more, got {supersample}")
         self.width, self.height = int(width), int(height)
         self._pyrender = _pyrender()
-        self._gl = self._pyrender.OffscreenRenderer(self.width * self.supersample, self.height * self.supersample)
+        self._gl = self._pyrender.OffscreenRenderer(self.width, self.height)  # its context is now current
+        limit = int(glGetIntegerv(GL_MAX_RENDERBUFFER_SIZE))
+        if max(self.width, self.height) > limit:
+            self.delete()
+            raise ValueError(f"image size {self.width}x{self.height}: larger than this GL draws ({limit} pixels a side)")
+        self.supersample = min(int(supersample), limit // max(self.width, self.height))
+        self.resize(self.width, self.height)
 
     def resize(self, width, height):
         self.width, self.height = int(width), int(height)

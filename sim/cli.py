@@ -23,9 +23,13 @@ def _frames(text):
     return [int(p) for p in text.split(",")]
 
 
-def _size(text):
-    w, h = text.lower().split("x")
-    return int(w), int(h)
+def _size(text, example="960x720"):
+    """(width, height) of a --size WIDTHxHEIGHT; ValueError naming the flag for anything else."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--size: expected WIDTHxHEIGHT in pixels, e.g. {example}, got {text!r}") from None
+    return w, h
 
 
 def _overrides(args):
@@ -153,10 +157,7 @@ def cmd_studio(args):
     for path in (args.cache, args.script):
         if path and os.path.abspath(path) == os.path.abspath(args.scene):
             return _fail(f"{path}: would overwrite the scene file", EXIT_INPUT)
-    try:
-        width, height = _size(args.size)
-    except ValueError:
-        return _fail(f"--size: expected WIDTHxHEIGHT in pixels, e.g. 960x720, got {args.size!r}", EXIT_INPUT)
+    width, height = _size(args.size)
     session = Session(sim.load_scene(args.scene, _overrides(args)), width, height)
     try:
         StudioWindow(session, args.cache, args.script, max_frames=args.max_frames).run()
@@ -175,10 +176,7 @@ def cmd_score(args):
 
     if args.output and os.path.splitext(args.output)[1].lower() != ".png":
         return _fail(f"{args.output}: the score report is a PNG; name it .png", EXIT_INPUT)
-    try:
-        size = _size(args.size)
-    except ValueError:
-        return _fail(f"--size: expected WIDTHxHEIGHT in pixels, e.g. 480x480, got {args.size!r}", EXIT_INPUT)
+    size = _size(args.size, example="480x480")
     report = score_caches(args.result, args.target, frame=args.frame, size=size, images=bool(args.output))
     print(report.table())
     if args.output:

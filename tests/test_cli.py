@@ -66,6 +66,14 @@ def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path, capsys):
     assert Image.open(sheet).size == (320, 240)  # 3 frames in a 2 x 2 grid
     assert capsys.readouterr().err == ""  # -q: no progress bar either
     assert main(["preview", out, "-o", str(tmp_path / "x.png"), "--frames", "9", "-q"]) == 2
+    # a malformed size and one beyond what the GL draws: one line each, exit 2, nothing written
+    capsys.readouterr()
+    for size, reason in (("160x120x", "--size: expected WIDTHxHEIGHT in pixels"),
+                         ("100000x120", "image size 100000x120: larger than this GL draws")):
+        assert main(["preview", out, "-o", str(tmp_path / "y.png"), "--size", size, "-q"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and reason in err, err
+    assert not (tmp_path / "y.png").exists()
 
 
 @pytest.mark.parametrize("command", ["info", "preview"])

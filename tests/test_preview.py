@@ -171,6 +171,22 @@ def test_a_sequence_renders_each_frame_as_render_does_while_building_the_next(ca
     assert np.abs(sequence[0].astype(int) - sequence[1]).max() > 40  # the frames do differ
 
 
+def test_an_image_near_the_gls_largest_framebuffer_is_drawn_with_fewer_samples():
+    from OpenGL.GL import GL_MAX_RENDERBUFFER_SIZE, glGetIntegerv
+
+    from io_usd.preview import SupersampledOffscreen
+
+    gl = SupersampledOffscreen(16, 16)
+    limit = int(glGetIntegerv(GL_MAX_RENDERBUFFER_SIZE))
+    assert gl.supersample == 2
+    gl.delete()
+    gl = SupersampledOffscreen(limit // 2 + 1, 8)
+    assert gl.supersample == 1  # twice as wide would not fit
+    gl.delete()
+    with pytest.raises(ValueError, match=f"larger than this GL draws \\({limit} pixels a side\\)"):
+        SupersampledOffscreen(limit + 1, 8)
+
+
 def test_frame_bounds_keeps_the_box_in_view():
     lo, hi = np.array([-0.2, 0.0, -0.15]), np.array([0.2, 0.6, 0.1])
     cam = Camera.frame_bounds(lo, hi, W, H, yaw_degrees=25, pitch_degrees=10)
