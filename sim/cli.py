@@ -14,13 +14,22 @@ def _fail(message, status):
 
 
 def _frames(text):
-    """'12' -> [12]; '1:72:12' -> [1, 13, ...] (inclusive end); '1,24,48' -> [1, 24, 48]."""
-    if ":" in text:
-        parts = [int(p) for p in text.split(":")]
-        start, end = parts[0], parts[1]
-        step = parts[2] if len(parts) > 2 else 1
-        return list(range(start, end + 1, step))
-    return [int(p) for p in text.split(",")]
+    """'12' -> [12]; '1:72:12' -> [1, 13, ...] (inclusive end); '1,24,48' -> [1, 24, 48]. ValueError
+    naming the flag for anything else, or a range that holds no frame."""
+    try:
+        if ":" in text:
+            parts = [int(p) for p in text.split(":")]
+            if len(parts) not in (2, 3) or min(parts[2:], default=1) <= 0:
+                raise ValueError
+            frames = list(range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1))
+        else:
+            frames = [int(p) for p in text.split(",")]
+    except ValueError:
+        frames = []
+    if not frames:
+        raise ValueError(f"--frames: expected a frame (12), a list (1,24,48) or a range start:end[:step] with a "
+                         f"positive step (1:72:12), got {text!r}")
+    return frames
 
 
 def _size(text, example="960x720"):

@@ -68,9 +68,12 @@ def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path, capsys):
     assert main(["preview", out, "-o", str(tmp_path / "x.png"), "--frames", "9", "-q"]) == 2
     # a malformed size and one beyond what the GL draws: one line each, exit 2, nothing written
     capsys.readouterr()
-    for size, reason in (("160x120x", "--size: expected WIDTHxHEIGHT in pixels"),
-                         ("100000x120", "image size 100000x120: larger than this GL draws")):
-        assert main(["preview", out, "-o", str(tmp_path / "y.png"), "--size", size, "-q"]) == 2
+    for flag, value, reason in (("--size", "160x120x", "--size: expected WIDTHxHEIGHT in pixels"),
+                                ("--size", "100000x120", "image size 100000x120: larger than this GL draws"),
+                                ("--frames", "abc", "--frames: expected a frame (12), a list"),
+                                ("--frames", "1:3:0", "with a positive step (1:72:12), got '1:3:0'"),
+                                ("--frames", "3:1", "--frames: expected")):
+        assert main(["preview", out, "-o", str(tmp_path / "y.png"), flag, value, "-q"]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and reason in err, err
     assert not (tmp_path / "y.png").exists()
