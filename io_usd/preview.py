@@ -422,13 +422,15 @@ class SupersampledOffscreen:
         limit = int(glGetIntegerv(GL_MAX_RENDERBUFFER_SIZE))
         if max(self.width, self.height) > limit:
             self.delete()
-            raise ValueError(f"image size {self.width}x{self.height}: larger than this GL draws ({limit} pixels a side)")
+            raise ValueError(f"image size {self.width}x{self.height}: larger than this GL draws "
+                             f"({limit} pixels a side)")
         self.supersample = min(int(supersample), limit // max(self.width, self.height))
         self.resize(self.width, self.height)
 
     def resize(self, width, height):
         self.width, self.height = int(width), int(height)
-        self._gl.viewport_width, self._gl.viewport_height = self.width * self.supersample, self.height * self.supersample
+        s = self.supersample
+        self._gl.viewport_width, self._gl.viewport_height = self.width * s, self.height * s
 
     def render(self, scene, flags, **options):
         """(H, W, 3) uint8 image of a scene built for the drawn size: each pixel the mean of its
