@@ -149,11 +149,12 @@ def test_supersampled_depth_is_the_nearest_surface_a_pixels_samples_saw(tmp_path
     assert depth[0, 0] == 0.0
     samples = np.where(drawn > 0.0, drawn, np.inf).reshape(H, 2, W, 2).min(axis=(1, 3))
     # equal, but for a pixel or two where the two draws settled a tie differently
-    assert np.mean(depth != np.where(np.isfinite(samples), samples, 0.0)) < 0.002
+    assert np.count_nonzero(depth != np.where(np.isfinite(samples), samples, 0.0)) <= 4
     hit_by_some = (drawn > 0.0).reshape(H, 2, W, 2).any(axis=(1, 3))
     hit_by_all = (drawn > 0.0).reshape(H, 2, W, 2).all(axis=(1, 3))
-    assert np.count_nonzero(hit_by_some & ~hit_by_all) > 20  # the rim is there, and counts as the ball
-    assert np.mean((depth > 0.0) != hit_by_some) < 0.002
+    rim = np.count_nonzero(hit_by_some & ~hit_by_all)
+    assert rim > 60  # the rim is there (one sample per pixel would miss about half of it), and counts as the ball
+    assert np.count_nonzero((depth > 0.0) != hit_by_some) <= 4
 
 
 def test_a_sequence_renders_each_frame_as_render_does_while_building_the_next(cache):
