@@ -425,8 +425,12 @@ def _landmarks(v, sk, parts):
     return out
 
 
-@functools.lru_cache(maxsize=4)
-def _build(resolution, relax_iterations):
+_ARRAYS = ("vertices", "faces", "skin_indices", "skin_weights", "scalp_faces")
+_LANDMARK = "landmark."  # prefix of the landmarks' keys among a cached body's arrays
+
+
+def _build_arrays(resolution, relax_iterations):
+    """The mesh, skinning, scalp and landmarks as named arrays (what the asset cache stores)."""
     sk = default_skeleton()
     parts = _parts(sk) + [_head_part()]
     mesh = _extract(parts, resolution, relax_iterations)
@@ -435,10 +439,23 @@ def _build(resolution, relax_iterations):
     idx, w = _skin_weights(mesh, parts, sk)
     scalp = _scalp_faces(v - np.asarray(HEAD_OFFSET), f)
     arrays = dict(vertices=v, faces=f, skin_indices=idx, skin_weights=w, scalp_faces=scalp)
+    arrays.update({_LANDMARK + k: np.asarray(x, np.float64) for k, x in _landmarks(v, sk, parts).items()})
+    return arrays
+
+
+@functools.lru_cache(maxsize=4)
+def _build(resolution, relax_iterations):
+    from .asset_cache import cached_arrays
+
+    arrays = cached_arrays("body", ("procedural_body", resolution, relax_iterations),
+                           lambda: _build_arrays(resolution, relax_iterations))
+    landmarks = {k[len(_LANDMARK):]: (float(a) if a.ndim == 0 else a) for k, a in arrays.items()
+                 if k.startswith(_LANDMARK)}
     for a in arrays.values():
         a.setflags(write=False)
+    sk = default_skeleton()
     return BodyAsset("body", pivot=tuple(float(c) for c in sk.rest_positions[sk.index("head")]),
-                     num_bones=sk.num_joints, skeleton=sk, landmarks=_landmarks(v, sk, parts), **arrays)
+                     num_bones=sk.num_joints, skeleton=sk, landmarks=landmarks, **{k: arrays[k] for k in _ARRAYS})
 
 
 def procedural_body(resolution=0.0125, relax_iterations=4):

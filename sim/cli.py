@@ -204,6 +204,26 @@ def cmd_view(args):
     return 0
 
 
+def cmd_cache(args):
+    """Where the asset cache is, what it holds, and --clear to empty it."""
+    from . import asset_cache
+
+    folder = asset_cache.cache_dir()
+    if folder is None:
+        print("asset cache: off (CFX_CACHE_DIR=off); the body, garments and grooms are built on every run")
+        return 0
+    if args.clear:
+        print(f"asset cache {folder}: removed {asset_cache.clear()} entries")
+        return 0
+    found = asset_cache.entries()
+    current = f"-{asset_cache.source_digest()}-"
+    print(f"asset cache {folder}: {len(found)} entries, {sum(size for _, size in found) / 1e6:.1f} MB")
+    for path, size in found:
+        state = "" if current in path.name else "  (stale: other engine code or libraries)"
+        print(f"  {path.name}  {size / 1e6:.2f} MB{state}")
+    return 0
+
+
 def cmd_info(args):
     from io_usd.cache import CacheReader
     from io_usd.validate import validation_errors
@@ -330,6 +350,11 @@ def build_parser():
     p = sub.add_parser("view", help="open the interactive viewer (needs a display)")
     p.add_argument("cache")
     p.set_defaults(func=cmd_view)
+
+    p = sub.add_parser("cache", help="the asset cache: built bodies, garments and grooms kept between runs "
+                                     "(CFX_CACHE_DIR sets its folder, or off)")
+    p.add_argument("--clear", action="store_true", help="delete every entry")
+    p.set_defaults(func=cmd_cache)
 
     p = sub.add_parser("info", help="list a cache's prims, roles, frames and counts")
     p.add_argument("cache")

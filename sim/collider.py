@@ -20,6 +20,7 @@ from warp_kernels import collision, skinning
 
 from .collision_proxy import blend_skin_weights, coarse_remesh
 from .graphs import core_slices, launch_on_cores, refit_bvh, run_parallel
+from .mesh_topology import unique_pairs
 from .sphere_tree import POINTS_PER_SLICE, build_sphere_tree, empty_sphere_tree, signed_distance
 
 # a sweep of the poses is split among the CPU's cores in ranges of at least this many points: a
@@ -405,7 +406,7 @@ class _Adjacency:
     def __init__(self, vertices, faces, device):
         n = len(vertices)
         e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-        e = np.unique(np.sort(np.concatenate([e, e[:, ::-1]]), axis=1), axis=0)
+        e = unique_pairs(np.sort(np.concatenate([e, e[:, ::-1]]), axis=1))
         pairs = np.concatenate([e, e[:, ::-1]])
         pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
         vv_start = np.concatenate([[0], np.cumsum(np.bincount(pairs[:, 0], minlength=n))])

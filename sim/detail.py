@@ -19,6 +19,7 @@ import warp as wp
 from warp_kernels import detail as kernels
 
 from .graphs import cpu_cores, run_parallel
+from .mesh_topology import unique_pairs
 
 KIND_VERTEX, KIND_EDGE, KIND_INTERIOR = 0, 1, 2
 # a level of the lift with at least this many samples per CPU core is split among the cores: smaller
@@ -99,7 +100,7 @@ class DetailTopology:
 
         # unique coarse edges; local edge l of a face joins its corners l and l + 1
         corner_pairs = np.stack([tris, np.roll(tris, -1, axis=1)], axis=2)  # (T, 3, 2)
-        self.edges, face_edge = np.unique(np.sort(corner_pairs, axis=2).reshape(-1, 2), axis=0, return_inverse=True)
+        self.edges, face_edge = unique_pairs(np.sort(corner_pairs, axis=2).reshape(-1, 2), return_inverse=True)
         face_edge = face_edge.reshape(nt, 3)
         ne = len(self.edges)
         per_interior = (n - 1) * (n - 2) // 2
@@ -181,7 +182,7 @@ class DetailTopology:
         are adj[start[i]:start[i + 1]], ascending."""
         t = self.triangles
         e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-        e = np.unique(np.concatenate([e, e[:, ::-1]]), axis=0)  # lexicographic: grouped by first vertex
+        e = unique_pairs(np.concatenate([e, e[:, ::-1]]))  # lexicographic: grouped by first vertex
         start = np.concatenate([[0], np.cumsum(np.bincount(e[:, 0], minlength=self.num_vertices))])
         return start, e[:, 1].copy()
 

@@ -24,6 +24,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
 from .errors import InputError
+from .mesh_topology import unique_pairs
 from .sphere_tree import signed_distance, warp_mesh
 
 DEGENERATE_EDGE = 1e-9  # m, an edge shorter than this is treated as zero length
@@ -70,7 +71,7 @@ class GarmentMesh:
     def edges(self):
         """(E, 2) unique undirected polygon edges, each sorted (i < j)."""
         a, b, _, _ = self._corners()
-        return np.unique(np.sort(np.stack([a, b], 1), 1), axis=0)
+        return unique_pairs(np.sort(np.stack([a, b], 1), 1))
 
     def quad_diagonals(self):
         """(2Q, 2) both diagonals of every quad (0-2 then 1-3), each sorted, for shear springs."""
@@ -97,7 +98,7 @@ class GarmentMesh:
         first = (np.cumsum(count) - count)[count == 2]
         h1, h2 = order[first], order[first + 1]
         pairs = np.concatenate([np.stack([far_lo[h1], far_lo[h2]], 1), np.stack([far_hi[h1], far_hi[h2]], 1)])
-        pairs = np.unique(np.sort(pairs, 1), axis=0)
+        pairs = unique_pairs(np.sort(pairs, 1))
         pairs = pairs[pairs[:, 0] != pairs[:, 1]]
         n = len(self.vertices)
         edge_codes = self.edges() @ np.array([n, 1])
@@ -593,29 +594,54 @@ def fit_dress(body, particles=322, ease=0.012, length="knee", flare_degrees=10.0
     (Oshita & Makinouchi's dress has 322). Pinned: the two strap rows on top of each shoulder."""
     if length not in HEMLINES:
         raise ValueError(f"length must be one of {sorted(HEMLINES)}, got {length!r}")
-    sections = _BodySections(body)
-    lm = sections.landmarks
-    a, b, t = HEMLINES[length]
-    return _fit("dress", sections, particles, ease, sections.armpit_y() - 0.03, _lerp(lm[a], lm[b], t),
-                flare_degrees, strap_width, float(lm["waist_y"]))
+
+    def fit():
+        sections = _BodySections(body)
+        lm = sections.landmarks
+        a, b, t = HEMLINES[length]
+        return _fit("dress", sections, particles, ease, sections.armpit_y() - 0.03, _lerp(lm[a], lm[b], t),
+                    flare_degrees, strap_width, float(lm["waist_y"]))
+
+    return _fitted(body, ("dress", particles, ease, length, flare_degrees, strap_width), fit)
 
 
 def fit_skirt(body, particles=180, ease=0.012, flare_degrees=14.0):
     """A flared skirt from the waist to above the knee. Pinned: the waistband (top row)."""
-    sections = _BodySections(body)
-    lm = sections.landmarks
-    return _fit("skirt", sections, particles, ease, float(lm["waist_y"]), _lerp(lm["crotch_y"], lm["knee_y"], 0.7),
-                flare_degrees, 0.0, float(lm["waist_y"]))
+    def fit():
+        sections = _BodySections(body)
+        lm = sections.landmarks
+        return _fit("skirt", sections, particles, ease, float(lm["waist_y"]),
+                    _lerp(lm["crotch_y"], lm["knee_y"], 0.7), flare_degrees, 0.0, float(lm["waist_y"]))
+
+    return _fitted(body, ("skirt", particles, ease, flare_degrees), fit)
 
 
 def fit_shirt(body, particles=240, ease=0.012, strap_width=0.09):
     """A sleeveless top (tank top) from 3 cm below the armpits to just below the hips, with shoulder
     panels about `strap_width` metres wide that leave the neck and the arms free. Pinned: the two
     panel rows on top of each shoulder."""
-    sections = _BodySections(body)
-    lm = sections.landmarks
-    return _fit("shirt", sections, particles, ease, sections.armpit_y() - 0.03,
-                _lerp(lm["hip_y"], lm["crotch_y"], 0.25), 3.0, strap_width, float(lm["waist_y"]))
+    def fit():
+        sections = _BodySections(body)
+        lm = sections.landmarks
+        return _fit("shirt", sections, particles, ease, sections.armpit_y() - 0.03,
+                    _lerp(lm["hip_y"], lm["crotch_y"], 0.25), 3.0, strap_width, float(lm["waist_y"]))
+
+    return _fitted(body, ("shirt", particles, ease, strap_width), fit)
+
+
+def _fitted(body, settings, fit):
+    """fit() through the asset cache: a garment is fitted once per body rest shape, landmarks and settings."""
+    from .asset_cache import cached_arrays
+
+    def build():
+        g = fit()
+        return dict(name=np.array(g.name), vertices=g.vertices, face_counts=g.face_counts,
+                    face_indices=g.face_indices, pinned=g.pinned, thickness=np.array(g.thickness))
+
+    a = cached_arrays("garment", (settings, np.asarray(body.vertices, np.float64), np.asarray(body.faces, np.int64),
+                                  body.landmarks), build)
+    return GarmentMesh(str(a["name"]), a["vertices"], a["face_counts"], a["face_indices"], a["pinned"],
+                       float(a["thickness"]))
 
 
 GARMENTS = {"dress": fit_dress, "skirt": fit_skirt, "shirt": fit_shirt}

@@ -40,8 +40,6 @@ from typing import NamedTuple
 import numpy as np
 from scipy.io import wavfile
 from scipy.ndimage import gaussian_filter1d
-from scipy.optimize import minimize
-from scipy.signal import lfilter, resample_poly
 
 from .errors import InputError
 from .mouth import NUM_MOUTH_PARAMETERS, VOWEL_SHAPES, VOWELS, nearest_vowel
@@ -105,6 +103,8 @@ def resample(samples, rate):
     rate = int(rate)
     if rate == SAMPLE_RATE:
         return samples.copy()
+    from scipy.signal import resample_poly  # imported here: scipy.signal alone takes ~0.9 s to import
+
     g = math.gcd(rate, SAMPLE_RATE)
     return resample_poly(samples, SAMPLE_RATE // g, rate // g)
 
@@ -264,6 +264,8 @@ def train_net(cepstra, targets, name, weights=None, seed=0, weight_decay=1e-3, m
         g_w1 = z.T @ dh + weight_decay * w1
         g_b1 = dh.sum(axis=0)
         return value, np.concatenate([g_w1.ravel(), g_b1, g_w2.ravel(), g_b2])
+
+    from scipy.optimize import minimize  # training only: kept out of every run's start-up
 
     result = minimize(loss, theta0, jac=True, method="L-BFGS-B",
                       options={"maxiter": max_iter, "maxfun": 2 * max_iter, "gtol": 1e-9, "ftol": 1e-14})
@@ -468,6 +470,8 @@ def _tilted(clip, rng):
     Voices and microphones differ in spectral slope (breathy or pressed voice, a dull or bright microphone),
     which moves the low cepstral coefficients without changing the vowel; a dozen synthetic voices span
     little of it, so every clip is also heard tilted."""
+    from scipy.signal import lfilter  # training only: kept out of every run's start-up
+
     beta = rng.uniform(-0.4, 0.7)
     out = lfilter([1.0], [1.0, -beta], clip)
     return out * (np.abs(clip).max() / max(np.abs(out).max(), 1e-12))

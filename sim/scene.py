@@ -22,6 +22,7 @@ from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
 from .graphs import AsyncReadback, FrameGraphs, run_parallel, run_side_by_side
 from .errors import InputError
+from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
 from .hair_solver import HairParams, HairSolver
@@ -507,7 +508,13 @@ class Scene:
                 raise InputError(cfg.source, "head.scalp_faces", str(err)) from None
         scalp = head.vertices[np.unique(head.faces[head.scalp_faces])]
         axis = np.array([0.5 * (scalp[:, 0].min() + scalp[:, 0].max()), 0.0, 0.5 * (scalp[:, 2].min() + scalp[:, 2].max())])
-        points, counts, widths = grow_hairstyle(cfg.hair, roots, normals, self.collider.push_out, axis)
+        # grown once per style, roots and head shape (on a CPU or a GPU: their float32 queries may
+        # round differently), and kept between runs by the asset cache
+        grower = "cuda" if wp.get_device(self.device).is_cuda else "cpu"
+        grown = cached_arrays("groom", (cfg.hair, roots, normals, rest_points, head.faces, axis, grower),
+                              lambda: dict(zip(("points", "counts", "widths"),
+                                               grow_hairstyle(cfg.hair, roots, normals, self.collider.push_out, axis))))
+        points, counts, widths = grown["points"], grown["counts"], grown["widths"]
         model = StrandBuilder().add_strands(points, counts, widths).finalize(self.device, pinned_per_strand=2)
         return model.bind_to_mesh(rest_points, head.faces)
 

@@ -1,10 +1,17 @@
+import atexit
 import os
+import shutil
+import tempfile
 
 import numpy as np
 import pytest
 import warp as wp
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+# a fresh asset cache for each test session (the commands the tests start inherit it): every builder
+# runs at least once per session, whatever the user's own cache holds
+os.environ["CFX_CACHE_DIR"] = tempfile.mkdtemp(prefix="cfx-test-assets-")
+atexit.register(shutil.rmtree, os.environ["CFX_CACHE_DIR"], True)
 from sim.scene import quiet_warp  # noqa: E402
 
 quiet_warp()
