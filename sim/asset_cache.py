@@ -1,9 +1,10 @@
-"""Built assets kept on disk between runs: the mannequin, fitted garments and grown grooms.
+"""Built assets kept on disk between runs: the mannequin, fitted garments, grown grooms, sphere trees.
 
 Building them takes seconds of a run's start (marching cubes over the body's field, a garment's
-cross-sections, a groom grown in a hundred collision passes) and gives the same arrays every time
-for the same inputs. Each entry is an .npz named by two hashes: one of the engine's own sources and
-the versions of the libraries that computed it, one of every input. Any edit to the engine, or
+cross-sections, a groom grown in a hundred collision passes, a greedy cover of a head with spheres)
+and gives the same arrays every time for the same inputs. Each entry is an .npz named by two
+hashes: one of the engine's own sources and the versions of the libraries that computed it, one of
+every input. Any edit to the engine, or
 another numpy, scipy, trimesh, scikit-image or Warp, makes every entry stale; stale entries are
 deleted when a fresh one is written, so the folder holds the current code's assets only.
 

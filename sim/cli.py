@@ -210,7 +210,7 @@ def cmd_cache(args):
 
     folder = asset_cache.cache_dir()
     if folder is None:
-        print("asset cache: off (CFX_CACHE_DIR=off); the body, garments and grooms are built on every run")
+        print("asset cache: off (CFX_CACHE_DIR=off); bodies, garments, grooms and sphere trees are built on every run")
         return 0
     if args.clear:
         print(f"asset cache {folder}: removed {asset_cache.clear()} entries")
@@ -351,7 +351,7 @@ def build_parser():
     p.add_argument("cache")
     p.set_defaults(func=cmd_view)
 
-    p = sub.add_parser("cache", help="the asset cache: built bodies, garments and grooms kept between runs "
+    p = sub.add_parser("cache", help="the asset cache: built bodies, garments, grooms and sphere trees kept between runs "
                                      "(CFX_CACHE_DIR sets its folder, or off)")
     p.add_argument("--clear", action="store_true", help="delete every entry")
     p.set_defaults(func=cmd_cache)

@@ -4,10 +4,10 @@ Leaves are spheres inside the mesh chosen greedily to cover its surface; inner n
 children and are laid out depth first with skip pointers (see warp_kernels.collision).
 """
 
+import heapq
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse
 import warp as wp
 from scipy.spatial import cKDTree
 
@@ -69,9 +69,21 @@ def build_sphere_tree(vertices, faces, max_leaves=1024, tolerance=None, device="
     surface then lies 0.7 mm beyond the spheres at the median and 1.7 mm at the 95th percentile). Candidate centres lie on a grid of
     `grid` cells along the diagonal; `samples` extra random surface points join the vertices and
     face centres as the points to cover (more samples close the gaps between spheres).
+    Built once per mesh and settings: the asset cache keeps the tree between runs.
     """
+    from .asset_cache import cached_arrays
+
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
+    # the grid's inside test runs on `device`, whose float32 queries may round differently
+    where = "cuda" if wp.get_device(device).is_cuda else "cpu"
+    settings = (int(max_leaves), None if tolerance is None else float(tolerance), int(grid), int(samples), where)
+    tree = cached_arrays("sphere_tree", (vertices, faces, settings), lambda: vars(_build_sphere_tree(
+        vertices, faces, max_leaves, tolerance, device, grid, samples)))
+    return SphereTree(**tree)
+
+
+def _build_sphere_tree(vertices, faces, max_leaves, tolerance, device, grid, samples):
     lo, hi = vertices.min(0), vertices.max(0)
     diag = float(np.linalg.norm(hi - lo))
     tol = 0.0035 * diag if tolerance is None else float(tolerance)
@@ -90,22 +102,39 @@ def build_sphere_tree(vertices, faces, max_leaves=1024, tolerance=None, device="
         points.append(trimesh.sample.sample_surface(trimesh.Trimesh(vertices, faces, process=False), samples,
                                                     seed=0)[0])
     samples = np.concatenate(points)
-    tree = cKDTree(samples)
-    rows, cols = [], []
-    for k, hits in enumerate(tree.query_ball_point(cand_c, cand_r + tol)):
-        rows.extend([k] * len(hits))
-        cols.extend(hits)
-    cover = scipy.sparse.csr_matrix((np.ones(len(rows)), (rows, cols)), shape=(len(cand_c), len(samples)))
-    uncovered = np.ones(len(samples))
-    chosen = []
-    while len(chosen) < max_leaves and uncovered.any():
-        gain = cover @ uncovered
-        best = int(np.argmax(gain))
-        if gain[best] <= 0:
-            break
-        chosen.append(best)
-        uncovered[cover[best].indices] = 0.0
+    # the samples each candidate covers, as CSR rows
+    hits = cKDTree(samples).query_ball_point(cand_c, cand_r + tol, workers=-1, return_sorted=False)
+    start = np.concatenate([[0], np.cumsum([len(h) for h in hits])]).astype(np.int64)
+    covered = np.concatenate([np.asarray(h, np.int64) for h in hits]) if len(hits) else np.zeros(0, np.int64)
+    chosen = greedy_cover(start, covered, len(samples), max_leaves)
     return _hierarchy(cand_c[chosen], cand_r[chosen])
+
+
+def greedy_cover(start, covered, num_samples, max_sets):
+    """Greedy set cover: repeatedly the candidate that covers the most samples not yet covered (the
+    lowest index among equals), until max_sets are chosen or nothing more is covered.
+
+    Candidate k covers samples covered[start[k]:start[k + 1]]. Evaluated lazily: what a candidate
+    would add only shrinks as samples get covered, so a gain computed earlier bounds it from above
+    and only the candidate on top of the heap needs counting again; it is chosen once its fresh gain
+    still leads. The choices are those of recounting every candidate at every step.
+    """
+    uncovered = np.ones(num_samples, bool)
+    heap = [(-int(g), k) for k, g in enumerate(np.diff(start)) if g > 0]
+    heapq.heapify(heap)
+    chosen = []
+    while heap and len(chosen) < max_sets:
+        _, k = heapq.heappop(heap)
+        rows = covered[start[k]:start[k + 1]]
+        gain = int(np.count_nonzero(uncovered[rows]))
+        if gain == 0:
+            continue
+        if heap and (-gain, k) > heap[0]:
+            heapq.heappush(heap, (-gain, k))  # another may now cover more: counted next
+            continue
+        chosen.append(k)
+        uncovered[rows] = False
+    return np.asarray(chosen, np.int64)
 
 
 def empty_sphere_tree():

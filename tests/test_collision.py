@@ -50,6 +50,44 @@ def test_sphere_tree_leaves_lie_inside_the_head_and_cover_it(head, head_collider
         assert np.all(reach <= t.radii[i] + 1e-6)
 
 
+def test_lazy_greedy_cover_chooses_what_recounting_every_candidate_chooses():
+    """Against the plain greedy (every candidate's gain recounted at every step, the lowest index
+    among equals), on random sets full of ties and on sets that cover everything before the limit."""
+    from sim.sphere_tree import greedy_cover
+
+    rng = np.random.default_rng(11)
+    for sets, samples, size, limit in ((300, 500, 12, 60), (200, 80, 6, 500), (50, 1000, 200, 20)):
+        rows = [rng.choice(samples, rng.integers(0, size + 1), replace=False) for _ in range(sets)]
+        start = np.concatenate([[0], np.cumsum([len(r) for r in rows])])
+        covered = np.concatenate(rows).astype(np.int64)
+        dense = np.zeros((sets, samples))
+        for k, r in enumerate(rows):
+            dense[k, r] = 1.0
+        uncovered, want = np.ones(samples), []
+        while len(want) < limit and uncovered.any():
+            gain = dense @ uncovered
+            if gain.max() <= 0:
+                break
+            want.append(int(np.argmax(gain)))
+            uncovered[dense[want[-1]] > 0] = 0.0
+        assert greedy_cover(start, covered, samples, limit).tolist() == want
+
+
+def test_a_cached_sphere_tree_is_the_tree_built_without_the_cache(head, tmp_path, monkeypatch):
+    from sim.sphere_tree import build_sphere_tree
+
+    monkeypatch.setenv("CFX_CACHE_DIR", str(tmp_path))
+    built = build_sphere_tree(head.vertices, head.faces, max_leaves=64)
+    cached = build_sphere_tree(head.vertices, head.faces, max_leaves=64)
+    monkeypatch.setenv("CFX_CACHE_DIR", "off")
+    fresh = build_sphere_tree(head.vertices, head.faces, max_leaves=64)
+    assert fresh.leaf_count == 64 and len(list(tmp_path.glob("sphere_tree-*.npz"))) == 1
+    for key in ("centers", "radii", "skip", "is_leaf"):
+        for tree in (built, cached):
+            assert getattr(tree, key).dtype == getattr(fresh, key).dtype
+            assert np.array_equal(getattr(tree, key), getattr(fresh, key))
+
+
 @pytest.mark.parametrize("mode", ["sphere_tree", "mesh"])
 def test_settled_hair_ends_outside_the_head(head, head_collider, mode):
     roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, 150, seed=2)
