@@ -15,12 +15,14 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 import warp as wp
 
+import warp_kernels
+
 from . import __version__
 from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
 from .detail import ClothDetail, DetailParams
 from .config import from_table, load_toml
-from .graphs import AsyncReadback, FrameGraphs, run_parallel, run_side_by_side
+from .graphs import AsyncReadback, FrameGraphs, cpu_cores, run_parallel, run_side_by_side
 from .errors import InputError
 from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
@@ -337,6 +339,9 @@ class Scene:
         except (ValueError, RuntimeError):
             raise InputError(config.source, "scene.device", f"device '{device}' is not available") from None
         self.device = device
+        # every kernel module compiled (or read from Warp's cache) side by side before the first launch:
+        # on a cold kernel cache a first run waits for the longest module, not for all of them in turn
+        warp_kernels.load(device, cpu_cores())
         self.time = 0.0
         self._root_vertices = None  # (hair model, its root triangles' collider vertices)
         self.graphs = FrameGraphs(device, config.timing.graphs)

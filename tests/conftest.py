@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 import warp as wp
 
+import warp_kernels
+
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 # a fresh asset cache for each test session (the commands the tests start inherit it): every builder
 # runs at least once per session, whatever the user's own cache holds
@@ -16,6 +18,7 @@ from sim.scene import quiet_warp  # noqa: E402
 
 quiet_warp()
 wp.init()
+warp_kernels.load("cpu")  # a cold kernel cache (CI) compiles side by side once, not module by module in tests
 
 
 @pytest.fixture(scope="session")
