@@ -206,3 +206,13 @@ def test_preview_benchmark_renders_the_same_pictures_both_ways(tmp_path):
     assert drawn.mean() > 0.05  # head and hair fill a good part of the picture
     assert difference.mean() < 1.0
     assert np.mean(difference.max(axis=2) > 16) < 0.03
+
+
+def test_startup_benchmark_times_a_scene_built_and_from_the_cache(capsys):
+    import startup
+
+    startup.main(["--scenes", "haircut", "--repeats", "1"])
+    out = capsys.readouterr().out
+    row = next(line for line in out.splitlines() if line.startswith("| haircut |"))
+    built, cached = (float(v) for v in row.split("|")[3:5])
+    assert built > 0.0 and cached > 0.0 and row.rstrip(" |").endswith("x")

@@ -1,0 +1,114 @@
+"""How long a run waits before its first frame.
+
+Table 1, per scene: `Scene(config)` in a fresh process with the asset cache off (every body,
+garment, groom and sphere tree built) and with a warm cache (sim.asset_cache), the kernel modules
+already loaded in both. Table 2 (--kernels): the six kernel modules compiled on an empty Warp kernel
+cache one after another, as first launches compile them, and side by side (warp_kernels.load).
+
+    python benchmarks/startup.py [--scenes walk_dress wavy_turn] [--repeats 3] [--kernels]
+"""
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+SETUP = """
+import json, sys, time
+import warp as wp
+from sim.scene import Scene, load_scene, quiet_warp
+import warp_kernels
+quiet_warp(); wp.init()
+config = load_scene(sys.argv[1], {"scene": {"device": sys.argv[2]}})
+warp_kernels.load(sys.argv[2])
+start = time.perf_counter()
+Scene(config)
+print(json.dumps(time.perf_counter() - start))
+"""
+
+KERNELS = """
+import json, sys, time
+import warp as wp
+wp.config.quiet = True
+wp.init()
+import warp_kernels
+start = time.perf_counter()
+if sys.argv[1] == "side_by_side":
+    warp_kernels.load(sys.argv[2])
+else:
+    for module in warp_kernels._MODULES:
+        wp.load_module(module, device=sys.argv[2])
+print(json.dumps(time.perf_counter() - start))
+"""
+
+
+def _child(script, args, env):
+    out = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, cwd=ROOT,
+                         env={**os.environ, "PYTHONPATH": str(ROOT), **env}, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def setup_times(scene, device, repeats, cache_dir):
+    """(seconds built, seconds from a warm cache), medians of `repeats` fresh processes each."""
+    path = str(ROOT / "examples" / "scenes" / f"{scene}.toml")
+    _child(SETUP, [path, device], {"CFX_CACHE_DIR": cache_dir})  # fills the cache
+    built = [_child(SETUP, [path, device], {"CFX_CACHE_DIR": "off"}) for _ in range(repeats)]
+    cached = [_child(SETUP, [path, device], {"CFX_CACHE_DIR": cache_dir}) for _ in range(repeats)]
+    return statistics.median(built), statistics.median(cached)
+
+
+def kernel_times(device):
+    """(seconds one module after another, seconds side by side), each on an empty kernel cache."""
+    times = []
+    for order in ("one_after_another", "side_by_side"):
+        with tempfile.TemporaryDirectory() as kernels:
+            times.append(_child(KERNELS, [order, device], {"WARP_CACHE_PATH": kernels}))
+    return tuple(times)
+
+
+def table(header, rows):
+    print("| " + " | ".join(header) + " |")
+    print("|" + " --- |" * len(header))
+    for row in rows:
+        print("| " + " | ".join(str(v) for v in row) + " |")
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=["walk_dress", "curly_wind", "skirt_arm_raise", "wavy_turn"],
+                        help="names in examples/scenes")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--kernels", action="store_true", help="also time the kernel modules' compilation")
+    args = parser.parse_args(argv)
+
+    from common import commit, device_name
+
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    name = device_name(args.device)
+    print(f"commit {commit()}, {name}, {os.cpu_count()} cores")
+    rows = []
+    with tempfile.TemporaryDirectory() as cache_dir:
+        for scene in args.scenes:
+            built, cached = setup_times(scene, args.device, args.repeats, cache_dir)
+            rows.append([scene, name, f"{built:.2f}", f"{cached:.2f}", f"{built / cached:.1f}x"])
+    table(["scene", "device", "set-up built s", "set-up from the asset cache s", "speed-up"], rows)
+    if args.kernels:
+        print()
+        serial, parallel = kernel_times(args.device)
+        table(["kernel modules", "device", "one after another s", "side by side s", "speed-up"],
+              [["all six, empty kernel cache", name, f"{serial:.1f}", f"{parallel:.1f}", f"{serial / parallel:.2f}x"]])
+
+
+if __name__ == "__main__":
+    main()
