@@ -93,7 +93,9 @@ def main(argv=None):
 
     import warp as wp
 
-    wp.config.quiet = True
+    from sim.scene import quiet_warp
+
+    quiet_warp()
     wp.init()
     name = device_name(args.device)
     print(f"commit {commit()}, {name}, {os.cpu_count()} cores")

@@ -47,7 +47,9 @@ def digest_sources(root):
     """source_digest of the engine's packages under `root` (a checkout or site-packages)."""
     from importlib import metadata
 
-    h = hashlib.sha256()
+    from . import __version__
+
+    h = hashlib.sha256(f"warp-cfx {__version__};".encode())  # all there is when sources are not files
     root = Path(root)
     for package in _PACKAGES:
         for path in sorted((root / package).rglob("*.py")):
