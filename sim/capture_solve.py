@@ -383,10 +383,27 @@ def color_masks(image, background, params=SegmentParams()):
 def segment_image(image, background=None, params=SegmentParams()):
     """Stripe regions and their centroids in one RGB image (H, W, 3), float in [0, 1]. All three
     colours go through the morphology and labelling together, as planes of one (3, H, W) stack whose
-    structuring elements never reach across planes."""
+    structuring elements never reach across planes.
+
+    The work is done in the window around the pixels that differ from the background (or the dyed
+    pixels, without one), padded by what the closing and the median filter can reach: outside it
+    every mask stays empty, so the regions, their order and their centroids are those of the whole
+    image (the dyed hair is a small part of a studio frame)."""
     from scipy import ndimage
 
-    masks = color_masks(image, background, params)
+    image = np.asarray(image, np.float32)
+    margin = 2 * params.closing_px + params.median_px // 2 + 2
+    if background is not None:
+        background = np.asarray(background, np.float32)
+        window = _padded_window(np.abs(image - background).max(axis=2) >= params.background_difference, margin)
+        masks = color_masks(image[window], background[window], params) if window else None
+    else:
+        masks = color_masks(image, None, params)
+        window = _padded_window(masks.any(axis=0), margin)
+        masks = masks[(slice(None),) + window] if window else None
+    empty = Blobs(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64))
+    if masks is None:
+        return empty
     plane = np.zeros((3, 3, 3), bool)
     plane[1] = True  # 8-connected within a colour plane, never between planes
     if params.closing_px > 0:
@@ -397,15 +414,33 @@ def segment_image(image, background=None, params=SegmentParams()):
                                       mode="constant") > 0
     labels, count = ndimage.label(masks, structure=plane)
     if count == 0:
-        return Blobs(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64))
+        return empty
     area = np.bincount(labels.ravel(), minlength=count + 1)[1:]
     keep = np.nonzero(area >= params.min_area_px)[0] + 1
     if len(keep) == 0:
-        return Blobs(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64))
-    centres = np.array(ndimage.center_of_mass(masks, labels, keep), np.float64).reshape(-1, 3)
-    channel = np.rint(centres[:, 0]).astype(np.int64)
-    uv = centres[:, [2, 1]] + 0.5  # (column, row) of a pixel centre -> image coordinates
+        return empty
+    # centroids as sums of whole pixel coordinates over counts: exact sums, so the same numbers as
+    # ndimage.center_of_mass over the whole image
+    at = np.flatnonzero(labels)
+    label = labels.ravel()[at]
+    k, r, c = np.unravel_index(at, labels.shape)
+    sums = [np.bincount(label, weights=(v + offset).astype(np.float64), minlength=count + 1)[keep]
+            for v, offset in ((k, 0), (r, window[0].start), (c, window[1].start))]
+    n = area[keep - 1].astype(np.float64)
+    channel = np.rint(sums[0] / n).astype(np.int64)
+    uv = np.stack([sums[2] / n, sums[1] / n], axis=1) + 0.5  # (column, row) of a pixel centre -> image coordinates
     return Blobs(channel, uv, area[keep - 1].astype(np.int64))
+
+
+def _padded_window(mask, margin):
+    """(row slice, column slice) of the box around the True pixels of `mask`, grown by `margin` and
+    clipped to the image; None when there are none."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if len(rows) == 0:
+        return None
+    h, w = mask.shape
+    return (slice(max(0, rows[0] - margin), min(h, rows[-1] + 1 + margin)),
+            slice(max(0, cols[0] - margin), min(w, cols[-1] + 1 + margin)))
 
 
 # ==================================================================================================

@@ -316,6 +316,61 @@ def test_segmentation_finds_blob_centroids_ignores_specks_and_the_background():
     assert len(segment_image(image.astype(np.float32), None)) == 6
 
 
+def _segment_whole_image(image, background, params):
+    """segment_image as it was before it worked in a window: every step over the whole image."""
+    from scipy import ndimage
+
+    from sim.capture_solve import color_masks
+
+    masks = color_masks(image, background, params)
+    plane = np.zeros((3, 3, 3), bool)
+    plane[1] = True
+    if params.closing_px > 0:
+        masks = ndimage.binary_dilation(masks, structure=plane, iterations=params.closing_px)
+        masks = ndimage.binary_erosion(masks, structure=plane, iterations=params.closing_px, border_value=1)
+    if params.median_px > 1:
+        masks = ndimage.median_filter(masks.astype(np.uint8), size=(1, params.median_px, params.median_px),
+                                      mode="constant") > 0
+    labels, count = ndimage.label(masks, structure=plane)
+    area = np.bincount(labels.ravel(), minlength=count + 1)[1:]
+    keep = np.nonzero(area >= params.min_area_px)[0] + 1
+    if count == 0 or len(keep) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64)
+    centres = np.array(ndimage.center_of_mass(masks, labels, keep), np.float64).reshape(-1, 3)
+    return np.rint(centres[:, 0]).astype(np.int64), centres[:, [2, 1]] + 0.5, area[keep - 1]
+
+
+@pytest.mark.parametrize("closing, median", [(1, 3), (0, 1), (2, 5), (3, 3)])
+def test_segmentation_in_a_window_finds_what_the_whole_image_does(closing, median):
+    """Blobs and strokes inside the image and against each of its edges, speckle and noise, with and
+    without the background: the same regions in the same order, areas and centroids to the bit."""
+    rng = np.random.default_rng(closing * 10 + median)
+    h, w = 90, 140
+    names = list(COLORS)
+    params = SegmentParams(closing_px=closing, median_px=median, min_area_px=4)
+    for inset in (-3.0, 15.0):  # discs anywhere (some cut by an edge), or all inside, away from the edges
+        bg = np.full((h, w, 3), BACKGROUND) + rng.normal(0.0, 0.01, (h, w, 3))
+        image = bg.copy()
+        for _ in range(12):
+            centre = rng.uniform([inset, inset], [w - inset, h - inset])
+            draw_polyline(image, centre[None], COLORS[names[rng.integers(3)]], rng.uniform(1.0, 6.0), caps=True)
+        lines = ([[0.0, 40.0], [30.0, 45.0]], [[w - 1.0, 10.0], [w - 20.0, 80.0]], [[50.0, 0.0], [60.0, 12.0]],
+                 [[70.0, h - 1.0], [100.0, h - 8.0]])
+        for line in (np.clip(line, inset, [w - inset, h - inset]) for line in lines):
+            draw_polyline(image, np.array(line), COLORS[names[rng.integers(3)]], 1.5)
+        specks = rng.integers(int(max(inset, 0)), [h - max(inset, 0), w - max(inset, 0)], (30, 2))
+        image[specks[:, 0], specks[:, 1]] = np.array(COLORS["green"])
+        image, bg = image.astype(np.float32), bg.astype(np.float32)
+        for background in (bg, None):
+            found = segment_image(image, background, params)
+            channel, uv, area = _segment_whole_image(image, background, params)
+            assert len(found) >= 6
+            assert np.array_equal(found.channel, channel) and np.array_equal(found.area, area)
+            assert np.array_equal(found.uv, uv)
+    blank = segment_image(bg, bg, params)
+    assert len(blank) == 0 and blank.uv.shape == (0, 2)
+
+
 # --------------------------------------------------------------------------------------------------
 # 2. Labels
 # --------------------------------------------------------------------------------------------------
