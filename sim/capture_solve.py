@@ -376,8 +376,34 @@ def color_masks(image, background, params=SegmentParams()):
     winner = np.argmax(ratio - thresholds, axis=2)
     dyed = passed.any(axis=2) & (total >= 3.0 * params.min_brightness)
     if background is not None:
-        dyed &= np.abs(image - np.asarray(background, np.float32)).max(axis=2) >= params.background_difference
+        dyed &= _differs(image, background, params.background_difference)
     return (winner[None] == np.arange(3)[:, None, None]) & dyed[None]
+
+
+def _differs(image, background, threshold):
+    """(H, W): pixels where some channel differs from the background's by `threshold` or more (the
+    channels compared one by one: NumPy reduces across the last axis of an image slowly)."""
+    far = np.abs(image - np.asarray(background, np.float32)) >= threshold
+    return far[..., 0] | far[..., 1] | far[..., 2]
+
+
+# 8-connected within a colour plane, never between planes
+_PLANE = np.zeros((3, 3, 3), bool)
+_PLANE[1] = True
+
+
+def clean_masks(masks, params=SegmentParams()):
+    """The (3, H, W) colour masks after the closing (dilations, then as many erosions; outside the
+    image counts as dyed for the erosions) and the median filter (outside counts as not dyed)."""
+    from scipy import ndimage
+
+    if params.closing_px > 0:
+        masks = ndimage.binary_dilation(masks, structure=_PLANE, iterations=params.closing_px)
+        masks = ndimage.binary_erosion(masks, structure=_PLANE, iterations=params.closing_px, border_value=1)
+    if params.median_px > 1:
+        masks = ndimage.median_filter(masks.astype(np.uint8), size=(1, params.median_px, params.median_px),
+                                      mode="constant") > 0
+    return masks
 
 
 def segment_image(image, background=None, params=SegmentParams()):
@@ -395,7 +421,7 @@ def segment_image(image, background=None, params=SegmentParams()):
     margin = 2 * params.closing_px + params.median_px // 2 + 2
     if background is not None:
         background = np.asarray(background, np.float32)
-        window = _padded_window(np.abs(image - background).max(axis=2) >= params.background_difference, margin)
+        window = _padded_window(_differs(image, background, params.background_difference), margin)
         masks = color_masks(image[window], background[window], params) if window else None
     else:
         masks = color_masks(image, None, params)
@@ -404,15 +430,7 @@ def segment_image(image, background=None, params=SegmentParams()):
     empty = Blobs(np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64))
     if masks is None:
         return empty
-    plane = np.zeros((3, 3, 3), bool)
-    plane[1] = True  # 8-connected within a colour plane, never between planes
-    if params.closing_px > 0:
-        masks = ndimage.binary_dilation(masks, structure=plane, iterations=params.closing_px)
-        masks = ndimage.binary_erosion(masks, structure=plane, iterations=params.closing_px, border_value=1)
-    if params.median_px > 1:
-        masks = ndimage.median_filter(masks.astype(np.uint8), size=(1, params.median_px, params.median_px),
-                                      mode="constant") > 0
-    labels, count = ndimage.label(masks, structure=plane)
+    labels, count = ndimage.label(clean_masks(masks, params), structure=_PLANE)
     if count == 0:
         return empty
     area = np.bincount(labels.ravel(), minlength=count + 1)[1:]

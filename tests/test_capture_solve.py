@@ -317,21 +317,14 @@ def test_segmentation_finds_blob_centroids_ignores_specks_and_the_background():
 
 
 def _segment_whole_image(image, background, params):
-    """segment_image as it was before it worked in a window: every step over the whole image."""
+    """segment_image as it was before it worked in a window: every step over the whole image, and
+    the centroids by ndimage.center_of_mass."""
     from scipy import ndimage
 
-    from sim.capture_solve import color_masks
+    from sim.capture_solve import _PLANE, clean_masks, color_masks
 
-    masks = color_masks(image, background, params)
-    plane = np.zeros((3, 3, 3), bool)
-    plane[1] = True
-    if params.closing_px > 0:
-        masks = ndimage.binary_dilation(masks, structure=plane, iterations=params.closing_px)
-        masks = ndimage.binary_erosion(masks, structure=plane, iterations=params.closing_px, border_value=1)
-    if params.median_px > 1:
-        masks = ndimage.median_filter(masks.astype(np.uint8), size=(1, params.median_px, params.median_px),
-                                      mode="constant") > 0
-    labels, count = ndimage.label(masks, structure=plane)
+    masks = clean_masks(color_masks(image, background, params), params)
+    labels, count = ndimage.label(masks, structure=_PLANE)
     area = np.bincount(labels.ravel(), minlength=count + 1)[1:]
     keep = np.nonzero(area >= params.min_area_px)[0] + 1
     if count == 0 or len(keep) == 0:
