@@ -73,13 +73,6 @@ def kernel_times(device):
     return tuple(times)
 
 
-def table(header, rows):
-    print("| " + " | ".join(header) + " |")
-    print("|" + " --- |" * len(header))
-    for row in rows:
-        print("| " + " | ".join(str(v) for v in row) + " |")
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=["walk_dress", "curly_wind", "skirt_arm_raise", "wavy_turn"],
@@ -89,7 +82,7 @@ def main(argv=None):
     parser.add_argument("--kernels", action="store_true", help="also time the kernel modules' compilation")
     args = parser.parse_args(argv)
 
-    from common import commit, device_name
+    from common import commit, device_name, table
 
     import warp as wp
 
@@ -104,12 +97,13 @@ def main(argv=None):
         for scene in args.scenes:
             built, cached = setup_times(scene, args.device, args.repeats, cache_dir)
             rows.append([scene, name, f"{built:.2f}", f"{cached:.2f}", f"{built / cached:.1f}x"])
-    table(["scene", "device", "set-up built s", "set-up from the asset cache s", "speed-up"], rows)
+    print(table(["scene", "device", "set-up built s", "set-up from the asset cache s", "speed-up"], rows))
     if args.kernels:
         print()
         serial, parallel = kernel_times(args.device)
-        table(["kernel modules", "device", "one after another s", "side by side s", "speed-up"],
-              [["all six, empty kernel cache", name, f"{serial:.1f}", f"{parallel:.1f}", f"{serial / parallel:.2f}x"]])
+        print(table(["kernel modules", "device", "one after another s", "side by side s", "speed-up"],
+                    [["all six, empty kernel cache", name, f"{serial:.1f}", f"{parallel:.1f}",
+                      f"{serial / parallel:.2f}x"]]))
 
 
 if __name__ == "__main__":

@@ -5,6 +5,8 @@ import argparse
 import json
 import math
 import os
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,6 +20,9 @@ from sim.errors import InputError
 from sim.hair_cards import HairCards
 
 from capture_scenes import tiny_capture_scene  # tests/capture_scenes.py
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+from capture import segment_whole_image  # noqa: E402  (benchmarks/capture.py: the whole-image peer)
 
 COLORS = {"red": (0.85, 0.1, 0.08), "green": (0.1, 0.72, 0.15), "blue": (0.1, 0.15, 0.85)}
 BACKGROUND = 0.92
@@ -316,23 +321,6 @@ def test_segmentation_finds_blob_centroids_ignores_specks_and_the_background():
     assert len(segment_image(image.astype(np.float32), None)) == 6
 
 
-def _segment_whole_image(image, background, params):
-    """segment_image as it was before it worked in a window: every step over the whole image, and
-    the centroids by ndimage.center_of_mass."""
-    from scipy import ndimage
-
-    from sim.capture_solve import _PLANE, clean_masks, color_masks
-
-    masks = clean_masks(color_masks(image, background, params), params)
-    labels, count = ndimage.label(masks, structure=_PLANE)
-    area = np.bincount(labels.ravel(), minlength=count + 1)[1:]
-    keep = np.nonzero(area >= params.min_area_px)[0] + 1
-    if count == 0 or len(keep) == 0:
-        return np.zeros(0, np.int64), np.zeros((0, 2)), np.zeros(0, np.int64)
-    centres = np.array(ndimage.center_of_mass(masks, labels, keep), np.float64).reshape(-1, 3)
-    return np.rint(centres[:, 0]).astype(np.int64), centres[:, [2, 1]] + 0.5, area[keep - 1]
-
-
 @pytest.mark.parametrize("closing, median", [(1, 3), (0, 1), (2, 5), (3, 3)])
 def test_segmentation_in_a_window_finds_what_the_whole_image_does(closing, median):
     """Blobs and strokes inside the image and against each of its edges, speckle and noise, with and
@@ -356,7 +344,7 @@ def test_segmentation_in_a_window_finds_what_the_whole_image_does(closing, media
         image, bg = image.astype(np.float32), bg.astype(np.float32)
         for background in (bg, None):
             found = segment_image(image, background, params)
-            channel, uv, area = _segment_whole_image(image, background, params)
+            channel, uv, area = segment_whole_image(image, background, params)
             assert len(found) >= 6
             assert np.array_equal(found.channel, channel) and np.array_equal(found.area, area)
             assert np.array_equal(found.uv, uv)
@@ -712,3 +700,12 @@ def test_solve_a_tiny_capture_from_the_synthetic_rig(tmp_path):
     assert report["label_swaps"]["count"] == 0
     assert report["strands"]["guides"] == 4
     assert validation_errors(result.path) == []
+
+
+def test_the_segmentation_benchmark_finds_the_same_blobs_both_ways(solved, capsys):
+    import capture
+
+    capture.main(["--capture", str(solved[3] / "cap")])
+    row = capsys.readouterr().out.strip().splitlines()[-1].split("|")
+    assert row[1].strip() == "segment_image with the background" and int(row[2]) > 0
+    assert row[-2].strip() == "yes" and float(row[5]) > 0.0
