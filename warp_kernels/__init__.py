@@ -17,15 +17,14 @@ def load(device="cpu", threads=None, modules=_MODULES):
     side by side.
 
     Warp compiles a module the first time one of its kernels launches, one module after another;
-    here the compilers run in `threads` threads at once (default: one per core), so a first run on
-    a cold kernel cache waits about as long as the longest module takes. With a warm cache it takes
-    milliseconds. A host application calls it once at start-up.
+    here Warp's own loader (wp.force_load) runs their compilers in `threads` threads at once
+    (default: one per core), longest first, so a first run on a cold kernel cache waits about as long
+    as the longest module takes. With a warm cache it takes milliseconds. A host application calls
+    it once at start-up.
     """
     import os
-    from concurrent.futures import ThreadPoolExecutor
 
     import warp as wp
 
     workers = max(1, min(len(modules), threads or os.cpu_count() or 1))
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        list(pool.map(lambda module: wp.load_module(module, device=device), modules))
+    wp.force_load(device=device, modules=[wp.get_module(m.__name__) for m in modules], max_workers=workers)
