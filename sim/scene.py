@@ -9,6 +9,7 @@ import functools
 import math
 import os
 import sys
+import threading
 import time
 from dataclasses import asdict, dataclass, field, replace
 
@@ -328,7 +329,8 @@ class Scene:
     cloth. Build with Scene(config), then advance(); the states are scene.state (hair) and scene.cloth_state.
     assets: geometry given directly (SceneAssets) instead of through the config's files."""
 
-    def __init__(self, config, assets=None):
+    def __init__(self, config, assets=None, announce=False):
+        """announce: say on stderr when the kernels take more than a second to load (load_kernels)."""
         self.config = config
         self.assets = assets
         device = config.timing.device
@@ -339,9 +341,7 @@ class Scene:
         except (ValueError, RuntimeError):
             raise InputError(config.source, "scene.device", f"device '{device}' is not available") from None
         self.device = device
-        # every kernel module compiled (or read from Warp's cache) side by side before the first launch:
-        # on a cold kernel cache a first run waits for the longest module, not for all of them in turn
-        warp_kernels.load(device, cpu_cores())
+        load_kernels(device, announce)
         self.time = 0.0
         self._root_vertices = None  # (hair model, its root triangles' collider vertices)
         self.graphs = FrameGraphs(device, config.timing.graphs)
@@ -709,6 +709,33 @@ class Scene:
         return finish({name: a.numpy() for name, a in arrays.items()})
 
 
+KERNELS_NOTICE_S = 1.0  # a load slower than this is compiling: say why the run has not started
+
+
+def load_kernels(device, announce=False):
+    """Every kernel module for `device`, compiled (or read from Warp's kernel cache) side by side
+    before the first launch (warp_kernels.load): a first run on a cold kernel cache waits for the
+    longest module, not for all of them in turn. announce: when that takes longer than
+    KERNELS_NOTICE_S, one line on stderr says what the wait is."""
+    if not announce:
+        warp_kernels.load(device, cpu_cores())
+        return
+    done = threading.Event()
+
+    def notice():
+        if not done.wait(KERNELS_NOTICE_S):
+            print(f"cfx: compiling the Warp kernels for {device}, once per machine and Warp version "
+                  f"(on a two-core CPU about 15 s)", file=sys.stderr, flush=True)
+
+    teller = threading.Thread(target=notice, daemon=True)
+    teller.start()
+    try:
+        warp_kernels.load(device, cpu_cores())
+    finally:
+        done.set()
+        teller.join()
+
+
 @functools.lru_cache(maxsize=8)
 def _shared_substep_times(counts):
     """For substep counts (ascending) splitting one frame: where each distinct time first appears in
@@ -848,7 +875,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     check_cache_path(out_path)  # before minutes of simulation, not after
     started = time.perf_counter()
     quiet_warp()
-    scene = Scene(config, stage.assets if stage is not None else None)
+    scene = Scene(config, stage.assets if stage is not None else None, announce=progress)
     t = config.timing
     if t.preroll > 0.0:
         scene.advance(t.preroll, animate=False)

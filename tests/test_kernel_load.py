@@ -61,3 +61,19 @@ def test_loaded_modules_are_compiled_once_and_launches_use_them(tmp_path):
 def test_the_engine_loads_every_kernel_module():
     names = {m.__name__.rsplit(".", 1)[1] for m in warp_kernels._MODULES}
     assert names == set(warp_kernels.__all__) - {"load"}
+
+
+def test_a_slow_load_says_what_the_run_waits_for(monkeypatch, capsys):
+    import time
+
+    import sim.scene as scene
+
+    calls = []
+    monkeypatch.setattr(scene, "KERNELS_NOTICE_S", 0.05)
+    monkeypatch.setattr(warp_kernels, "load", lambda device, threads: calls.append(device) or time.sleep(0.3))
+    scene.load_kernels("cpu", announce=True)
+    assert "compiling the Warp kernels for cpu" in capsys.readouterr().err
+    scene.load_kernels("cpu", announce=False)  # quiet runs (cfx -q, the Python API) say nothing
+    monkeypatch.setattr(warp_kernels, "load", lambda device, threads: calls.append(device))
+    scene.load_kernels("cpu", announce=True)  # a warm kernel cache: nothing to say
+    assert capsys.readouterr().err == "" and calls == ["cpu"] * 3
