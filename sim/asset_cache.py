@@ -2,11 +2,11 @@
 
 Building them takes seconds of a run's start (marching cubes over the body's field, a garment's
 cross-sections, a groom grown in a hundred collision passes, a greedy cover of a head with spheres)
-and gives the same arrays every time for the same inputs. Each entry is an .npz named by two
-hashes: one of the engine's own sources and the versions of the libraries that computed it, one of
-every input. Any edit to the engine, or
-another numpy, scipy, trimesh, scikit-image or Warp, makes every entry stale; stale entries are
-deleted when a fresh one is written, so the folder holds the current code's assets only.
+and gives the same arrays every time for the same inputs. Each entry is an .npz named by its kind
+and two hashes: one of the engine's own sources and the versions of the libraries that computed it,
+one of every input. Any edit to the engine, or another numpy, scipy, trimesh, scikit-image or Warp,
+makes every entry stale; stale entries are deleted when a fresh one is written, so the folder holds
+the current code's assets only. Files not named as entries are never listed, read or deleted.
 
 Where: $CFX_CACHE_DIR, else $XDG_CACHE_HOME/warp-cfx, else ~/.cache/warp-cfx. CFX_CACHE_DIR=off
 builds everything every time. A folder that cannot be written only costs the time: runs never fail
@@ -17,6 +17,7 @@ import dataclasses
 import functools
 import hashlib
 import os
+import re
 import time
 import zipfile
 from pathlib import Path
@@ -24,6 +25,9 @@ from pathlib import Path
 import numpy as np
 
 SUFFIX = ".npz"
+# KIND-SOURCES-INPUTS.npz, and .KIND-SOURCES-INPUTS.PID.tmp.npz while one is written
+_ENTRY = re.compile(r"^[a-z_]+-[0-9a-f]{16}-[0-9a-f]{24}\.npz$")
+_WRITING = re.compile(r"^\.[a-z_]+-[0-9a-f]{16}-[0-9a-f]{24}\.\d+\.tmp\.npz$")
 _PACKAGES = ("sim", "warp_kernels")
 _LIBRARIES = ("numpy", "scipy", "trimesh", "skimage", "warp")
 
@@ -139,13 +143,13 @@ def _store(path, arrays):
         return
     current = f"-{source_digest()}-"
     for old in path.parent.glob(f"*{SUFFIX}"):
-        if old.name.startswith("."):  # another run's write in progress, or one killed mid-write long ago
+        if _WRITING.match(old.name):  # another run's write in progress, or one killed mid-write long ago
             try:
                 if time.time() - old.stat().st_mtime > 3600.0:
                     _remove(old)
             except OSError:
                 pass
-        elif current not in old.name:
+        elif _ENTRY.match(old.name) and current not in old.name:
             _remove(old)  # built by other code or other libraries
 
 
@@ -164,7 +168,7 @@ def entries():
     found = []
     for path in sorted(folder.glob(f"*{SUFFIX}")):
         try:
-            if not path.name.startswith("."):
+            if _ENTRY.match(path.name):
                 found.append((path, path.stat().st_size))
         except FileNotFoundError:  # deleted by another run since the listing
             continue

@@ -73,14 +73,18 @@ def test_a_torn_entry_is_built_again_and_replaced(folder):
     assert np.array_equal(np.load(path)["points"], ARRAYS["points"])
 
 
-def test_entries_of_other_code_are_removed_when_one_is_written(folder):
+def test_entries_of_other_code_are_removed_when_one_is_written_and_other_files_never(folder):
     folder.mkdir(parents=True)
     stale = folder / "body-0123456789abcdef-000000000000000000000000.npz"
     np.savez(stale, x=np.zeros(3))
-    assert "stale" not in stale.name and len(asset_cache.entries()) == 1
+    theirs = [folder / "mesh.npz", folder / "notes.txt", folder / ".hidden.npz"]  # a shared folder's own files
+    for path in theirs:
+        path.write_bytes(b"not ours")
+    assert [p for p, _ in asset_cache.entries()] == [stale]
     asset_cache.cached_arrays("thing", (2,), _counting(ARRAYS)[0])
     assert [p for p, _ in asset_cache.entries()] == [asset_cache.entry_path("thing", (2,))]
     assert asset_cache.clear() == 1 and asset_cache.entries() == []
+    assert all(path.read_bytes() == b"not ours" for path in theirs)
 
 
 def test_off_builds_every_time_and_writes_nothing(tmp_path, monkeypatch):
