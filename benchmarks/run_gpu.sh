@@ -7,6 +7,8 @@
 #                                       # launches apart, 1k to 100k strands, no peer
 #   bash benchmarks/run_gpu.sh cloth    # benchmarks/cloth.py on cuda with Newton VBD and XPBD
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
+#   bash benchmarks/run_gpu.sh startup  # benchmarks/startup.py on cuda: set-up from the asset cache, and the
+#                                       # CUDA modules compiled one after another and side by side (NVRTC)
 # Logs go to $OUT (or ./out/gpu); warp-lang, newton, usd-core and trimesh must be importable.
 set -uo pipefail
 out=${OUT:-out/gpu}; mkdir -p "$out"
@@ -23,6 +25,7 @@ for part in "$@"; do
         done ;;
     cloth) timeout ${CLOTH_TIMEOUT:-540} python3 benchmarks/cloth.py --device cuda ${CLOTH_ARGS:-} 2>&1 | tee "$out/cloth.log" ;;
     realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;
+    startup) timeout 540 python3 benchmarks/startup.py --device cuda --repeats 1 --kernels 2>&1 | tee "$out/startup.log" ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
 done
