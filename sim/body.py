@@ -20,6 +20,7 @@ from scipy.interpolate import PchipInterpolator
 
 from warp_kernels import body_motion
 
+from .asset_cache import cached_arrays
 from .collision_proxy import neighbour_average
 from .head import _scalp_faces, _smoothstep, procedural_head
 from .sphere_tree import signed_distance, warp_mesh
@@ -445,8 +446,6 @@ def _build_arrays(resolution, relax_iterations):
 
 @functools.lru_cache(maxsize=4)
 def _build(resolution, relax_iterations):
-    from .asset_cache import cached_arrays
-
     arrays = cached_arrays("body", ("procedural_body", resolution, relax_iterations),
                            lambda: _build_arrays(resolution, relax_iterations))
     landmarks = {k[len(_LANDMARK):]: (float(a) if a.ndim == 0 else a) for k, a in arrays.items()

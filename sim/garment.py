@@ -23,6 +23,7 @@ import scipy.sparse
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import ConvexHull, QhullError, cKDTree
 
+from .asset_cache import cached_arrays
 from .errors import InputError
 from .mesh_topology import unique_pairs
 from .sphere_tree import signed_distance, warp_mesh
@@ -631,8 +632,6 @@ def fit_shirt(body, particles=240, ease=0.012, strap_width=0.09):
 
 def _fitted(body, settings, fit):
     """fit() through the asset cache: a garment is fitted once per body rest shape, landmarks and settings."""
-    from .asset_cache import cached_arrays
-
     def build():
         g = fit()
         return dict(name=np.array(g.name), vertices=g.vertices, face_counts=g.face_counts,

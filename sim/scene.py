@@ -833,6 +833,9 @@ def _load_garment(config, body):
 
     c = config.cloth
     if c.garment in _garment_names():
+        if getattr(body, "landmarks", None) is None:  # fitting needs the built-in body's shoulders, waist, hips
+            raise InputError(config.source, "cloth.garment", f"the fitted {c.garment} fits the built-in body only: "
+                             f"a body from {config.body.mesh} needs a garment mesh (an OBJ or USD file)")
         return garments.GARMENTS[c.garment](body, particles=c.particles, ease=c.ease)
     path = _resolve(config, c.garment)
     pinned = None

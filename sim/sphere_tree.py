@@ -13,6 +13,7 @@ from scipy.spatial import cKDTree
 
 from warp_kernels import collision
 
+from .asset_cache import cached_arrays
 from .graphs import launch_on_cores
 
 # the fewest points signed_distance queries on a CPU core of their own
@@ -71,8 +72,6 @@ def build_sphere_tree(vertices, faces, max_leaves=1024, tolerance=None, device="
     face centres as the points to cover (more samples close the gaps between spheres).
     Built once per mesh and settings: the asset cache keeps the tree between runs.
     """
-    from .asset_cache import cached_arrays
-
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
     # the grid's inside test runs on `device`, whose float32 queries may round differently

@@ -199,3 +199,15 @@ def test_hair_on_a_body_file_needs_a_scalp(tmp_path, capsys):
     assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "-q"]) == 0
     roots = CacheReader(str(tmp_path / "x.usdc")).points("hair", 1).reshape(10, 6, 3)[:, 0]
     assert roots[:, 1].min() > 0.24
+
+
+def test_a_fitted_garment_on_a_body_file_is_one_line_naming_the_key(tmp_path, capsys):
+    ball, _ = _ball_frames()
+    ball.export(tmp_path / "ball.obj")
+    scene = tmp_path / "scene.toml"
+    scene.write_text('[scene]\nframes = 2\npreroll = 0.0\n[body]\nmesh = "ball.obj"\n[hair]\nenabled = false\n'
+                     '[cloth]\ngarment = "skirt"\n')
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "cloth.garment: the fitted skirt fits the built-in body only" in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "x.usdc").exists()
