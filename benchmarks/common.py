@@ -8,6 +8,7 @@ device-to-device copy measured in the same run (bytes read + bytes written).
 """
 
 import contextlib
+import os
 import platform
 import subprocess
 import time
@@ -27,6 +28,10 @@ CLOTH_DETAIL_HEADER = ["garment", "coarse particles", "detail vertices", "device
 
 
 def commit():
+    """The short commit the benchmark runs; CFX_COMMIT overrides it where the checkout's .git is not this tree's
+    (the device tool sends the working tree with a stale .git)."""
+    if os.environ.get("CFX_COMMIT"):
+        return os.environ["CFX_COMMIT"]
     out = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
     return out.stdout.strip() or "unknown"
 

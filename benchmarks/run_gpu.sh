@@ -9,7 +9,8 @@
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh startup  # benchmarks/startup.py on cuda: set-up from the asset cache, and the
 #                                       # CUDA modules compiled one after another and side by side (NVRTC)
-# Logs go to $OUT (or ./out/gpu); warp-lang, newton, usd-core and trimesh must be importable.
+# Logs go to $OUT (or ./out/gpu); warp-lang, newton, usd-core and trimesh must be importable. Set CFX_COMMIT to
+# the commit sent (the device tool's .git is stale), so the logs name it.
 set -uo pipefail
 out=${OUT:-out/gpu}; mkdir -p "$out"
 export PYTHONPATH=.${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
