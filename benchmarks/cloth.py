@@ -214,37 +214,42 @@ def detail_scene(device, particles, level=6):
     return Scene(config)
 
 
-def detail(devices, sizes, frames, newton_1m, ceilings):
+def detail(devices, sizes, frames, newton_1m, ceilings, sweeps=(None,)):
+    """The walking body's rows; sweeps: Scene.cloth_sweep values to time (None: the device's default),
+    the rows marked "swept" or "refitted" when there are several."""
     header = CLOTH_DETAIL_HEADER
     print(table(header, []), flush=True)
     rows = []
-    for device in devices:
-        for particles, level in sizes:
-            scene = detail_scene(device, particles, level)
+    for device, (particles, level), sweep in ((d, z, w) for d in devices for z in sizes for w in sweeps):
+        scene = detail_scene(device, particles, level)
+        if sweep is not None:
+            scene.cloth_sweep = sweep
+        label = f"dress on the walking body, level {level}" + (
+            (" swept" if sweep else " refitted") if len(sweeps) > 1 else "")
 
-            def frame():
-                scene.advance(1.0 / DETAIL_FPS)
-                scene.update_detail()
+        def frame():
+            scene.advance(1.0 / DETAIL_FPS)
+            scene.update_detail()
 
-            with counting_launch_bytes() as moved:
-                frame()
-            ms = time_frames(frame, device, frames=frames)
-            ms_detail = time_frames(scene.update_detail, device, frames=frames)
-            if PROFILE:
-                scene.graphs.enabled = False
-                print("\n".join(kernel_profile(frame, device)), flush=True)
-            verts = scene.cloth_detail.surface.topology.num_vertices
-            stretch = scene.cloth_stats()["cloth_stretch_max"]
-            depth = scene.cloth_body.signed_distance(scene.cloth_detail.positions.numpy(), max_dist=0.05)
-            inside = f"{100.0 * np.mean(depth < -0.002):.3f}%"
-            gbs = moved[0] / (ms * 1e-3) / 1e9
-            peer = newton_1m.get(device) if verts >= 900_000 else None
-            rows.append([f"dress on the walking body, level {level}", scene.cloth_model.num_particles, verts, device,
-                         scene.cloth_substeps, fmt(ms, 4), fmt(ms_detail, 3),
-                         f"{gbs:.0f} ({100 * gbs / ceilings[device]:.0f}%)", fmt(1e3 / ms, 4), fmt(stretch, 2), inside,
-                         fmt(peer, 4),
-                         f"{peer / ms:.1f}x" if peer else "-"])
-            print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
+        with counting_launch_bytes() as moved:
+            frame()
+        ms = time_frames(frame, device, frames=frames)
+        ms_detail = time_frames(scene.update_detail, device, frames=frames)
+        if PROFILE:
+            scene.graphs.enabled = False
+            print("\n".join(kernel_profile(frame, device)), flush=True)
+        verts = scene.cloth_detail.surface.topology.num_vertices
+        stretch = scene.cloth_stats()["cloth_stretch_max"]
+        depth = scene.cloth_body.signed_distance(scene.cloth_detail.positions.numpy(), max_dist=0.05)
+        inside = f"{100.0 * np.mean(depth < -0.002):.3f}%"
+        gbs = moved[0] / (ms * 1e-3) / 1e9
+        peer = newton_1m.get(device) if verts >= 900_000 else None
+        rows.append([label, scene.cloth_model.num_particles, verts, device,
+                     scene.cloth_substeps, fmt(ms, 4), fmt(ms_detail, 3),
+                     f"{gbs:.0f} ({100 * gbs / ceilings[device]:.0f}%)", fmt(1e3 / ms, 4), fmt(stretch, 2), inside,
+                     fmt(peer, 4),
+                     f"{peer / ms:.1f}x" if peer else "-"])
+        print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
     return header, rows
 
 
@@ -258,6 +263,9 @@ def main():
                         help="coarse particles[:tessellation level] (default level 6, the paper's)")
     parser.add_argument("--dress-params", type=param_setting, nargs="*", default=[], metavar="FIELD=VALUE",
                         help="ClothParams of the race dress, e.g. body_candidates=0 reseed_drift=0 (ablations)")
+    parser.add_argument("--sweep", choices=["auto", "on", "off", "both"], default="auto",
+                        help="Scene.cloth_sweep for the walking body's rows (the body's triangle boxes bounded over "
+                             "the frame, or refitted each substep): the device's default, on, off, or both")
     parser.add_argument("--no-race", action="store_true")
     parser.add_argument("--no-detail", action="store_true")
     parser.add_argument("--profile", action="store_true", help="print per-kernel device time of one frame (CUDA)")
@@ -283,7 +291,8 @@ def main():
         header, rows, newton_1m = race(devices, args.grids, args.frames, peers, ceilings)
         out.append(table(header, rows))
     if not args.no_detail:
-        header, rows = detail(devices, args.detail_sizes, 10, newton_1m, ceilings)
+        sweeps = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}[args.sweep]
+        header, rows = detail(devices, args.detail_sizes, 10, newton_1m, ceilings, sweeps)
         out.append(table(header, rows))
     print()
     print("\n\n".join(out))

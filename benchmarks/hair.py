@@ -20,13 +20,15 @@ a warp's strands then read consecutive memory); --lanes both marks the rows with
 lanes follow the roots (hair_solver.lanes_by_root); --lane-order both also times them in the grown
 order, the rows marked "grown". A substep can run as one launch per strand range (HairSolver.fused,
 on by default on the CPU only; the sphere tree's walks are then queued ahead from the start
-positions); --fused both marks the rows with it "fused".
+positions); --fused both marks the rows with it "fused". --try times each case once more for each
+setting of HairSolver attributes given (e.g. --try mesh_lists=on), the rows marked with it.
 
     python benchmarks/hair.py                        # 1k, 10k, 100k strands on cpu (and cuda if present)
     python benchmarks/hair.py --strands 1000 --device cuda --cases full+mesh
     python benchmarks/hair.py --device cuda --leaves-ahead both --lanes both
     python benchmarks/hair.py --device cuda --lane-order both
     python benchmarks/hair.py --device cuda --fused both
+    python benchmarks/hair.py --device cuda --cases full+mesh --try mesh_lists=on
 """
 
 import argparse
@@ -79,10 +81,34 @@ def settle(scene, seconds=0.5):
     return scene.state.x.numpy(), scene.state.v.numpy()
 
 
-def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True, fused=None):
+def solver_setting(text):
+    """'attr=value[,attr=value...]' as {attr: value}: on/off as booleans, numbers as numbers."""
+    setting = {}
+    for item in text.split(","):
+        attr, sep, value = item.partition("=")
+        if not sep or attr not in SOLVER_ATTRS:
+            raise argparse.ArgumentTypeError(f"{item!r}: expected ATTR=VALUE with ATTR one of {sorted(SOLVER_ATTRS)}")
+        words = {"on": True, "off": False, "true": True, "false": False}
+        if value.lower() in words:
+            setting[attr] = words[value.lower()]
+        else:
+            try:
+                setting[attr] = int(value)
+            except ValueError:
+                setting[attr] = float(value)
+    return setting
+
+
+# the HairSolver switches a --try may set
+SOLVER_ATTRS = {"mesh_lists", "contact_bounds", "leaves_ahead", "fused"}
+
+
+def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True, fused=None,
+             setting=None):
     """(ms/frame, bytes/frame, max stretch) for one solver variant on a built scene, from `settled`;
     ahead, lanes, fused: HairSolver.leaves_ahead, .lanes and .fused, None for the device's default;
-    by_root: lanes that follow the roots (HairSolver.set_lanes)."""
+    by_root: lanes that follow the roots (HairSolver.set_lanes); setting: other HairSolver
+    attributes to set (solver_setting)."""
 
     def start(parts):
         scene.solver = HairSolver(scene.model, params, parts=1 if lanes else parts)
@@ -90,6 +116,8 @@ def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=No
             scene.solver.leaves_ahead = ahead
         if fused is not None:
             scene.solver.fused = fused
+        for attr, value in (setting or {}).items():
+            setattr(scene.solver, attr, value)
         if lanes is not None or not by_root:
             scene.solver.set_lanes(scene.solver.lanes if lanes is None else lanes, by_root)
         scene.graphs.clear()
@@ -141,6 +169,8 @@ def main():
                         help="the lanes follow the roots (lanes_by_root) or the grown strand order, or both")
     parser.add_argument("--fused", choices=["auto", "on", "off", "both"], default="auto",
                         help="HairSolver.fused (a substep in one launch), likewise")
+    parser.add_argument("--try", dest="tries", type=solver_setting, nargs="*", default=[], metavar="ATTR=VALUE,...",
+                        help="also time each case with these HairSolver attributes set, one row per setting")
     args = parser.parse_args()
     quiet_warp()
     wp.init()
@@ -167,16 +197,18 @@ def main():
                         # the lane order matters only where the lanes are on (auto: on a GPU)
                         for r in (orders if (lane if lane is not None else wp.get_device(device).is_cuda) else [True])
                         if not (a and "mesh" in n and args.leaves_ahead == "both")]  # the mesh has no leaves
-            for name, ahead, lanes, by_root, fused in variants:
+            variants = [(*v, setting) for v in variants for setting in [{}, *args.tries]]
+            for name, ahead, lanes, by_root, fused, setting in variants:
                 params = HairParams(substeps=args.substeps, **CASES[name])
                 ms, moved, stretch = run_ours(scene, params, args.frames, settled, args.profile, ahead, lanes,
-                                              by_root, fused)
+                                              by_root, fused, setting)
                 rate = scene.model.num_particles * params.substeps / (ms * 1e-3)
                 gbs = moved / (ms * 1e-3) / 1e9
                 label = (name + (" ahead" if ahead and args.leaves_ahead == "both" else "")
                          + (" lanes" if lanes and args.lanes == "both" else "")
                          + (" grown" if not by_root and args.lane_order != "root" else "")
-                         + (" fused" if fused and args.fused == "both" else ""))
+                         + (" fused" if fused and args.fused == "both" else "")
+                         + "".join(f" {attr}={value}" for attr, value in setting.items()))
                 rows.append([label, strands, scene.model.num_particles, device, fmt(ms, 4), fmt(rate),
                              fmt(moved / 1e6), f"{gbs:.0f} ({100 * gbs / ceiling:.0f}%)", fmt(stretch, 2),
                              fmt(peer_ms, 4), fmt(peer_stretch, 2),

@@ -93,6 +93,7 @@ class _Lanes:
     slot: np.ndarray  # (particles,) each particle's slot
     x: wp.array  # vec3 positions, predicted in and resolved out
     prev: wp.array  # vec3 positions at the start of the substep
+    v: wp.array  # vec3 velocities out
     inv_mass: wp.array
     rest_length: wp.array
 
@@ -198,6 +199,11 @@ class HairSolver:
         # the launches apart, with a thread per particle for the shape passes, until one is measured
         # the other way
         self.fused = not wp.get_device(device).is_cuda
+        # mesh collisions through lists of the nearest faces kept with the contact bounds
+        # (collision.collide_point_listed_mesh), on the CPU, where they saved 6% of the real-time hair's
+        # frame; a GPU queries the BVH, since gathering a list inside the length pass's serial loop kept
+        # its warps waiting: 100k strands, full+mesh on an H100, 47 -> 100 ms per frame with the lists
+        self.mesh_lists = not wp.get_device(device).is_cuda
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         # each strand's root position and frame in the substep's pose (strands.root_frames)
@@ -257,9 +263,9 @@ class HairSolver:
                 lane[held] = np.asarray(values, np.float32)[particle[held]]
                 return wp.array(lane, dtype=float, device=dev)
 
-            self._lanes = _Lanes(m.num_strands, longest, order, slot, wp.zeros(slots, dtype=wp.vec3, device=dev),
-                                 wp.zeros(slots, dtype=wp.vec3, device=dev), in_lanes(m.inv_mass.numpy()),
-                                 in_lanes(m.rest_length_np))
+            self._lanes = _Lanes(m.num_strands, longest, order, slot, *(wp.zeros(slots, dtype=wp.vec3, device=dev)
+                                                                        for _ in range(3)),
+                                 in_lanes(m.inv_mass.numpy()), in_lanes(m.rest_length_np))
         # what strands.step_strands reads per particle and per window, in the length pass's order
         self._slot_of = (self._lanes.slot if on else np.arange(m.num_particles), slots)
         self.slots = self._strand_slots()
@@ -368,8 +374,6 @@ class HairSolver:
         predicted, other = (state_out.x, self.shape_scratch) if passes % 2 == 0 else (self.shape_scratch, state_out.x)
         bound = m.bind_particle is not None and collider is not None
         c = collider
-        # lane order: predict_positions and the last shape pass also write what the length pass reads
-        # in that order, so no launch copies it there
         lane = self._lanes
         lanes = lane.strands if lane is not None else 0
         order = lane.order if lanes else self._particle_order
@@ -384,17 +388,14 @@ class HairSolver:
                    m.bind_triangle if bound else None,
                    m.bind_barycentric if bound else None, m.bind_local if bound else None, m.particle_strand,
                    self.root_origin, self.root_frame, m.root_local if bound else None, self.hold, hold,
-                   m.strand_start, predicted, state_out.v, lane.prev if lanes else None, order, r.first_particle],
-                  device=dev)
+                   predicted, state_out.v, r.first_particle], device=dev)
         if guides is not None and p.guide_stiffness > 0.0:
             wp.launch(strands.follow_guides, r.particles,
                       [predicted, m.inv_mass, m.particle_strand, m.strand_start, self._pull(guides, dt), self.clock,
                        offset, r.first_particle], device=dev)
         src, dst = predicted, other
         exact = int(self._rotations_exact)  # the first pass after a reset solves outright, later ones refine
-        for n in range(passes):
-            last = n == passes - 1
-            lane_x, lane_order = (lane.x, order) if lanes and last else (None, self._particle_order)
+        for _ in range(passes):
             if variant == SHAPE_MATCHING["full"] and r.windows > 0:
                 wp.launch(strands.shape_match_rotations, r.windows,
                           [src, win.first, win.size, win.rest_local, win.rest_centroid, exact, p.rotation_iterations,
@@ -402,19 +403,18 @@ class HairSolver:
                 exact = 0
             wp.launch(strands.shape_match_step, r.particles,
                       [src, m.inv_mass, m.particle_strand, win.at, win.size, win.offsets, win.rest_local, self.frames,
-                       self.translations, variant, p.shape_stiffness, m.strand_start, dst, lane_x, lane_order,
-                       r.first_particle], device=dev)
+                       self.translations, variant, p.shape_stiffness, m.strand_start, dst, r.first_particle],
+                      device=dev)
             src, dst = dst, src
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright
         mode = COLLISION[p.collision] if collider is not None else 0
         motion = self._motion
-        x, x_prev, inv_mass, rest = state_out.x, state_in.x, m.inv_mass, m.rest_length
+        x, x_prev, v, inv_mass, rest = state_out.x, state_in.x, state_out.v, m.inv_mass, m.rest_length
         if lanes:
-            if passes == 0:
-                wp.launch(strands.to_lanes, lane.strands * lane.longest, [state_out.x, m.strand_start, order, lane.x],
-                          device=dev)
-            x, x_prev, inv_mass, rest = lane.x, lane.prev, lane.inv_mass, lane.rest_length
+            wp.launch(strands.to_lanes, lane.strands * lane.longest,
+                      [state_out.x, state_in.x, m.strand_start, order, lane.x, lane.prev], device=dev)
+            x, x_prev, v, inv_mass, rest = lane.x, lane.prev, lane.v, lane.inv_mass, lane.rest_length
         if mode != 0 and self.contact_bounds and self.leaves_ahead and mode != COLLISION["mesh"]:
             dim, first = (lane.strands * lane.longest, 0) if lanes else (r.particles, r.first_particle)
             count = self._short_count[r]
@@ -431,8 +431,12 @@ class HairSolver:
         wp.launch(strands.follow_the_leader, r.strands,
                   [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), probe, motion, self.reach, self.clearance, self.near_leaves, self.beyond,
-                   p.ftl_damping, dt, state_out.x, state_out.v, order, r.first_strand], device=dev)
+                   int(self.contact_bounds), int(self.mesh_lists), probe, motion, self.reach, self.clearance,
+                   self.near_leaves, self.beyond, p.ftl_damping, dt, v, order, r.first_strand], device=dev)
+        if lanes:
+            wp.launch(strands.from_lanes, r.particles,
+                      [lane.x, lane.v, m.particle_strand, m.strand_start, order, r.first_particle, state_out.x,
+                       state_out.v], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
     def _forces(self):
@@ -513,8 +517,8 @@ class HairSolver:
                    self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
                    int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), probe, motion, self.reach, self.clearance, self.near_leaves, self.beyond,
-                   p.ftl_damping, shaped, spare, state_out.x, state_out.v, order,
+                   int(self.contact_bounds), int(self.mesh_lists), probe, motion, self.reach, self.clearance,
+                   self.near_leaves, self.beyond, p.ftl_damping, shaped, spare, state_out.x, state_out.v, order,
                    0 if lane is not None else r.first_strand], device=dev)
         if variant == SHAPE_MATCHING["full"] and passes > 0 and (part is None or part is self.parts[-1]):
             self._rotations_exact = False

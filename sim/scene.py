@@ -391,6 +391,11 @@ class Scene:
         self.cloth_model = self.cloth_solver = self.cloth_state = self.cloth_detail = None
         self.cloth_collider = self.cloth_body = None
         self.side_by_side = True  # False steps the cloth after the hair (the same result, slower on the CPU)
+        # the cloth's body queries read triangle boxes bounded once over the frame's poses (Collider.sweep)
+        # on the CPU, where that saved the BVH refits of every substep; a GPU refits the boxes to each
+        # substep's pose, since the swept boxes, widened by the frame's motion, made body_collide list and
+        # test several times the triangles: walking dress on an H100, 0.25 ms per launch against 0.04
+        self.cloth_sweep = not wp.get_device(self.device).is_cuda
         self._frames = 0  # frames simulated, so the detail surface is updated once per frame
         self._detail_frame = -1
         if config.cloth.enabled:
@@ -557,11 +562,13 @@ class Scene:
                                                 listed=None if mesh else self._hair_root_vertices()))
             if self.cloth_model is not None:
                 body = self.cloth_body if self.cloth_body is not self.cloth_collider else None
-                # the cloth queries the body's triangle boxes, swept over the frame; the detail's lift
-                # queries the mesh of the body after the frame (end_pose, or the collider's last pose)
+                # the cloth queries the body's triangle boxes, swept over the frame or refitted to each
+                # substep; the detail's lift queries the mesh of the body after the frame (end_pose, or
+                # the collider's last pose)
+                sweep = self.cloth_sweep
                 tasks.append(self._solver_frame("cloth", self.cloth_collider, poses[self.cloth_substeps],
-                                                frame_dt, animate, self._step_cloth, self._cloth_refs, bvh=False,
-                                                end_pose=body, sweep=True,
+                                                frame_dt, animate, self._step_cloth, self._cloth_refs, bvh=not sweep,
+                                                end_pose=body, sweep=sweep,
                                                 refit_last=body is None and self.cloth_detail is not None))
             # only replays run side by side: a capture records every launch on the device
             together = (self.side_by_side and len(tasks) > 1 and not wp.get_device(self.device).is_cuda

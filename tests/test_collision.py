@@ -195,14 +195,14 @@ def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed, ra
     return moving, model, pts
 
 
-@pytest.mark.parametrize("mode,ahead,lanes", [("sphere_tree", False, False), ("mesh", False, False),
-                                              ("sphere_tree", True, False), ("sphere_tree", True, True),
-                                              ("mesh", False, True)])
+@pytest.mark.parametrize("mode,ahead,lanes,lists", [("sphere_tree", False, False, True), ("mesh", False, False, True),
+                                                    ("sphere_tree", True, False, True), ("sphere_tree", True, True, True),
+                                                    ("mesh", False, True, True), ("mesh", False, True, False)])
 def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(head, head_collider, mode, ahead,
-                                                                              lanes):
+                                                                              lanes, lists):
     """ahead: the tree walks of the lists that run short made in a parallel pass first; lanes: the
-    length pass in lane order (both a GPU's way), here on the CPU; the strands are the same as
-    those of querying every particle in particle order."""
+    length pass in lane order; lists off: mesh queries through the BVH (all three a GPU's way), here
+    on the CPU; the strands are the same as those of querying every particle in particle order."""
     import warp as wp
 
     from warp_kernels import collision
@@ -240,6 +240,7 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
         solver.contact_bounds = use
         solver.leaves_ahead = ahead
         solver.lanes = lanes and use
+        solver.mesh_lists = lists
         s0, s1 = model.state(), model.state()
         moving.apply_pose(0)
         kept, moved = 0, 0.0
@@ -275,14 +276,15 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
 @pytest.mark.parametrize("collision,shape_matching,passes,order", [
     ("sphere_tree", "simplified", 1, "parts"), ("mesh", "full", 2, "parts"), ("none", "simplified", 2, "parts"),
     ("sphere_tree", "full", 3, "lanes"), ("mesh", "none", 1, "lanes"), ("sphere_tree", "simplified", 1, "lanes ahead"),
-    ("mesh", "full", 2, "lanes ragged")])
+    ("mesh", "full", 2, "lanes ragged"), ("mesh", "simplified", 1, "lanes bvh")])
 def test_one_launch_substep_gives_the_same_strands_as_the_launches_apart(head, collision, shape_matching, passes,
                                                                         order):
     """strands.step_strands (HairSolver.fused) against root_frames, predict_positions, the shape passes
     and follow_the_leader launched apart, in gusting wind on a turning head: every substep's x and v
     bit for bit, the full variant's warm-started rotations too, over two strand ranges or in lane order,
-    and with the tree walks queued ahead (a GPU's way: from the start positions when fused), and on
-    strands of different lengths (lane slots past a strand's tip)."""
+    and with the tree walks queued ahead (a GPU's way: from the start positions when fused), on
+    strands of different lengths (lane slots past a strand's tip), and with the mesh queried through
+    its BVH instead of the lists of nearest faces (bvh, a GPU's way)."""
     substeps, dt = 30, 1.0 / 240.0
     moving, model, pts = _hair_on_a_turning_head(head, 256, substeps, dt, 40, 11, ragged=order.endswith("ragged"))
     if order.endswith("ragged"):
@@ -294,6 +296,7 @@ def test_one_launch_substep_gives_the_same_strands_as_the_launches_apart(head, c
         solver = HairSolver(model, params, parts=1 if order.startswith("lanes") else 2)
         solver.leaves_ahead = order.endswith("ahead")
         solver.lanes = order.startswith("lanes")
+        solver.mesh_lists = not order.endswith("bvh")
         solver.fused = fused
         s0, s1 = model.state(), model.state()
         moving.apply_pose(0)
@@ -320,9 +323,9 @@ def test_one_launch_substep_gives_the_same_strands_as_the_launches_apart(head, c
 
 @pytest.mark.parametrize("shape_matching,passes", [("none", 1), ("simplified", 1), ("full", 2)])
 def test_lane_order_gives_the_same_strands_and_velocities(head, shape_matching, passes):
-    """The length pass in lane order reads what predict_positions and the last shape pass (or, with
-    no shape pass, to_lanes) leave there, and writes positions and velocities straight back in
-    particle order: every substep's x and v are those of particle order, bit for bit."""
+    """The length pass in lane order reads what to_lanes copies there and from_lanes copies its
+    positions and velocities back: every substep's x and v are those of particle order, bit for
+    bit."""
     substeps, dt = 30, 1.0 / 240.0
     moving, model, pts = _hair_on_a_turning_head(head, 256, substeps, dt, 30, 7)
     params = HairParams(collision="sphere_tree", shape_matching=shape_matching, shape_iterations=passes)

@@ -109,9 +109,11 @@ def test_points_a_self_intersecting_pose_puts_inside_by_mistake_are_not_counted(
     u = rng.normal(size=(30, 3))
     u /= np.linalg.norm(u, axis=1, keepdims=True)
     points = np.concatenate([[0.5, 0.0, 0.0] + 0.06 * u, 0.25 * u]).astype(np.float32)  # outside; 5 cm inside
-    count, listed = wp.zeros((1, 1), dtype=wp.int32), wp.zeros((1, 64), dtype=wp.int32)
+    # the collider's mesh is on the CPU, so is every array launched with it (a GPU machine's default is CUDA)
+    count, listed = wp.zeros((1, 1), dtype=wp.int32, device="cpu"), wp.zeros((1, 64), dtype=wp.int32, device="cpu")
     wp.launch(collision.count_deep_points, len(points),
-              [wp.array(points, dtype=wp.vec3), 0, 0, body.mesh.id, 0.1, 0.005, count, listed])
+              [wp.array(points, dtype=wp.vec3, device="cpu"), 0, 0, body.mesh.id, 0.1, 0.005, count, listed],
+              device="cpu")
     assert count.numpy()[0, 0] == 60  # the pseudo-normal calls every point deeper than 5 mm
     assert quality.deep_after_winding(points, v, f, count.numpy(), listed.numpy(), 0.1, 0.005) == 30
     short = listed.numpy()[:, :10]
@@ -147,15 +149,16 @@ def test_strands_walked_from_the_root_count_every_deep_particle_a_query_of_each_
     rest[inner] = segment[inner - 1] / rng.uniform(0.98, 1.02, size=len(inner))
     depth, search, band = 0.001, 0.03, 0.005
     rows = 2
-    worst = wp.zeros((rows, 2), dtype=float)
-    near, count = wp.zeros((rows, 1), dtype=wp.int32), wp.zeros((rows, 1), dtype=wp.int32)
-    listed = wp.zeros((rows, len(x)), dtype=wp.int32)
+    cpu = "cpu"  # quality.warp_mesh builds on the CPU; a GPU machine's default device is CUDA
+    worst = wp.zeros((rows, 2), dtype=float, device=cpu)
+    near, count = wp.zeros((rows, 1), dtype=wp.int32, device=cpu), wp.zeros((rows, 1), dtype=wp.int32, device=cpu)
+    listed = wp.zeros((rows, len(x)), dtype=wp.int32, device=cpu)
     mesh = quality.warp_mesh(v, f)
     half = len(counts) // 2
     for row, (a, b) in enumerate(((0, half), (half, len(counts)))):  # two launches, as on two cores
         wp.launch(strands_kernels.strand_quality, b - a,
-                  [wp.array(x, dtype=wp.vec3), a, row, wp.array(rest), wp.array(start), mesh.id, search, depth,
-                   band, worst, near, count, listed])
+                  [wp.array(x, dtype=wp.vec3, device=cpu), a, row, wp.array(rest, device=cpu),
+                   wp.array(start, device=cpu), mesh.id, search, depth, band, worst, near, count, listed], device=cpu)
     sdf = quality.signed_distance(x, mesh, "cpu", search)[0]  # every particle queried to search
     seen = np.abs(sdf) < search
     deep = np.flatnonzero(seen & (sdf < -depth))

@@ -55,14 +55,12 @@ def groom(rng):
 
 
 def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1, rotations=None, refine=True,
-                per_strand=False, lane_x=None, order=None):
+                per_strand=False):
     """One shape_match_step over positions x (after shape_match_rotations unless refine=False):
-    (moved positions, rotations). With lane_x (a vec3 array of num_strands x longest strand slots)
-    and order (a strands.LaneOrder) the pass also writes its result there in lane order. per_strand:
-    the same pass inside strands.step_strands instead (fused_pass)."""
+    (moved positions, rotations). per_strand: the same pass inside strands.step_strands instead
+    (fused_pass)."""
     if per_strand:
         return fused_pass(x, model, win.size, variant, stiffness), None
-    order = order if order is not None else kernels.LaneOrder()
     if rotations is None:
         rotations = wp.zeros(win.count, dtype=wp.quat)
     xs = wp.array(x, dtype=wp.vec3)
@@ -77,7 +75,7 @@ def launch_pass(x, model, win, variant, stiffness=1.0, exact=True, iterations=1,
     out = wp.zeros_like(xs)
     wp.launch(kernels.shape_match_step, model.num_particles,
               [xs, model.inv_mass, model.particle_strand, win.at, win.size, win.offsets, win.rest_local, frames,
-               translations, variant, stiffness, model.strand_start, out, lane_x, order, 0])
+               translations, variant, stiffness, model.strand_start, out, 0])
     return out.numpy(), refined
 
 
@@ -102,7 +100,7 @@ def fused_pass(x, model, size, variant, stiffness, lanes=False):
               [xs, zero, model.strand_start, 1 << 20, kernels.StrandForces(), wp.zeros(1, dtype=float), 0.0, 1.0, 0,
                None, None, None, None, None, None, None, 0.0,
                kernels.GuidePull(), size, variant, 1, stiffness, 1, 1, solver.rotations, solver.slots, 0,
-               collision.ColliderShape(), 0.0, 0.0, 0, 0.0, solver._motion, 0.0, solver.clearance,
+               collision.ColliderShape(), 0.0, 0.0, 0, 1, 0.0, solver._motion, 0.0, solver.clearance,
                solver.near_leaves, solver.beyond, 0.0, shaped, None, out, v, order, 0])
     return out.numpy()
 
@@ -139,33 +137,38 @@ def test_one_thread_per_strand_gives_the_per_particle_pass(variant, size, lanes)
     assert np.abs(per_strand - x).max() > 1e-4
 
 
-def test_the_pass_writes_lane_order_for_the_length_pass():
-    """In lane order the pass also leaves its result where follow_the_leader reads it: particle k of
-    the strand in lane l at k * strands + l (strands of different lengths and out of their order,
-    pinned particles included), and the slots past a strand's tip untouched."""
+def test_lane_copies_put_each_particle_in_its_slot_and_back():
+    """to_lanes puts particle k of the strand in lane l at k * strands + l, positions and start
+    positions alike (strands of different lengths and out of their order, pinned particles
+    included), leaving the slots past a strand's tip untouched; from_lanes brings positions and
+    velocities back to particle order unchanged."""
     rng = np.random.default_rng(4)
     model, x = groom(rng)
-    win = model.shape_windows(4)
     counts = np.diff(model.strand_start_np)
     assert counts.min() < counts.max()  # the groom has strands of different lengths
     slots = model.num_strands * int(counts.max())
-    lane_x = wp.full(slots, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3)
+    lane_x, lane_prev = (wp.full(slots, wp.vec3(7.0, 7.0, 7.0), dtype=wp.vec3) for _ in range(2))
     strand_of = np.array([2, 0, 1], np.int32)  # lane -> strand
     lane_of = np.argsort(strand_of).astype(np.int32)
     order = kernels.LaneOrder()
     order.lanes = model.num_strands
     order.strand_of, order.lane_of = wp.array(strand_of, dtype=wp.int32), wp.array(lane_of, dtype=wp.int32)
-    moved, _ = launch_pass(x, model, win, 1, stiffness=0.6, lane_x=lane_x, order=order)
-    plain, _ = launch_pass(x, model, win, 1, stiffness=0.6)
-    np.testing.assert_array_equal(moved, plain)
+    prev = x + rng.normal(0.0, 0.01, x.shape).astype(np.float32)
+    wp.launch(kernels.to_lanes, slots, [wp.array(x, dtype=wp.vec3), wp.array(prev, dtype=wp.vec3),
+                                        model.strand_start, order, lane_x, lane_prev])
     strand = model.particle_strand_np
     slot = (np.arange(model.num_particles) - model.strand_start_np[strand]) * model.num_strands + lane_of[strand]
-    lanes = lane_x.numpy()
-    np.testing.assert_array_equal(lanes[slot], moved)
     past_tip = np.ones(slots, bool)
     past_tip[slot] = False
     assert past_tip.any()
-    np.testing.assert_array_equal(lanes[past_tip], 7.0)
+    for lanes, values in ((lane_x.numpy(), x), (lane_prev.numpy(), prev)):
+        np.testing.assert_array_equal(lanes[slot], values)
+        np.testing.assert_array_equal(lanes[past_tip], 7.0)
+    back_x, back_v = wp.zeros(model.num_particles, dtype=wp.vec3), wp.zeros(model.num_particles, dtype=wp.vec3)
+    wp.launch(kernels.from_lanes, model.num_particles,
+              [lane_x, lane_prev, model.particle_strand, model.strand_start, order, 0, back_x, back_v])
+    np.testing.assert_array_equal(back_x.numpy(), x)
+    np.testing.assert_array_equal(back_v.numpy(), prev)
 
 
 def test_full_variant_goals_are_a_rigid_motion_of_the_rest_window():

@@ -6,12 +6,14 @@ Step order (composed by sim.hair_solver.HairSolver), a fixed sequence of launche
     -> [follow_guides]
     -> [shape_match_rotations (full variant) -> shape_match_step] x passes
     -> anchor_frame -> contact_motion (how far the collider moved near these strands)
-    -> [to_lanes, in lane order when no shape pass ran]
+    -> [to_lanes, in lane order]
     -> [find_short_lists -> list_leaves_ahead (the sphere tree's walks, in parallel)]
     -> follow_the_leader (length, collision and the velocity update)
+    -> [from_lanes, in lane order]
 
-In lane order (lane_slot, a GPU's) predict_positions and the last shape pass also leave the length
-pass's inputs in that order, and follow_the_leader writes its results back in particle order.
+In lane order (lane_slot, a GPU's) the copies in and out are their own launches, each gathering
+what it reads so that its writes stay consecutive: stores scattered across a 3.2M-particle array
+cost an H100 several times the gathers (measured, see BENCHMARKS.md).
 
 step_strands is the whole sequence from root_frames to follow_the_leader in one launch, guides
 included, a thread per strand (after anchor_frame and contact_motion, and the tree walks queued ahead
@@ -203,11 +205,8 @@ def predict_positions(
     root_local: wp.array(dtype=wp.vec3),
     hold: wp.array(dtype=float),
     hold_stiffness: float,
-    strand_start: wp.array(dtype=wp.int32),
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
-    lane_prev: wp.array(dtype=wp.vec3),
-    order: LaneOrder,
     first: int,
 ):
     """First launch of a hair substep: symplectic Euler prediction, pinned roots on the skin, root hold.
@@ -245,22 +244,13 @@ def predict_positions(
       root_local (vec3, per particle, m): groomed offset from the root in the root triangle's frame
       hold (float, per particle): root-hold weight, 1 at the root falling to 0 along the strand
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
-      strand_start (int32, num_strands + 1): first particle of each strand, then the total count; read
-          only in lane order
-      order (LaneOrder): the length pass's order; in lane order x is also copied to lane_prev
       first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): predicted positions
       v_out (vec3, per particle, m/s): velocities after forces; pinned particles keep theirs
-      lane_prev (vec3, per lane slot, m): x in lane order (lane_slot), for follow_the_leader; written
-          only in lane order (may be None otherwise)
     """
     i = wp.tid() + first
     p = x[i]
-    if order.lanes > 0:
-        # the start positions in the length pass's order, copied here where they are read anyway
-        s = particle_strand[i]
-        lane_prev[lane_slot(0, order.lane_of[s], i - strand_start[s], order.lanes)] = p
     binding = int(-1)
     weight = float(0.0)
     target = wp.vec3(0.0)
@@ -689,8 +679,6 @@ def shape_match_step(
     stiffness: float,
     strand_start: wp.array(dtype=wp.int32),
     x_out: wp.array(dtype=wp.vec3),
-    lane_x: wp.array(dtype=wp.vec3),
-    order: LaneOrder,
     first: int,
 ):
     """One shape-matching pass: each free particle moves toward the average goal of its windows.
@@ -717,21 +705,15 @@ def shape_match_step(
       variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
       stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-      order (LaneOrder): particle order, or the length pass's lane order: then the pass also writes
-          its result to lane_x for follow_the_leader (the last pass of a substep)
       first (int, index): the range's first particle; thread t works on particle first + t (0 for all of them)
     Outputs:
       x_out (vec3, per particle, m): positions after this pass; must not alias x
-      lane_x (vec3, per lane slot, m): x_out in lane order (lane_slot); written only in lane order
-          (may be None otherwise)
     """
     i = wp.tid() + first
     p = x[i]
     strand = particle_strand[i]
     if inv_mass[i] == 0.0:
         x_out[i] = p
-        if order.lanes > 0:
-            lane_x[lane_slot(0, order.lane_of[strand], i - strand_start[strand], order.lanes)] = p
         return
     if variant == SHAPE_SIMPLIFIED:
         goal = wp.vec3(0.0)
@@ -752,8 +734,6 @@ def shape_match_step(
         p = full_shaped_position(p, i - start, strand_start[strand + 1] - start, window_size, stiffness, frames,
                                  translations, window_at[start] + i - start, 1, rest_local[i])
     x_out[i] = p
-    if order.lanes > 0:
-        lane_x[lane_slot(0, order.lane_of[strand], i - strand_start[strand], order.lanes)] = p
 
 
 @wp.struct
@@ -984,21 +964,26 @@ def contact_motion(
 @wp.kernel
 def to_lanes(
     x: wp.array(dtype=wp.vec3),
+    x_prev: wp.array(dtype=wp.vec3),
     strand_start: wp.array(dtype=wp.int32),
     order: LaneOrder,
     lane_x: wp.array(dtype=wp.vec3),
+    lane_prev: wp.array(dtype=wp.vec3),
 ):
-    """Copy the predicted positions into lane order (lane_slot) when no shape-matching pass ran to
-    write them there (shape_match_step's lane_x).
+    """Copy what the length pass reads into lane order (lane_slot): the predicted positions and the
+    positions at the start of the substep.
 
-    Launch: one thread per lane slot (dim = order.lanes * the longest strand's particle count).
+    Launch: one thread per lane slot (dim = order.lanes * the longest strand's particle count): the
+    reads are gathered, the writes consecutive.
     Inputs:
       x (vec3, per particle, m): predicted positions
+      x_prev (vec3, per particle, m): positions at the start of the substep
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       order (LaneOrder): the lane order
     Outputs:
       lane_x (vec3, per lane slot, m): x in lane order; the slots past a strand's tip are left as
           they were
+      lane_prev (vec3, per lane slot, m): x_prev in lane order, likewise
     """
     t = wp.tid()
     k = t / order.lanes
@@ -1006,6 +991,40 @@ def to_lanes(
     start = strand_start[s]
     if k < strand_start[s + 1] - start:
         lane_x[t] = x[start + k]
+        lane_prev[t] = x_prev[start + k]
+
+
+@wp.kernel
+def from_lanes(
+    lane_x: wp.array(dtype=wp.vec3),
+    lane_v: wp.array(dtype=wp.vec3),
+    particle_strand: wp.array(dtype=wp.int32),
+    strand_start: wp.array(dtype=wp.int32),
+    order: LaneOrder,
+    first: int,
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+):
+    """Copy the length pass's positions and velocities back from lane order to particle order.
+
+    Launch: one thread per particle of a range (dim = particles in it): each gathers its lane slot
+    and writes its own element, so the writes stay consecutive.
+    Inputs:
+      lane_x (vec3, per lane slot, m): positions in lane order
+      lane_v (vec3, per lane slot, m/s): velocities in lane order
+      particle_strand (int32, per particle): the strand of each particle
+      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+      order (LaneOrder): the lane order
+      first (int, index): the range's first particle; thread t works on particle first + t
+    Outputs:
+      x (vec3, per particle, m): the positions in particle order
+      v (vec3, per particle, m/s): the velocities in particle order
+    """
+    i = wp.tid() + first
+    s = particle_strand[i]
+    t = lane_slot(0, order.lane_of[s], i - strand_start[s], order.lanes)
+    x[i] = lane_x[t]
+    v[i] = lane_v[t]
 
 
 @wp.kernel
@@ -1165,6 +1184,7 @@ def follow_leader(
     margin: float,
     search: float,
     use_bounds: int,
+    mesh_lists: int,
     probe: float,
     motion: ContactMotion,
     strand_reach: float,
@@ -1189,6 +1209,8 @@ def follow_leader(
       margin (float, m): distance kept outside the collider
       search (float, m): mesh query radius
       use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      mesh_lists (int, flag): non-zero answers mesh queries through the lists of the nearest faces
+          (collide_point_listed_mesh), zero through the BVH (mesh_push_out)
       probe (float, m): query radius for particles the bound shows no deeper than probe inside
       motion (ContactMotion): how the collider moved near the strands (contact_motion)
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
@@ -1213,7 +1235,8 @@ def follow_leader(
         bound = float(NO_BOUND)
         # the lists near each particle are kept with the bounds; mesh queries go through a list
         # even without them (one made for the query), so that skipping queries changes nothing
-        listed = use_bounds != 0 and (collide_mode == COLLIDE_SPHERE_TREE or collide_mode == COLLIDE_MESH)
+        listed_mesh = collide_mode == COLLIDE_MESH and mesh_lists != 0
+        listed = use_bounds != 0 and (collide_mode == COLLIDE_SPHERE_TREE or listed_mesh)
         leaves = wp.vec4i(-1, -1, -1, -1)
         unlisted = float(NO_BOUND)
         if use_bounds != 0:
@@ -1240,7 +1263,7 @@ def follow_leader(
             for _round in range(2):
                 queried = p
                 pushed = p
-                if collide_mode == COLLIDE_MESH:
+                if listed_mesh:
                     pushed, bound, leaves, origin, unlisted = collide_point_listed_mesh(
                         p, shape.mesh, margin, reach, search, leaves, origin, unlisted)
                 elif listed:
@@ -1283,6 +1306,7 @@ def follow_the_leader(
     margin: float,
     search: float,
     use_bounds: int,
+    mesh_lists: int,
     probe: float,
     motion: ContactMotion,
     strand_reach: float,
@@ -1291,7 +1315,6 @@ def follow_the_leader(
     beyond: wp.array(dtype=float),
     ftl_damping: float,
     dt: float,
-    x_out: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     order: LaneOrder,
     first: int,
@@ -1322,13 +1345,12 @@ def follow_the_leader(
     GPU, find_short_lists and list_leaves_ahead first list afresh, in parallel, the leaves of the
     particles whose lists would run short here.
 
-    The per-particle arrays it reads and keeps are in particle order or all in lane order (order,
-    lane_slot: predict_positions and the last shape-matching pass write them there; a thread per
-    lane). On a GPU lane order makes each step of the loop read consecutive memory across a warp's
+    The per-particle arrays it reads, keeps and writes are in particle order or all in lane order
+    (order, lane_slot: to_lanes copies them there and from_lanes back; a thread per lane). On a GPU
+    lane order makes each step of the loop read and write consecutive memory across a warp's
     strands; in particle order (the CPU's, where a thread walks one strand's cache lines) a warp
-    touches 32 cache lines per array per step. The results, x_out and v, are written in particle
-    order either way: a store does not hold up the loop as a load does, and no pass is needed to
-    copy them back.
+    touches 32 cache lines per array per step. Writing the results straight back in particle order
+    instead (stores scattered a strand apart) was measured slower on an H100 than from_lanes.
 
     Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
@@ -1343,6 +1365,9 @@ def follow_the_leader(
       margin (float, m): distance kept outside the collider
       search (float, m): mesh query radius
       use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      mesh_lists (int, flag): mesh queries through lists of the nearest faces (collide_point_listed_mesh),
+          kept with the contact bounds; zero queries the BVH (a GPU's default: the gathering of a list
+          inside the serial loop keeps a warp waiting longer than the BVH walk it saves)
       probe (float, m): query radius, at most search, for particles whose bound shows them no
           deeper than probe inside; read only when use_bounds != 0
       motion (ContactMotion): how the collider moved near these strands (contact_motion, with the
@@ -1358,14 +1383,12 @@ def follow_the_leader(
           loop reads each particle's parent back from it)
       clearance (float, per particle, m): contact bounds at x_prev in, at x out (NO_BOUND: unknown);
           written only when collide_mode != COLLIDE_NONE
-      near_leaves (vec4i, per particle): the leaf spheres listed for each particle (ascending node
-          indices, -1 for none); read and written only for the sphere tree with use_bounds != 0
-      beyond (float, per particle, m): lower bound of the distance to every unlisted leaf, at x_prev
-          in, at x out; ignored where clearance is NO_BOUND; sphere tree with use_bounds != 0 only
+      near_leaves (vec4i, per particle): the leaf spheres (or, with mesh_lists, mesh faces) listed
+          for each particle (ascending indices, -1 for none); read and written only with use_bounds != 0
+      beyond (float, per particle, m): lower bound of the distance to every unlisted leaf or face, at
+          x_prev in, at x out; ignored where clearance is NO_BOUND; lists kept only
     Outputs:
-      x_out (vec3, per particle, m): x's free particles as resolved, in particle order; the pinned
-          ones are not written. May be x itself in particle order
-      v (vec3, per particle, m/s): velocities at the end of the substep, in particle order
+      v (vec3, per particle, m/s): velocities at the end of the substep
     """
     s = wp.tid() + first
     lane = s
@@ -1383,19 +1406,19 @@ def follow_the_leader(
         if k >= pinned_per_strand:
             predicted = p
             p = follow_leader(parent, before, k, predicted, rest_length[i], i, x_prev[i], collide_mode, shape, margin,
-                              search, use_bounds, probe, motion, strand_reach, clearance, near_leaves, beyond)
+                              search, use_bounds, mesh_lists, probe, motion, strand_reach, clearance, near_leaves, beyond)
             correction = p - predicted
             x[i] = p
-            x_out[start + k] = p
         if k > 0:
             j = lane_slot(start, lane, k - 1, lanes)
             vel = (parent - x_prev[j]) / dt
             if inv_mass[j] > 0.0:
                 vel = vel - (ftl_damping / dt) * correction
-            v[start + k - 1] = vel
+            v[j] = vel
         before = parent
         parent = p
-    v[start + count - 1] = (parent - x_prev[lane_slot(start, lane, count - 1, lanes)]) / dt
+    j = lane_slot(start, lane, count - 1, lanes)
+    v[j] = (parent - x_prev[j]) / dt
 
 
 @wp.func
@@ -1795,6 +1818,7 @@ def step_strands(
     margin: float,
     search: float,
     use_bounds: int,
+    mesh_lists: int,
     probe: float,
     motion: ContactMotion,
     strand_reach: float,
@@ -1860,6 +1884,7 @@ def step_strands(
       margin (float, m): distance kept outside the collider
       search (float, m): mesh query radius
       use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      mesh_lists (int, flag): mesh queries through lists of the nearest faces (follow_the_leader)
       probe (float, m): query radius for particles the bound shows no deeper than probe inside
       motion (ContactMotion): how the collider moved near these strands (contact_motion)
       strand_reach (float, m): the strands' reach from the anchor given to contact_motion
@@ -1938,7 +1963,8 @@ def step_strands(
         if k >= pinned_per_strand:
             predicted = p
             p = follow_leader(parent, before, k, predicted, per.rest_length[i], i, x[start + k], collide_mode, shape,
-                              margin, search, use_bounds, probe, motion, strand_reach, clearance, near_leaves, beyond)
+                              margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, clearance, near_leaves,
+                              beyond)
             correction = p - predicted
         x_out[start + k] = p
         if k > 0:
