@@ -321,6 +321,12 @@ class ClothSolver:
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
         self.candidates = body_candidates(0, 0, d)  # kernels.BodyCandidates, allocated for the first body
         self._candidates_body = None
+        # a GPU answers the body's closest-point queries through the wp.Mesh, nearest first, where its BVH
+        # is refitted to the pose (not swept: Collider.bvh_stale); the box queries of the triangle BVH
+        # (kernels.cloth.closest_in_boxes), which grow until a triangle lies within them, reach many
+        # triangles for a far particle, and a launch waits on its slowest thread. The CPU keeps the boxes,
+        # which need no refit per substep after a sweep
+        self.mesh_queries = wp.get_device(d).is_cuda
 
     def set_parts(self, count):
         """Collide the particles with the body as `count` ranges from now on, side by side on the CPU's
@@ -384,7 +390,8 @@ class ClothSolver:
         m, p = self.model, self.params
         candidates = self._candidates_for(body)
         inputs = [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
-                  adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id, p.walk_steps,
+                  adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id,
+                  body.mesh.id if self.mesh_queries and not body.bvh_stale else 0, p.walk_steps,
                   p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), p.reseed_drift,
                   self.step_count, body.moved, int(first), p.collision_margin, p.friction, dt, state_prev.nearest,
                   state_prev.clearance, p.candidate_slack, adj.tie, int(record), state.nearest, state.clearance,

@@ -434,9 +434,8 @@ class HairSolver:
                    int(self.contact_bounds), int(self.mesh_lists), probe, motion, self.reach, self.clearance,
                    self.near_leaves, self.beyond, p.ftl_damping, dt, v, order, r.first_strand], device=dev)
         if lanes:
-            wp.launch(strands.from_lanes, r.particles,
-                      [lane.x, lane.v, m.particle_strand, m.strand_start, order, r.first_particle, state_out.x,
-                       state_out.v], device=dev)
+            wp.launch(strands.from_lanes, lane.strands * lane.longest,
+                      [lane.x, lane.v, m.strand_start, order, lane.longest, state_out.x, state_out.v], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
     def _forces(self):

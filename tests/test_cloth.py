@@ -206,7 +206,7 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     before = state.x.numpy()
     wp.launch(kernels.body_collide, 50,
               [state.x, state.x, state.v, model.inv_mass, body.points, body.prev_points, body.indices, adj.vv_start,
-               adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, 16, 1.0, 1.0, 1.0, 1, 0.0, steps,
+               adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, 0, 16, 1.0, 1.0, 1.0, 1, 0.0, steps,
                body.moved, 1, 0.0, 0.0, 1e-3, state.nearest, state.clearance, 0.0, adj.tie, 1, state.nearest,
                state.clearance, ClothSolver(model).candidates, state.contact, fallbacks, state.follow_face,
                state.follow_barycentric, state.follow_local, 0, 0])
@@ -300,19 +300,21 @@ def _skinned(body, k):
 
 def test_cloth_on_a_swept_body_steps_as_on_one_refitted_every_step():
     """The cloth's queries of triangle boxes swept over all the steps' poses (one refit) find what
-    boxes fitted to each pose find: cloth on a ball that slides, turns and rises into it ends where
-    it ends with a refit per step."""
+    boxes fitted to each pose find, and what the wp.Mesh's nearest-first query finds (a GPU's way,
+    ClothSolver.mesh_queries): cloth on a ball that slides, turns and rises into it ends where it
+    ends with a refit per step."""
     pts, tris, edges, shear, bend = grid(12, 0.8, 0.36)
     model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams(walk_refresh=2))
     dt, steps = model.stable_dt, 120
     poses = _sliding_ball_poses(steps)
     finals, queries = [], []
-    for sweep in (False, True):
+    for sweep, mesh_queries in ((False, False), (True, False), (False, True)):
         body = sphere_body()
         body.set_poses(poses)
         if sweep:
             body.sweep()
         solver = ClothSolver(model)
+        solver.mesh_queries = mesh_queries
         s0, s1 = model.state(), model.state()
         body.apply_pose(0, refit=not sweep)
         body.reset_motion()
@@ -326,8 +328,9 @@ def test_cloth_on_a_swept_body_steps_as_on_one_refitted_every_step():
         queries.append(solver.fallback_count())
         assert contacts > 100  # the ball pushed into the cloth
         assert body.signed_distance(s0.x.numpy()).min() > 0.0
-    assert queries[0] == queries[1] > 0
+    assert queries[0] == queries[1] == queries[2] > 0
     np.testing.assert_allclose(finals[1], finals[0], atol=1e-6)
+    np.testing.assert_allclose(finals[2], finals[0], atol=1e-6)
 
 
 def test_body_clearance_stays_a_lower_bound_of_the_distance_on_a_moving_body():

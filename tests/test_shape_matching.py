@@ -165,8 +165,8 @@ def test_lane_copies_put_each_particle_in_its_slot_and_back():
         np.testing.assert_array_equal(lanes[slot], values)
         np.testing.assert_array_equal(lanes[past_tip], 7.0)
     back_x, back_v = wp.zeros(model.num_particles, dtype=wp.vec3), wp.zeros(model.num_particles, dtype=wp.vec3)
-    wp.launch(kernels.from_lanes, model.num_particles,
-              [lane_x, lane_prev, model.particle_strand, model.strand_start, order, 0, back_x, back_v])
+    wp.launch(kernels.from_lanes, slots,
+              [lane_x, lane_prev, model.strand_start, order, int(counts.max()), back_x, back_v])
     np.testing.assert_array_equal(back_x.numpy(), x)
     np.testing.assert_array_equal(back_v.numpy(), prev)
 

@@ -757,6 +757,7 @@ def body_collide(
     vf_face: wp.array(dtype=wp.int32),
     concave: wp.array(dtype=wp.int32),
     bvh: wp.uint64,
+    mesh: wp.uint64,
     max_steps: int,
     teleport: float,
     trust_distance: float,
@@ -827,6 +828,10 @@ def body_collide(
       concave (int32, per body vertex): 1 where the vertex is concave or a saddle (walk not trusted)
       bvh (uint64): wp.Bvh id over boxes of the body triangles, in face order, that hold them in this
           pose (sim.Collider.triangle_bvh: swept over the frame's poses, or fitted to this one)
+      mesh (uint64): 0, or a wp.Mesh id over the same posed points with its BVH refitted to this pose:
+          its nearest-first query (wp.mesh_query_point_sign_normal) then answers the closest-point
+          queries instead of the growing box queries of bvh (closest_in_boxes), whose reach of many
+          triangles keeps a GPU's launch waiting on its slowest thread; gatherings still read bvh
       max_steps (int): most steps of the walk before falling back to the BVH
       teleport (float, m): a particle that moved farther in one step restarts from the BVH
       trust_distance (float, m): beyond this distance from its vertex a particle is re-seeded
@@ -965,7 +970,15 @@ def body_collide(
                 listed = False
         if not listed:
             wp.atomic_add(fallbacks, part, 1)
-            found, sd, nf, corner = closest_in_boxes(xp, search, tie, bvh, points, indices)
+            if mesh != wp.uint64(0):
+                q = wp.mesh_query_point_sign_normal(mesh, xp, search)
+                if q.result:
+                    found = True
+                    sd = q.sign * wp.length(xp - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
+                    nf = wp.mesh_eval_face_normal(mesh, q.face)
+                    corner = closest_corner(xp, q.face, points, indices)
+            else:
+                found, sd, nf, corner = closest_in_boxes(xp, search, tie, bvh, points, indices)
         if found:
             measured = sd
             # restart the cache at the closest corner of the closest face, then settle it locally
