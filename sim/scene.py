@@ -392,9 +392,10 @@ class Scene:
         self.cloth_collider = self.cloth_body = None
         self.side_by_side = True  # False steps the cloth after the hair (the same result, slower on the CPU)
         # the cloth's body queries read triangle boxes bounded once over the frame's poses (Collider.sweep)
-        # on the CPU, where that saved the BVH refits of every substep; a GPU refits the boxes to each
-        # substep's pose, since the swept boxes, widened by the frame's motion, made body_collide list and
-        # test several times the triangles: walking dress on an H100, 0.25 ms per launch against 0.04
+        # on the CPU, where that saved the BVH refits of every substep; a GPU refits the body to each
+        # substep's pose, so that its closest-point queries go nearest first through the wp.Mesh
+        # (ClothSolver.mesh_queries): the walking dress on an H100, 15.9 ms per frame swept, 17.8 refitted
+        # with the boxes' queries, 9.8 refitted with the mesh's (BENCHMARKS.md, session 34)
         self.cloth_sweep = not wp.get_device(self.device).is_cuda
         self._frames = 0  # frames simulated, so the detail surface is updated once per frame
         self._detail_frame = -1

@@ -943,7 +943,10 @@ def contact_motion(
         extent = radii[i - n]
     if local != 0 and gap - extent > 0.0:
         return
-    wp.atomic_max(motion.moved, 0, moved)
+    # each atomic only where it would raise the value read: once the largest motions are in, most
+    # threads skip theirs, so a GPU does not serialise one per vertex on a few addresses
+    if moved > motion.moved[0]:
+        wp.atomic_max(motion.moved, 0, moved)
     # the cells within search of the vertex's triangles or the leaf: a particle in any other cell is
     # more than search from them, beyond every bound follow_the_leader keeps
     half = reach + search
@@ -958,7 +961,9 @@ def contact_motion(
     for a in range(c0[0], c1[0] + 1):
         for b in range(c0[1], c1[1] + 1):
             for c in range(c0[2], c1[2] + 1):
-                wp.atomic_max(motion.cells, (a * MOTION_GRID + b) * MOTION_GRID + c, moved)
+                cell = (a * MOTION_GRID + b) * MOTION_GRID + c
+                if moved > motion.cells[cell]:
+                    wp.atomic_max(motion.cells, cell, moved)
 
 
 @wp.kernel
