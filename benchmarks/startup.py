@@ -51,7 +51,11 @@ print(json.dumps(time.perf_counter() - start))
 
 def _child(script, args, env):
     out = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, cwd=ROOT,
-                         env={**os.environ, "PYTHONPATH": str(ROOT), **env}, check=True)
+                         env={**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT),
+                                                                                        os.environ.get("PYTHONPATH")])),
+                              **env})
+    if out.returncode != 0:  # the child's own traceback, not only its exit status
+        raise RuntimeError(f"a timed child process failed:\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
