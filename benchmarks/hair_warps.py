@@ -21,6 +21,7 @@ import importlib.util
 import inspect
 import sys
 import tempfile
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -49,7 +50,7 @@ def counting_follow_the_leader():
     from warp_kernels import strands
 
     def source(function, name):
-        src = inspect.getsource(function.func)
+        src = textwrap.dedent(inspect.getsource(function.func))  # defined inside strands' variant factories
         return src[src.index(f"def {name}("):].replace(f"def {name}(", f"def {name}_counted(")
 
     kernel = source(strands.follow_the_leader, "follow_the_leader")
@@ -58,7 +59,7 @@ def counting_follow_the_leader():
         ("    order: LaneOrder,\n    first: int,\n):",
          "    order: LaneOrder,\n    first: int,\n    work: wp.array(dtype=float),\n):"),
         ("        correction = wp.vec3(0.0)\n", f"        correction = wp.vec3(0.0)\n        work[i] += {STEP}\n"),
-        ("p = follow_leader(", "p = follow_leader_counted("),
+        ("p = follow(", "p = follow_leader_counted("),
         ("clearance, near_leaves, beyond)", "clearance, near_leaves, beyond, work)"),
     ]
     func_edits = [
@@ -75,6 +76,7 @@ def counting_follow_the_leader():
     kernel, func = edited(kernel, kernel_edits), edited(func, func_edits)
     header = ("import warp as wp\nfrom warp_kernels._options import MODULE_OPTIONS\nwp.set_module_options(MODULE_OPTIONS)\n"
               "from warp_kernels.strands import *  # noqa\nfrom warp_kernels.strands import NO_BOUND, bound_lowering\n"
+              "paths = PATHS_ALL  # the variant with every collision path\n"
               "from warp_kernels.collision import *  # noqa\n\n")
     path = Path(tempfile.mkdtemp(prefix="cfx_warps_")) / "counted_ftl.py"
     path.write_text(header + "@wp.func(inline=True)\n" + func + "\n\n@wp.kernel\n" + kernel)
@@ -104,7 +106,7 @@ def count_work(strands, frames, counted):
     records, launch = [], wp.launch
 
     def spy(kernel, dim, inputs=(), *args, **kwargs):
-        if kernel is not kernels.follow_the_leader:
+        if kernel not in kernels.FOLLOW_THE_LEADER.values():  # any variant: the copy has every path
             return launch(kernel, dim, inputs, *args, **kwargs)
         work.zero_()
         launch(counted, dim, [*inputs, work], *args, **kwargs)

@@ -429,7 +429,14 @@ class HairSolver:
                        0, self.clearance, self.near_leaves, self.beyond], device=dev)
         # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
-        wp.launch(strands.follow_the_leader, r.strands,
+        # the pass compiled with only the collision paths it takes (strands.PATHS_*): fewer spilled registers
+        if mode == COLLISION["mesh"] and self.mesh_lists:
+            paths = strands.PATHS_ALL  # a mesh query goes through a list even without the bounds
+        elif mode == COLLISION["sphere_tree"] and self.contact_bounds:
+            paths = strands.PATHS_SPHERE_LISTS
+        else:
+            paths = strands.PATHS_QUERIES
+        wp.launch(strands.FOLLOW_THE_LEADER[paths], r.strands,
                   [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), int(self.mesh_lists), probe, motion, self.reach, self.clearance,

@@ -90,10 +90,14 @@ def problems(kind, doc, signature):
 
 def decorated(path):
     """{kind: {names}} of the public top-level @wp.kernel/@wp.func defs and @wp.struct classes of a
-    source file, read with ast: an account independent of how reference.py discovers them."""
+    source file, and of those a private top-level factory defines (strands' compiled variants, made
+    public as module attributes of the same name), read with ast: an account independent of how
+    reference.py discovers them."""
     kinds = {"kernel": "kernel", "func": "function", "struct": "struct"}
     out = {k: set() for k in kinds.values()}
-    for node in ast.parse(path.read_text()).body:
+    body = ast.parse(path.read_text()).body
+    factories = [n for n in body if isinstance(n, ast.FunctionDef) and n.name.startswith("_")]
+    for node in body + [inner for f in factories for inner in f.body]:
         if not isinstance(node, (ast.FunctionDef, ast.ClassDef)) or node.name.startswith("_"):
             continue
         for dec in node.decorator_list:

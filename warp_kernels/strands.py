@@ -1181,256 +1181,290 @@ def list_leaves_ahead(
     beyond[i] = fifth
 
 
-@wp.func(inline=True)
-def follow_leader(
-    parent: wp.vec3,
-    before: wp.vec3,
-    k: int,
-    predicted: wp.vec3,
-    length: float,
-    i: int,
-    start: wp.vec3,
-    collide_mode: int,
-    shape: ColliderShape,
-    margin: float,
-    search: float,
-    use_bounds: int,
-    mesh_lists: int,
-    probe: float,
-    motion: ContactMotion,
-    strand_reach: float,
-    clearance: wp.array(dtype=float),
-    near_leaves: wp.array(dtype=wp.vec4i),
-    beyond: wp.array(dtype=float),
-):
-    """One particle of the length pass (follow_the_leader, step_strands): put at its rest distance
-    from its parent, pushed out of the collider and put back on that sphere, its contact bounds
-    kept or renewed.
+# The collision paths a length pass is compiled with: lists of the nearest sphere-tree leaves and mesh
+# faces kept with the contact bounds, or bounded queries only. A kernel carries the code of every path
+# it may take, and its serial loop pays for the registers that code spills at every particle step:
+# on sm_90 follow_the_leader spills 596 bytes with every path, none with the bounded queries alone
+# (benchmarks/cuda_resources.py). A GPU launches the variant its collision needs (FOLLOW_THE_LEADER);
+# step_strands, the CPU's, keeps every path.
+PATHS_QUERIES = 0  # bounded queries only (collide_point_bounded): the sphere tree walked, the mesh's BVH
+PATHS_SPHERE_LISTS = 1  # and the sphere tree's leaf lists (collide_point_listed)
+PATHS_ALL = 2  # and the mesh's face lists (collide_point_listed_mesh)
+PATH_NAMES = {PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: ""}
 
-    Inputs:
-      parent (vec3, m): the parent's resolved position
-      before (vec3, m): the grandparent's resolved position; read only when k >= 2
-      k (int, index): the particle's place along its strand
-      predicted (vec3, m): where the particle was predicted and shape-matched to
-      length (float, m): its rest distance to the parent
-      i (int, index): its element of the contact-bound arrays (lane_slot)
-      start (vec3, m): its position at the start of the substep, where the bounds hold
-      collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
-      shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
-      margin (float, m): distance kept outside the collider
-      search (float, m): mesh query radius
-      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
-      mesh_lists (int, flag): non-zero answers mesh queries through the lists of the nearest faces
-          (collide_point_listed_mesh), zero through the BVH (mesh_push_out)
-      probe (float, m): query radius for particles the bound shows no deeper than probe inside
-      motion (ContactMotion): how the collider moved near the strands (contact_motion)
-      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
-    In/out:
-      clearance (float, per element, m): the contact bound, at start in and at the result out;
-          written only when collide_mode != COLLIDE_NONE
-      near_leaves (vec4i, per element): the listed leaf spheres (sphere tree) or faces (mesh),
-          with bounds
-      beyond (float, per element, m): the bound on every unlisted leaf or face, with bounds
-    Returns:
-      vec3 (m): the resolved position
-    """
-    d = predicted - parent
-    dist = wp.length(d)
-    if dist < 1.0e-12:
-        d = wp.vec3(0.0, -1.0, 0.0)
-        if k >= 2:
-            d = parent - before
+
+def _follow_leader(paths):
+    """follow_leader compiled with the collision paths `paths` (PATHS_*)."""
+
+    @wp.func(inline=True, name="follow_leader" + PATH_NAMES[paths])
+    def follow_leader(
+        parent: wp.vec3,
+        before: wp.vec3,
+        k: int,
+        predicted: wp.vec3,
+        length: float,
+        i: int,
+        start: wp.vec3,
+        collide_mode: int,
+        shape: ColliderShape,
+        margin: float,
+        search: float,
+        use_bounds: int,
+        mesh_lists: int,
+        probe: float,
+        motion: ContactMotion,
+        strand_reach: float,
+        clearance: wp.array(dtype=float),
+        near_leaves: wp.array(dtype=wp.vec4i),
+        beyond: wp.array(dtype=float),
+    ):
+        """One particle of the length pass (follow_the_leader, step_strands): put at its rest distance
+        from its parent, pushed out of the collider and put back on that sphere, its contact bounds
+        kept or renewed.
+
+        Inputs:
+          parent (vec3, m): the parent's resolved position
+          before (vec3, m): the grandparent's resolved position; read only when k >= 2
+          k (int, index): the particle's place along its strand
+          predicted (vec3, m): where the particle was predicted and shape-matched to
+          length (float, m): its rest distance to the parent
+          i (int, index): its element of the contact-bound arrays (lane_slot)
+          start (vec3, m): its position at the start of the substep, where the bounds hold
+          collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+          shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
+          margin (float, m): distance kept outside the collider
+          search (float, m): mesh query radius
+          use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+          mesh_lists (int, flag): non-zero answers mesh queries through the lists of the nearest faces
+              (collide_point_listed_mesh), zero through the BVH (mesh_push_out)
+          probe (float, m): query radius for particles the bound shows no deeper than probe inside
+          motion (ContactMotion): how the collider moved near the strands (contact_motion)
+          strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+        In/out:
+          clearance (float, per element, m): the contact bound, at start in and at the result out;
+              written only when collide_mode != COLLIDE_NONE
+          near_leaves (vec4i, per element): the listed leaf spheres (sphere tree) or faces (mesh),
+              with bounds
+          beyond (float, per element, m): the bound on every unlisted leaf or face, with bounds
+        Returns:
+          vec3 (m): the resolved position
+        """
+        d = predicted - parent
         dist = wp.length(d)
-    p = parent + d * (length / dist)
-    if collide_mode != 0:
-        bound = float(NO_BOUND)
-        # the lists near each particle are kept with the bounds; mesh queries go through a list
-        # even without them (one made for the query), so that skipping queries changes nothing
-        listed_mesh = collide_mode == COLLIDE_MESH and mesh_lists != 0
-        listed = use_bounds != 0 and (collide_mode == COLLIDE_SPHERE_TREE or listed_mesh)
-        leaves = wp.vec4i(-1, -1, -1, -1)
-        unlisted = float(NO_BOUND)
-        if use_bounds != 0:
-            from_center = p - motion.center[0]
-            if wp.dot(from_center, from_center) <= strand_reach * strand_reach:
-                _carried, lowered = bound_lowering(motion, start, p, strand_reach + search)
-                held = clearance[i]
-                bound = held - lowered
-                if listed and held > 0.5 * NO_BOUND:
-                    leaves = near_leaves[i]
-                    unlisted = beyond[i] - lowered
-        origin = p
-        queried_here = use_bounds == 0 or bound <= margin + 1.0e-5
-        if queried_here:
-            # a particle known to be no deeper than probe inside needs only a probe-sized
-            # query: one within probe finds what a search-sized one finds, and one that finds
-            # nothing shows it outside (a query's cost grows fast with its radius)
-            reach = search
-            if use_bounds != 0 and bound > -probe:
-                reach = probe
-            # putting the particle back at rest length can re-enter the collider near a
-            # crease (between two spheres, in a concave corner); a second round settles it
-            queried = p
-            for _round in range(2):
-                queried = p
-                pushed = p
-                if listed_mesh:
-                    pushed, bound, leaves, origin, unlisted = collide_point_listed_mesh(
-                        p, shape.mesh, margin, reach, search, leaves, origin, unlisted)
-                elif listed:
-                    pushed, bound, leaves, origin, unlisted = collide_point_listed(
-                        p, shape, margin, reach, leaves, origin, unlisted)
-                else:
-                    pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, reach)
-                reach = search
-                if pushed == p:
-                    break
-                p = pushed
-                d = p - parent
-                dist = wp.length(d)
-                if dist > 1.0e-12:
-                    p = parent + d * (length / dist)
-            bound = bound - wp.length(p - queried)
-        clearance[i] = bound
-        if listed:
-            # a list not queried is the one read above, and its bound holds at p itself
+        if dist < 1.0e-12:
+            d = wp.vec3(0.0, -1.0, 0.0)
+            if k >= 2:
+                d = parent - before
+            dist = wp.length(d)
+        p = parent + d * (length / dist)
+        if collide_mode != 0:
+            bound = float(NO_BOUND)
+            # the lists near each particle are kept with the bounds; mesh queries go through a list
+            # even without them (one made for the query), so that skipping queries changes nothing
+            # a path left out of this variant is a constant False: the compiler drops its code
+            listed_mesh = bool(False)
+            if wp.static(paths >= PATHS_ALL):
+                listed_mesh = collide_mode == COLLIDE_MESH and mesh_lists != 0
+            listed = bool(False)
+            if wp.static(paths >= PATHS_SPHERE_LISTS):
+                listed = use_bounds != 0 and (collide_mode == COLLIDE_SPHERE_TREE or listed_mesh)
+            leaves = wp.vec4i(-1, -1, -1, -1)
+            unlisted = float(NO_BOUND)
+            if use_bounds != 0:
+                from_center = p - motion.center[0]
+                if wp.dot(from_center, from_center) <= strand_reach * strand_reach:
+                    _carried, lowered = bound_lowering(motion, start, p, strand_reach + search)
+                    held = clearance[i]
+                    bound = held - lowered
+                    if listed and held > 0.5 * NO_BOUND:
+                        leaves = near_leaves[i]
+                        unlisted = beyond[i] - lowered
+            origin = p
+            queried_here = use_bounds == 0 or bound <= margin + 1.0e-5
             if queried_here:
-                near_leaves[i] = leaves
-                unlisted = unlisted - wp.length(p - origin)
-            beyond[i] = unlisted
-    return p
+                # a particle known to be no deeper than probe inside needs only a probe-sized
+                # query: one within probe finds what a search-sized one finds, and one that finds
+                # nothing shows it outside (a query's cost grows fast with its radius)
+                reach = search
+                if use_bounds != 0 and bound > -probe:
+                    reach = probe
+                # putting the particle back at rest length can re-enter the collider near a
+                # crease (between two spheres, in a concave corner); a second round settles it
+                queried = p
+                for _round in range(2):
+                    queried = p
+                    pushed = p
+                    if listed_mesh:
+                        pushed, bound, leaves, origin, unlisted = collide_point_listed_mesh(
+                            p, shape.mesh, margin, reach, search, leaves, origin, unlisted)
+                    elif listed:
+                        pushed, bound, leaves, origin, unlisted = collide_point_listed(
+                            p, shape, margin, reach, leaves, origin, unlisted)
+                    else:
+                        pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, reach)
+                    reach = search
+                    if pushed == p:
+                        break
+                    p = pushed
+                    d = p - parent
+                    dist = wp.length(d)
+                    if dist > 1.0e-12:
+                        p = parent + d * (length / dist)
+                bound = bound - wp.length(p - queried)
+            clearance[i] = bound
+            if listed:
+                # a list not queried is the one read above, and its bound holds at p itself
+                if queried_here:
+                    near_leaves[i] = leaves
+                    unlisted = unlisted - wp.length(p - origin)
+                beyond[i] = unlisted
+        return p
+    return follow_leader
 
 
-# 178 registers uncapped (CUDA, H100): one 256-thread block per SM, 8 warps to hide the serial loop's
-# latency; capped at 128, two blocks fit and the pass ran 30% faster (100k strands: 10.3 -> 7.3 ms
-# per frame) despite 352 bytes of spills. The CPU ignores the cap.
-@wp.kernel(cuda_max_registers=128)
-def follow_the_leader(
-    x: wp.array(dtype=wp.vec3),
-    x_prev: wp.array(dtype=wp.vec3),
-    inv_mass: wp.array(dtype=float),
-    strand_start: wp.array(dtype=wp.int32),
-    rest_length: wp.array(dtype=float),
-    pinned_per_strand: int,
-    collide_mode: int,
-    shape: ColliderShape,
-    margin: float,
-    search: float,
-    use_bounds: int,
-    mesh_lists: int,
-    probe: float,
-    motion: ContactMotion,
-    strand_reach: float,
-    clearance: wp.array(dtype=float),
-    near_leaves: wp.array(dtype=wp.vec4i),
-    beyond: wp.array(dtype=float),
-    ftl_damping: float,
-    dt: float,
-    v: wp.array(dtype=wp.vec3),
-    order: LaneOrder,
-    first: int,
-):
-    """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, then the velocities.
+follow_leader = _follow_leader(PATHS_ALL)
 
-    Each particle is put at its rest distance from its parent; a contact push-out is resolved inline
-    and the particle is then put back on the sphere of rest radius, so every segment leaves with its
-    exact rest length. Velocities are v = (x - x_prev) / dt minus ftl_damping * d_(i+1) / dt for
-    free particles, d_(i+1) the child's correction (dynamic FTL); the correction is carried to the
-    next particle in a register rather than stored.
 
-    Contact bounds (use_bounds != 0): each particle keeps a lower bound of its distance from the
-    collider, set by its last query and lowered every substep by how far it and the collider near it
-    moved, both seen in the frame that follows the anchor triangle (contact_motion, motion_near): the
-    particle's move is measured from x_prev carried by motion.rigid. While that bound stays above margin no query could
-    push the particle, so none is made: most hair is centimetres from the head, and the queries of
-    this serial loop are its cost. A particle farther than strand_reach from motion.center gets a full
-    query. The result is the same as querying every particle, except for
-    particles already deeper than search inside the collider, which no query sees anyway until
-    they are within margin of its surface. A caller that moves particles or the collider in any other
-    way must set their bounds to NO_BOUND first.
+def _follow_the_leader(paths):
+    """follow_the_leader compiled with the collision paths `paths` (PATHS_*)."""
+    follow = follow_leader if paths == PATHS_ALL else _follow_leader(paths)
 
-    Sphere tree with bounds: each particle also keeps the four leaf spheres nearest it and a lower
-    bound of its distance from every other leaf (lowered like the contact bound). While that bound
-    stays above margin a query tests only those four leaves (collide_point_listed), which is most of
-    the queries of hair lying on the body; the result is again the same as querying the tree. On a
-    GPU, find_short_lists and list_leaves_ahead first list afresh, in parallel, the leaves of the
-    particles whose lists would run short here.
+    # 178 registers uncapped (CUDA, H100): one 256-thread block per SM, 8 warps to hide the serial loop's
+    # latency; capped at 128, two blocks fit and the pass ran 30% faster (100k strands: 10.3 -> 7.3 ms
+    # per frame) despite 352 bytes of spills. The CPU ignores the cap.
+    @wp.kernel(cuda_max_registers=128, name="follow_the_leader" + PATH_NAMES[paths])
+    def follow_the_leader(
+        x: wp.array(dtype=wp.vec3),
+        x_prev: wp.array(dtype=wp.vec3),
+        inv_mass: wp.array(dtype=float),
+        strand_start: wp.array(dtype=wp.int32),
+        rest_length: wp.array(dtype=float),
+        pinned_per_strand: int,
+        collide_mode: int,
+        shape: ColliderShape,
+        margin: float,
+        search: float,
+        use_bounds: int,
+        mesh_lists: int,
+        probe: float,
+        motion: ContactMotion,
+        strand_reach: float,
+        clearance: wp.array(dtype=float),
+        near_leaves: wp.array(dtype=wp.vec4i),
+        beyond: wp.array(dtype=float),
+        ftl_damping: float,
+        dt: float,
+        v: wp.array(dtype=wp.vec3),
+        order: LaneOrder,
+        first: int,
+    ):
+        """Inextensibility by follow-the-leader (Mueller et al. 2012), root to tip, then the velocities.
 
-    The per-particle arrays it reads, keeps and writes are in particle order or all in lane order
-    (order, lane_slot: to_lanes copies them there and from_lanes back; a thread per lane). On a GPU
-    lane order makes each step of the loop read and write consecutive memory across a warp's
-    strands; in particle order (the CPU's, where a thread walks one strand's cache lines) a warp
-    touches 32 cache lines per array per step. Writing the results straight back in particle order
-    instead (stores scattered a strand apart) was measured slower on an H100 than from_lanes.
+        Each particle is put at its rest distance from its parent; a contact push-out is resolved inline
+        and the particle is then put back on the sphere of rest radius, so every segment leaves with its
+        exact rest length. Velocities are v = (x - x_prev) / dt minus ftl_damping * d_(i+1) / dt for
+        free particles, d_(i+1) the child's correction (dynamic FTL); the correction is carried to the
+        next particle in a register rather than stored.
 
-    Launch: one thread per strand of a range of strands (dim = strands in the range).
-    Inputs:
-      x_prev (vec3, per particle, m): positions at the start of the substep (where the bounds hold)
-      inv_mass (float, per particle): 0 marks pinned particles, whose velocity is not damped
-      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-      rest_length (float, per particle, m): rest distance to the previous particle (unused for roots)
-      pinned_per_strand (int): leading particles of each strand left where they are; at least 1,
-          since a root has no parent to follow (with 0 it would read the previous strand's tip)
-      collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
-      shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
-      margin (float, m): distance kept outside the collider
-      search (float, m): mesh query radius
-      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
-      mesh_lists (int, flag): mesh queries through lists of the nearest faces (collide_point_listed_mesh),
-          kept with the contact bounds; zero queries the BVH (a GPU's default: the gathering of a list
-          inside the serial loop keeps a warp waiting longer than the BVH walk it saves)
-      probe (float, m): query radius, at most search, for particles whose bound shows them no
-          deeper than probe inside; read only when use_bounds != 0
-      motion (ContactMotion): how the collider moved near these strands (contact_motion, with the
-          same reach and search); read only when use_bounds != 0
-      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
-      ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
-      dt (float, s): substep length
-      order (LaneOrder): particle order, or the lane order (then first is 0 and thread t works on
-          lane t)
-      first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
-    In/out:
-      x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out (the
-          loop reads each particle's parent back from it)
-      clearance (float, per particle, m): contact bounds at x_prev in, at x out (NO_BOUND: unknown);
-          written only when collide_mode != COLLIDE_NONE
-      near_leaves (vec4i, per particle): the leaf spheres (or, with mesh_lists, mesh faces) listed
-          for each particle (ascending indices, -1 for none); read and written only with use_bounds != 0
-      beyond (float, per particle, m): lower bound of the distance to every unlisted leaf or face, at
-          x_prev in, at x out; ignored where clearance is NO_BOUND; lists kept only
-    Outputs:
-      v (vec3, per particle, m/s): velocities at the end of the substep
-    """
-    s = wp.tid() + first
-    lane = s
-    lanes = order.lanes
-    if lanes > 0:
-        s = order.strand_of[lane]
-    start = strand_start[s]
-    count = strand_start[s + 1] - start
-    parent = wp.vec3(0.0)  # the last two particles as resolved, carried in registers
-    before = wp.vec3(0.0)
-    for k in range(count):
-        i = lane_slot(start, lane, k, lanes)
-        p = x[i]
-        correction = wp.vec3(0.0)
-        if k >= pinned_per_strand:
-            predicted = p
-            p = follow_leader(parent, before, k, predicted, rest_length[i], i, x_prev[i], collide_mode, shape, margin,
-                              search, use_bounds, mesh_lists, probe, motion, strand_reach, clearance, near_leaves, beyond)
-            correction = p - predicted
-            x[i] = p
-        if k > 0:
-            j = lane_slot(start, lane, k - 1, lanes)
-            vel = (parent - x_prev[j]) / dt
-            if inv_mass[j] > 0.0:
-                vel = vel - (ftl_damping / dt) * correction
-            v[j] = vel
-        before = parent
-        parent = p
-    j = lane_slot(start, lane, count - 1, lanes)
-    v[j] = (parent - x_prev[j]) / dt
+        Contact bounds (use_bounds != 0): each particle keeps a lower bound of its distance from the
+        collider, set by its last query and lowered every substep by how far it and the collider near it
+        moved, both seen in the frame that follows the anchor triangle (contact_motion, motion_near): the
+        particle's move is measured from x_prev carried by motion.rigid. While that bound stays above
+        margin no query could push the particle, so none is made: most hair is centimetres from the
+        head, and the queries of this serial loop are its cost. A particle farther than strand_reach
+        from motion.center gets a full query. The result is the same as querying every particle,
+        except for particles already deeper than search inside the collider, which no query sees
+        anyway until they are within margin of its surface. A caller that moves particles or the collider in any other
+        way must set their bounds to NO_BOUND first.
 
+        Sphere tree with bounds: each particle also keeps the four leaf spheres nearest it and a lower
+        bound of its distance from every other leaf (lowered like the contact bound). While that bound
+        stays above margin a query tests only those four leaves (collide_point_listed), which is most of
+        the queries of hair lying on the body; the result is again the same as querying the tree. On a
+        GPU, find_short_lists and list_leaves_ahead first list afresh, in parallel, the leaves of the
+        particles whose lists would run short here.
+
+        The per-particle arrays it reads, keeps and writes are in particle order or all in lane order
+        (order, lane_slot: to_lanes copies them there and from_lanes back; a thread per lane). On a GPU
+        lane order makes each step of the loop read and write consecutive memory across a warp's
+        strands; in particle order (the CPU's, where a thread walks one strand's cache lines) a warp
+        touches 32 cache lines per array per step. Writing the results straight back in particle order
+        instead (stores scattered a strand apart) was measured slower on an H100 than from_lanes.
+
+        Launch: one thread per strand of a range of strands (dim = strands in the range).
+        Inputs:
+          x_prev (vec3, per particle, m): positions at the start of the substep (where the bounds hold)
+          inv_mass (float, per particle): 0 marks pinned particles, whose velocity is not damped
+          strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+          rest_length (float, per particle, m): rest distance to the previous particle (unused for roots)
+          pinned_per_strand (int): leading particles of each strand left where they are; at least 1,
+              since a root has no parent to follow (with 0 it would read the previous strand's tip)
+          collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+          shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
+          margin (float, m): distance kept outside the collider
+          search (float, m): mesh query radius
+          use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+          mesh_lists (int, flag): mesh queries through lists of the nearest faces (collide_point_listed_mesh),
+              kept with the contact bounds; zero queries the BVH (a GPU's default: the gathering of a list
+              inside the serial loop keeps a warp waiting longer than the BVH walk it saves)
+          probe (float, m): query radius, at most search, for particles whose bound shows them no
+              deeper than probe inside; read only when use_bounds != 0
+          motion (ContactMotion): how the collider moved near these strands (contact_motion, with the
+              same reach and search); read only when use_bounds != 0
+          strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+          dt (float, s): substep length
+          order (LaneOrder): particle order, or the lane order (then first is 0 and thread t works on
+              lane t)
+          first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
+        In/out:
+          x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out (the
+              loop reads each particle's parent back from it)
+          clearance (float, per particle, m): contact bounds at x_prev in, at x out (NO_BOUND: unknown);
+              written only when collide_mode != COLLIDE_NONE
+          near_leaves (vec4i, per particle): the leaf spheres (or, with mesh_lists, mesh faces) listed
+              for each particle (ascending indices, -1 for none); read and written only with use_bounds != 0
+          beyond (float, per particle, m): lower bound of the distance to every unlisted leaf or face, at
+              x_prev in, at x out; ignored where clearance is NO_BOUND; lists kept only
+        Outputs:
+          v (vec3, per particle, m/s): velocities at the end of the substep
+        """
+        s = wp.tid() + first
+        lane = s
+        lanes = order.lanes
+        if lanes > 0:
+            s = order.strand_of[lane]
+        start = strand_start[s]
+        count = strand_start[s + 1] - start
+        parent = wp.vec3(0.0)  # the last two particles as resolved, carried in registers
+        before = wp.vec3(0.0)
+        for k in range(count):
+            i = lane_slot(start, lane, k, lanes)
+            p = x[i]
+            correction = wp.vec3(0.0)
+            if k >= pinned_per_strand:
+                predicted = p
+                p = follow(parent, before, k, predicted, rest_length[i], i, x_prev[i], collide_mode, shape,
+                           margin, search, use_bounds, mesh_lists, probe, motion, strand_reach,
+                           clearance, near_leaves, beyond)
+                correction = p - predicted
+                x[i] = p
+            if k > 0:
+                j = lane_slot(start, lane, k - 1, lanes)
+                vel = (parent - x_prev[j]) / dt
+                if inv_mass[j] > 0.0:
+                    vel = vel - (ftl_damping / dt) * correction
+                v[j] = vel
+            before = parent
+            parent = p
+        j = lane_slot(start, lane, count - 1, lanes)
+        v[j] = (parent - x_prev[j]) / dt
+
+    return follow_the_leader
+
+
+FOLLOW_THE_LEADER = {paths: _follow_the_leader(paths) for paths in PATH_NAMES}
+follow_the_leader = FOLLOW_THE_LEADER[PATHS_ALL]
 
 @wp.func
 def guide_point(guide_points: wp.array(dtype=wp.vec3), g: int, count: int, s: float):
