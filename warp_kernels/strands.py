@@ -1184,12 +1184,12 @@ def list_leaves_ahead(
 # The collision paths a length pass is compiled with: lists of the nearest sphere-tree leaves and mesh
 # faces kept with the contact bounds, or bounded queries only. A kernel carries the code of every path
 # it may take, and its serial loop pays for the registers that code spills at every particle step:
-# on sm_90 follow_the_leader spills 596 bytes with every path, none with the bounded queries alone
-# (benchmarks/cuda_resources.py). A GPU launches the variant its collision needs (FOLLOW_THE_LEADER);
-# step_strands, the CPU's, keeps every path.
+# on sm_90 follow_the_leader spills 596 bytes with every path, 112 with the sphere tree's alone, none
+# with the bounded queries alone (benchmarks/cuda_resources.py). The solver launches the variant its
+# collision needs (FOLLOW_THE_LEADER); step_strands, the CPU's, keeps every path.
 PATHS_QUERIES = 0  # bounded queries only (collide_point_bounded): the sphere tree walked, the mesh's BVH
-PATHS_SPHERE_LISTS = 1  # and the sphere tree's leaf lists (collide_point_listed)
-PATHS_ALL = 2  # and the mesh's face lists (collide_point_listed_mesh)
+PATHS_SPHERE_LISTS = 1  # the sphere tree alone, its leaf lists and walks: for COLLIDE_SPHERE_TREE only
+PATHS_ALL = 2  # every path: both lists (collide_point_listed, collide_point_listed_mesh) and the queries
 PATH_NAMES = {PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: ""}
 
 
@@ -1301,7 +1301,10 @@ def _follow_leader(paths):
                         pushed, bound, leaves, origin, unlisted = collide_point_listed(
                             p, shape, margin, reach, leaves, origin, unlisted)
                     else:
-                        pushed, bound = collide_point_bounded(p, collide_mode, shape, margin, reach)
+                        mode = collide_mode
+                        if wp.static(paths == PATHS_SPHERE_LISTS):
+                            mode = COLLIDE_SPHERE_TREE  # a constant: the mesh's query is not compiled in
+                        pushed, bound = collide_point_bounded(p, mode, shape, margin, reach)
                     reach = search
                     if pushed == p:
                         break
