@@ -9,11 +9,24 @@
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh startup  # benchmarks/startup.py on cuda: set-up from the asset cache, and the
 #                                       # CUDA modules compiled one after another and side by side (NVRTC)
+#   bash benchmarks/run_gpu.sh hair-ab  # benchmarks/hair.py (HAIR_AB_ARGS) run by each earlier tree that
+#   bash benchmarks/run_gpu.sh cloth-ab # benchmarks/ab_tree.sh put under .ab/ (carried), then by this one;
+#                                       # likewise benchmarks/cloth.py (CLOTH_AB_ARGS)
 # Logs go to $OUT (or ./out/gpu); warp-lang, newton, usd-core and trimesh must be importable. Set CFX_COMMIT to
 # the commit sent (the device tool's .git is stale), so the logs name it.
 set -uo pipefail
 out=${OUT:-out/gpu}; mkdir -p "$out"
+base=${PYTHONPATH:-}
 export PYTHONPATH=.${PYTHONPATH:+:$PYTHONPATH} PYTHONUNBUFFERED=1
+
+ab() {  # ab SCRIPT TIMEOUT ARGS...: each tree under .ab/ runs its own copy of SCRIPT, then this tree
+  local script=$1 limit=$2; shift 2
+  for tree in .ab/*/; do
+    [[ -d $tree ]] || continue
+    CFX_COMMIT=$(basename "$tree") PYTHONPATH=$tree${base:+:$base} timeout "$limit" python3 "$tree$script" "$@"
+  done
+  timeout "$limit" python3 "$script" "$@"
+}
 nvidia-smi --query-gpu=name,memory.total,clocks.max.sm --format=csv,noheader | tee -a "$out/device.txt"
 for part in "$@"; do
   case $part in
@@ -26,6 +39,10 @@ for part in "$@"; do
         done ;;
     cloth) timeout ${CLOTH_TIMEOUT:-540} python3 benchmarks/cloth.py --device cuda ${CLOTH_ARGS:-} 2>&1 | tee "$out/cloth.log" ;;
     realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;
+    hair-ab) ab benchmarks/hair.py 250 --device cuda --no-peer ${HAIR_AB_ARGS:---strands 1000 100000 --cases simplified1+spheres full+mesh} 2>&1 |
+        tee "$out/hair-ab.log" ;;
+    cloth-ab) ab benchmarks/cloth.py 250 --device cuda --peers ${CLOTH_AB_ARGS:---grids --detail-sizes 322} 2>&1 |
+        tee "$out/cloth-ab.log" ;;
     startup) timeout 540 python3 benchmarks/startup.py --device cuda --repeats 1 --kernels 2>&1 | tee "$out/startup.log" ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac
