@@ -59,10 +59,10 @@ def split_strands(model, windows, count):
 
 def _contact_motion(device):
     motion = strands.ContactMotion()
-    motion.moved = wp.zeros(1, dtype=float, device=device)
+    motion.moved = wp.zeros(1, dtype=wp.int32, device=device)
     motion.rigid = wp.array([np.eye(4)], dtype=wp.mat44, device=device)
     motion.center = wp.zeros(1, dtype=wp.vec3, device=device)
-    motion.cells = wp.zeros(strands.MOTION_GRID**3, dtype=float, device=device)
+    motion.cells = wp.zeros(strands.MOTION_GRID**3, dtype=wp.int32, device=device)
     return motion
 
 
@@ -537,7 +537,13 @@ class HairSolver:
         (largest relative displacement [m], the anchor's rigid motion as a 4x4 matrix, the anchor's
         centre [m])."""
         motion = self._motion
-        return float(motion.moved.numpy()[0]), motion.rigid.numpy()[0], motion.center.numpy()[0]
+        moved = float(motion.moved.numpy()[0]) * strands.MOTION_UNIT  # counted in fixed point, rounded up
+        return moved, motion.rigid.numpy()[0], motion.center.numpy()[0]
+
+    def motion_cells(self):
+        """The last substep's motion per cell of the grid around the anchor (strands.ContactMotion.cells),
+        as NumPy: (MOTION_GRID^3,) float64 [m], flattened x-major."""
+        return self._motion.cells.numpy().astype(np.float64) * strands.MOTION_UNIT
 
     def reset(self):
         """Forget warm-start data and contact bounds; call after moving the state or the collider

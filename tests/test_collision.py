@@ -195,9 +195,9 @@ def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed, ra
     return moving, model, pts
 
 
-@pytest.mark.parametrize("mode,ahead,lanes,lists", [("sphere_tree", False, False, True), ("mesh", False, False, True),
-                                                    ("sphere_tree", True, False, True), ("sphere_tree", True, True, True),
-                                                    ("mesh", False, True, True), ("mesh", False, True, False)])
+@pytest.mark.parametrize("mode,ahead,lanes,lists", [
+    ("sphere_tree", False, False, True), ("mesh", False, False, True), ("sphere_tree", True, False, True),
+    ("sphere_tree", True, True, True), ("mesh", False, True, True), ("mesh", False, True, False)])
 def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(head, head_collider, mode, ahead,
                                                                               lanes, lists):
     """ahead: the tree walks of the lists that run short made in a parallel pass first; lanes: the
@@ -391,7 +391,8 @@ def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_s
         x, x_prev, before = queued.pop()
         seen.append((x, x_prev, before, [solver.clearance.numpy()[order], solver.near_leaves.numpy()[order],
                                          solver.beyond.numpy()[order]], motion.rigid.numpy()[0].astype(np.float64),
-                     motion.center.numpy()[0].astype(np.float64), motion.cells.numpy().astype(np.float64),
+                     motion.center.numpy()[0].astype(np.float64),
+                     motion.cells.numpy().astype(np.float64) * strand_kernels.MOTION_UNIT,
                      moving.sphere_centers.numpy().astype(np.float64)))
 
     monkeypatch.setattr(wp, "launch", spy)
@@ -609,7 +610,7 @@ def test_contact_motion_follows_the_anchor_and_counts_only_the_collider_near_the
                 a, b = (np.clip(np.floor((x - center + half) / size).astype(int), 0, grid - 1) for x in (lo, hi))
                 block = cells[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1]
                 np.maximum(block, m, out=block)
-            got = solver._motion.cells.numpy().reshape(cells.shape)
+            got = solver.motion_cells().reshape(cells.shape)
             np.testing.assert_allclose(got, cells, atol=2e-6)
             assert got.max() == pytest.approx(moved, abs=2e-6)
             if k == 3:  # the hand beside the hair raises only the cells near it
@@ -644,7 +645,7 @@ def test_hair_on_a_walking_body_skips_queries_by_the_motion_near_it_and_steps_th
         for _ in range(15):
             scene.advance(1.0 / 60.0)
             if use:  # one measure per substep serves every range of strands
-                cells = scene.solver._motion.cells.numpy()
+                cells = scene.solver.motion_cells()
                 moved, _, _ = scene.solver.contact_motion()
                 assert cells.max() == pytest.approx(moved, abs=1e-7)
                 spread.append((np.mean(cells > 0.0), np.mean(cells < 0.5 * moved)))
