@@ -615,10 +615,15 @@ def write_images(images, labels, tmp, ext, fps, columns):
     if ext == ".mp4":
         import imageio.v2 as imageio
 
-        with imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
-                                macro_block_size=2, ffmpeg_log_level="error") as writer:
+        writer = imageio.get_writer(tmp, format="FFMPEG", mode="I", fps=fps, codec="libx264", quality=8,
+                                    macro_block_size=2, ffmpeg_log_level="error")
+        # closed on failure too: imageio's context manager closes only on success, which left ffmpeg
+        # running until garbage collection, writing tmp after the caller had cleaned it up
+        try:
             for image in images:
                 writer.append_data(image)
+        finally:
+            writer.close()
         return
     images = list(images)
     if ext == ".png":
