@@ -113,10 +113,12 @@ def quality(x, model, body):
     return stretch, depth
 
 
-def run_ours(model, body, frames):
+def run_ours(model, body, frames, block=None):
     """(ms/frame, substeps/frame, bytes/frame, final positions, BVH queries or gatherings per timed
-    frame): RK4 frames of RACE_DT, graph-launched."""
+    frame): RK4 frames of RACE_DT, graph-launched; block: ClothSolver.block_step (None: the default)."""
     solver = ClothSolver(model)
+    if block is not None:
+        solver.block_step = block
     states = [model.state(), model.state()]
     substeps = model.substeps_for(RACE_DT)
     dt = RACE_DT / substeps
@@ -154,7 +156,7 @@ def run_newton(model, body, solver, frames):
     return ms, peer.positions()
 
 
-def race(devices, grids, frames, peers, ceilings):
+def race(devices, grids, frames, peers, ceilings, blocks=(None,)):
     header = CLOTH_RACE_HEADER
     print(table(header, []), flush=True)  # the streamed rows below stay readable if the run is cut short
     rows, newton_1m = [], {}
@@ -166,14 +168,18 @@ def race(devices, grids, frames, peers, ceilings):
             model, body, truth = build()
             n = model.num_particles
             f = frames if n < 200_000 else max(3, frames // 6)
-            ms, substeps, moved, x, queries = run_ours(model, body, f)
-            stretch, depth = quality(x, model, truth)
-            gbs = moved / (ms * 1e-3) / 1e9
-            rows.append([name, n, device, "ours RK4", f"{substeps} x 1", fmt(ms, 4), fmt(n * substeps / (ms * 1e-3)),
-                         f"{gbs:.0f} ({100 * gbs / ceilings[device]:.0f}%)", fmt(stretch, 2), fmt(depth, 2), "1.0x"])
-            print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
-            if body is not None:
-                print(f"# {name}, ours: {queries:.1f} BVH queries or gatherings per frame after the first", flush=True)
+            for block in blocks:
+                ms, substeps, moved, x, queries = run_ours(model, body, f, block)
+                stretch, depth = quality(x, model, truth)
+                gbs = moved / (ms * 1e-3) / 1e9
+                engine = "ours RK4" + ({True: " block", False: " launches"}[block] if len(blocks) > 1 else "")
+                rows.append([name, n, device, engine, f"{substeps} x 1", fmt(ms, 4),
+                             fmt(n * substeps / (ms * 1e-3)), f"{gbs:.0f} ({100 * gbs / ceilings[device]:.0f}%)",
+                             fmt(stretch, 2), fmt(depth, 2), "1.0x"])
+                print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
+                if body is not None:
+                    print(f"# {name}, {engine}: {queries:.1f} BVH queries or gatherings per frame after the first",
+                          flush=True)
             for solver in peers:
                 peer_ms, px = run_newton(model, body, solver, f)
                 stretch, depth = quality(px, model, truth)
@@ -266,6 +272,9 @@ def main():
     parser.add_argument("--sweep", choices=["auto", "on", "off", "both"], default="auto",
                         help="Scene.cloth_sweep for the walking body's rows (the body's triangle boxes bounded over "
                              "the frame, or refitted each substep): the device's default, on, off, or both")
+    parser.add_argument("--block", choices=["auto", "on", "off", "both"], default="auto",
+                        help="ClothSolver.block_step for the race rows (a step as one launch of one thread block, "
+                             "or as its launches): the default (on for a small cloth on a GPU), on, off, or both")
     parser.add_argument("--no-race", action="store_true")
     parser.add_argument("--no-detail", action="store_true")
     parser.add_argument("--profile", action="store_true", help="print per-kernel device time of one frame (CUDA)")
@@ -288,7 +297,8 @@ def main():
               flush=True)
     newton_1m, out = {}, []
     if not args.no_race:
-        header, rows, newton_1m = race(devices, args.grids, args.frames, peers, ceilings)
+        blocks = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}[args.block]
+        header, rows, newton_1m = race(devices, args.grids, args.frames, peers, ceilings, blocks)
         out.append(table(header, rows))
     if not args.no_detail:
         sweeps = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}[args.sweep]

@@ -59,15 +59,24 @@ def launch_arrays(values):
 
 @contextlib.contextmanager
 def counting_launch_bytes():
-    """Count the bytes of every array passed to wp.launch inside the block, once per launch however
-    often it is passed (inside structs too): yields a one-element list."""
+    """Count the bytes of every array passed to wp.launch or wp.launch_tiled inside the block, once per
+    launch however often it is passed (inside structs too): yields a one-element list. A launch whose
+    passes read an array several times (ClothSolver.block_step's whole step) counts it once, so its
+    figure is a floor, below that of the launches it replaces."""
     total = [0]
-    launch = wp.launch
+    launch, launch_tiled = wp.launch, wp.launch_tiled
 
-    def counted(kernel, dim, inputs=(), outputs=(), *args, **kwargs):
+    def count(inputs, outputs):
         for a in launch_arrays(list(inputs or ()) + list(outputs or ())):
             total[0] += a.capacity
+
+    def counted(kernel, dim, inputs=(), outputs=(), *args, **kwargs):
+        count(inputs, outputs)
         return launch(kernel, dim, inputs, outputs, *args, **kwargs)
+
+    def counted_tiled(*args, **kwargs):
+        count(kwargs.get("inputs"), kwargs.get("outputs"))
+        return launch_tiled(*args, **kwargs)
 
     copy = wp.copy
 
@@ -76,11 +85,11 @@ def counting_launch_bytes():
         total[0] += 2 * n * wp.types.type_size_in_bytes(src.dtype)
         return copy(dest, src, dest_offset, src_offset, count)
 
-    wp.launch, wp.copy = counted, counted_copy
+    wp.launch, wp.launch_tiled, wp.copy = counted, counted_tiled, counted_copy
     try:
         yield total
     finally:
-        wp.launch, wp.copy = launch, copy
+        wp.launch, wp.launch_tiled, wp.copy = launch, launch_tiled, copy
 
 
 def time_frames(step, device, frames=10, min_seconds=0.5, max_frames=200):

@@ -27,6 +27,12 @@ COLLIDE_PARTICLES_PER_CORE = 2048
 
 STRETCH, SHEAR, BEND = 0, 1, 2
 
+# a GPU steps cloths up to this many particles as one launch of one thread block (kernels.step_in_block):
+# the paper's dress (332 particles) spends most of a step of six launches waiting on their latency
+BLOCK_STEP_PARTICLES = 2048
+# threads of that block: the module's default, so no second build of the module for another block size
+BLOCK_STEP_THREADS = 256
+
 
 @dataclass(frozen=True)
 class ClothParams:
@@ -328,6 +334,10 @@ class ClothSolver:
         # H100: body_collide 0.21 -> 0.09 ms per launch). The CPU keeps the boxes, which need no refit
         # per substep after a sweep
         self.mesh_queries = wp.get_device(d).is_cuda
+        # a small cloth on a GPU takes a whole step in one launch of one block (step_in_block); the CPU's
+        # launches run the body collision on all its cores
+        self.block_step = wp.get_device(d).is_cuda and n <= BLOCK_STEP_PARTICLES
+        self.block_threads = BLOCK_STEP_THREADS
 
     def set_parts(self, count):
         """Collide the particles with the body as `count` ranges from now on, side by side on the CPU's
@@ -355,6 +365,10 @@ class ClothSolver:
         poses holds them all: Collider.sweep)."""
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
         pins = body is not None and m.bind_particle is not None
+        # a strain limit of no passes still collides twice, which the block's step does not do
+        if self.block_step and (p.strain_limit == 0.0 or p.strain_iterations > 0):
+            self._step_in_block(state_in, state_out, body, dt, pins)
+            return
         wp.launch(kernels.begin_step, n,
                   [state_in.x, state_in.v, m.inv_mass, body.points if body else None, body.indices if body else None,
                    int(body is not None and p.follow), state_in.follow_face, state_in.follow_barycentric,
@@ -386,6 +400,32 @@ class ClothSolver:
             self._limit_strain(state_out, dt)
             if body is not None:  # contact has the last word, in the same pose
                 self._collide(state_out, state_out, body, adj, dt, record=p.follow, first=False)
+
+    def _step_in_block(self, state_in, state_out, body, dt, pins):
+        """step() as one launch of one thread block (kernels.step_in_block), the same particles bit for bit."""
+        m, p, n = self.model, self.params, self.model.num_particles
+        passes = p.strain_iterations if p.strain_limit > 0.0 else 0
+        if body is not None:
+            adj = body.adjacency()
+            mesh = body.mesh.id if self.mesh_queries and not body.bvh_stale else 0
+            on_body = [body.points, body.prev_points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start,
+                       adj.vf_face, adj.concave, body.triangle_bvh.id, mesh]
+            moved, tie, candidates = body.moved, adj.tie, self._candidates_for(body)
+        else:
+            on_body, moved, tie, candidates = [None] * 8 + [0, 0], None, 0.0, self.candidates
+        binding = [m.particle_binding, m.bind_triangle, m.bind_barycentric, m.bind_local] if pins else [None] * 4
+        wp.launch_tiled(kernels.step_in_block, dim=[1], inputs=[
+            n, state_in.x, state_in.v, m.inv_mass, m.drag, m.adj_start, m.adj_other, m.adj_rest, m.adj_k_stretch,
+            m.adj_k_compress, m.adj_damping, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, dt,
+            self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
+            int(body is not None and p.follow), state_in.follow_face, state_in.follow_barycentric,
+            state_in.follow_local, p.follow_full_within, p.follow_none_beyond, int(pins), *binding, self.step_count,
+            passes, m.adj_spring, m.spring_i, m.spring_j, m.spring_rest, m.spring_limited, p.strain_limit,
+            int(body is not None), *on_body, p.walk_steps, p.teleport, p.walk_trust_distance, self.reseed_radius,
+            max(1, p.walk_refresh), p.reseed_drift, moved, p.collision_margin, p.friction, state_in.nearest,
+            state_in.clearance, p.candidate_slack, tie, state_out.x, state_out.v, state_out.nearest,
+            state_out.clearance, candidates, state_out.contact, self.fallbacks, state_out.follow_face,
+            state_out.follow_barycentric, state_out.follow_local], block_dim=self.block_threads, device=m.device)
 
     def _collide(self, state_prev, state, body, adj, dt, record, first):
         m, p = self.model, self.params

@@ -333,6 +333,50 @@ def test_cloth_on_a_swept_body_steps_as_on_one_refitted_every_step():
     np.testing.assert_allclose(finals[2], finals[0], atol=1e-6)
 
 
+
+def _cloth_on_the_sliding_ball(params, steps, block=None, threads=None):
+    """(final state, BVH queries, contacts over the steps): a 12 x 12 cloth pinned at two corners bound to a ball that slides,
+    turns and rises into it; block None steps with the launches, True as one block of `threads`."""
+    pts, tris, edges, shear, bend = grid(12, 0.8, 0.29)
+    model = ClothModel(pts, tris, edges, shear, bend, [0, 11], params)
+    poses = _sliding_ball_poses(steps)
+    body = sphere_body(subdivisions=3)
+    body.set_poses(poses)
+    body.apply_pose(0)
+    body.reset_motion()
+    model.bind_to_mesh(body.points.numpy(), body.faces_np)
+    solver = ClothSolver(model)
+    solver.block_step = bool(block)
+    if threads is not None:
+        solver.block_threads = threads
+    s0, s1 = model.state(), model.state()
+    contacts = 0
+    for k in range(1, steps + 1):
+        body.apply_pose(k)
+        solver.step(s0, s1, body, model.stable_dt)
+        s0, s1 = s1, s0
+        contacts += int(s0.contact.numpy().sum())
+    return s0, solver.fallback_count(), contacts
+
+
+@pytest.mark.parametrize("passes", [0, 1, 3], ids=["no strain limit", "1 strain pass", "3 strain passes"])
+def test_a_step_in_one_block_is_the_launches_bit_for_bit(passes, monkeypatch):
+    """kernels.step_in_block (a GPU's step of a small cloth, ClothSolver.block_step) runs the step's
+    launches as the passes of one thread block, with barriers between them: the same cloth bit for
+    bit, run by one thread and by 64 threads that interleave at the barriers (the CPU's fibers,
+    wp.config.enable_cpu_blocks), where a missing barrier would read a neighbour's stale stage."""
+    params = ClothParams(strain_limit=0.01 if passes else 0.0, strain_iterations=max(passes, 1), walk_refresh=2)
+    steps = 40
+    want, queries, contacts = _cloth_on_the_sliding_ball(params, steps)
+    assert queries > 0 and contacts > 20  # the ball pushes into the cloth
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    for threads in (1, 64):
+        got, got_queries, got_contacts = _cloth_on_the_sliding_ball(params, steps, block=True, threads=threads)
+        assert (got_queries, got_contacts) == (queries, contacts)
+        for name in ("x", "v", "nearest", "contact", "follow_face", "follow_barycentric", "follow_local"):
+            np.testing.assert_array_equal(getattr(got, name).numpy(), getattr(want, name).numpy(), err_msg=name)
+        np.testing.assert_array_equal(got.clearance.distance.numpy(), want.clearance.distance.numpy())
+
 def test_body_clearance_stays_a_lower_bound_of_the_distance_on_a_moving_body():
     """The bounds that let body_collide skip queries never claim more room than there is: cloth
     falls on a ball that slides and rises into it, re-seeded every other step."""

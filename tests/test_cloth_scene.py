@@ -51,14 +51,16 @@ def test_walk_agrees_with_brute_force_and_leaves_nothing_inside_after_a_stride()
 
 def test_boxes_refitted_each_substep_walk_the_dress_as_the_swept_boxes_do():
     """A GPU's cloth frame (Scene.cloth_sweep off: the body's BVHs refitted to every substep's pose,
-    closest points from the wp.Mesh, ClothSolver.mesh_queries) and the CPU's (triangle boxes bounded
-    once over the frame's poses) answer the same closest-point queries, with the same nearest
-    triangle wherever it is unique: the walking dress ends the same."""
+    closest points from the wp.Mesh, ClothSolver.mesh_queries, each step one launch of one block,
+    ClothSolver.block_step) and the CPU's (triangle boxes bounded once over the frame's poses, a step
+    as its launches) answer the same closest-point queries, with the same nearest triangle wherever
+    it is unique: the walking dress ends the same."""
     dresses = []
     for sweep in (True, False):
         scene = Scene(sim.demo_scene({"hair": {"enabled": False}, "face": {"enabled": False}}))
         scene.cloth_sweep = sweep
         scene.cloth_solver.mesh_queries = not sweep
+        scene.cloth_solver.block_step = not sweep
         start = scene.cloth_state.x.numpy().copy()
         scene.advance(0.1, animate=False)
         scene.advance(4 / scene.config.timing.fps)
