@@ -220,18 +220,23 @@ def detail_scene(device, particles, level=6):
     return Scene(config)
 
 
-def detail(devices, sizes, frames, newton_1m, ceilings, sweeps=(None,)):
+def detail(devices, sizes, frames, newton_1m, ceilings, sweeps=(None,), blocks=(None,)):
     """The walking body's rows; sweeps: Scene.cloth_sweep values to time (None: the device's default),
-    the rows marked "swept" or "refitted" when there are several."""
+    the rows marked "swept" or "refitted" when there are several; blocks likewise for
+    ClothSolver.block_step, marked "block" or "launches"."""
     header = CLOTH_DETAIL_HEADER
     print(table(header, []), flush=True)
     rows = []
-    for device, (particles, level), sweep in ((d, z, w) for d in devices for z in sizes for w in sweeps):
+    for device, (particles, level), sweep, block in ((d, z, w, b) for d in devices for z in sizes for w in sweeps
+                                                     for b in blocks):
         scene = detail_scene(device, particles, level)
         if sweep is not None:
             scene.cloth_sweep = sweep
+        if block is not None:
+            scene.cloth_solver.block_step = block
         label = f"dress on the walking body, level {level}" + (
-            (" swept" if sweep else " refitted") if len(sweeps) > 1 else "")
+            (" swept" if sweep else " refitted") if len(sweeps) > 1 else "") + (
+            (" block" if block else " launches") if len(blocks) > 1 else "")
 
         def frame():
             scene.advance(1.0 / DETAIL_FPS)
@@ -273,8 +278,8 @@ def main():
                         help="Scene.cloth_sweep for the walking body's rows (the body's triangle boxes bounded over "
                              "the frame, or refitted each substep): the device's default, on, off, or both")
     parser.add_argument("--block", choices=["auto", "on", "off", "both"], default="auto",
-                        help="ClothSolver.block_step for the race rows (a step as one launch of one thread block, "
-                             "or as its launches): the default (on for a small cloth on a GPU), on, off, or both")
+                        help="ClothSolver.block_step (a step as one launch of one thread block, or as its "
+                             "launches): the default (on for a small cloth on a GPU), on, off, or both")
     parser.add_argument("--no-race", action="store_true")
     parser.add_argument("--no-detail", action="store_true")
     parser.add_argument("--profile", action="store_true", help="print per-kernel device time of one frame (CUDA)")
@@ -296,13 +301,13 @@ def main():
         print(f"# {device}: {device_name(device)}, copy bandwidth {ceilings[device]:.0f} GB/s (read + write)",
               flush=True)
     newton_1m, out = {}, []
+    blocks = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}[args.block]
     if not args.no_race:
-        blocks = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}[args.block]
         header, rows, newton_1m = race(devices, args.grids, args.frames, peers, ceilings, blocks)
         out.append(table(header, rows))
     if not args.no_detail:
         sweeps = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}[args.sweep]
-        header, rows = detail(devices, args.detail_sizes, 10, newton_1m, ceilings, sweeps)
+        header, rows = detail(devices, args.detail_sizes, 10, newton_1m, ceilings, sweeps, blocks)
         out.append(table(header, rows))
     print()
     print("\n\n".join(out))

@@ -6,6 +6,8 @@
 #   bash benchmarks/run_gpu.sh fused    # the hair's substep as one launch (HairSolver.fused) against the
 #                                       # launches apart, 1k to 100k strands, no peer
 #   bash benchmarks/run_gpu.sh cloth    # benchmarks/cloth.py on cuda with Newton VBD and XPBD
+#   bash benchmarks/run_gpu.sh cloth-block # the small cloths' steps as one block (ClothSolver.block_step)
+#                                       # against their launches: the paper's dress and the walking dress, profiled
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh startup  # benchmarks/startup.py on cuda: set-up from the asset cache, and the
 #                                       # CUDA modules compiled one after another and side by side (NVRTC)
@@ -38,6 +40,8 @@ for part in "$@"; do
               $way 2>&1 | tee -a "$out/fused.log"
         done ;;
     cloth) timeout ${CLOTH_TIMEOUT:-540} python3 benchmarks/cloth.py --device cuda ${CLOTH_ARGS:-} 2>&1 | tee "$out/cloth.log" ;;
+    cloth-block) timeout 400 python3 benchmarks/cloth.py --device cuda --peers --grids --detail-sizes 322 322:60 \
+        --block both --profile 2>&1 | tee "$out/cloth-block.log" ;;
     realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;
     hair-ab) ab benchmarks/hair.py 250 --device cuda --no-peer ${HAIR_AB_ARGS:---strands 1000 100000 --cases simplified1+spheres full+mesh} 2>&1 |
         tee "$out/hair-ab.log" ;;

@@ -28,10 +28,9 @@ COLLIDE_PARTICLES_PER_CORE = 2048
 STRETCH, SHEAR, BEND = 0, 1, 2
 
 # a GPU steps cloths up to this many particles as one launch of one thread block (kernels.step_in_block):
-# the paper's dress (332 particles) spends most of a step of six launches waiting on their latency
-BLOCK_STEP_PARTICLES = 2048
-# threads of that block: the module's default, so no second build of the module for another block size
-BLOCK_STEP_THREADS = 256
+# the paper's dress (332 particles) spends most of a step of six launches waiting on their latency; a
+# block's lane with more than two particles would wait longer in each pass than a launch does
+BLOCK_STEP_PARTICLES = 2 * kernels.BLOCK_STEP_LANES
 
 
 @dataclass(frozen=True)
@@ -337,7 +336,8 @@ class ClothSolver:
         # a small cloth on a GPU takes a whole step in one launch of one block (step_in_block); the CPU's
         # launches run the body collision on all its cores
         self.block_step = wp.get_device(d).is_cuda and n <= BLOCK_STEP_PARTICLES
-        self.block_threads = BLOCK_STEP_THREADS
+        # lanes of that block: one size for every cloth, since each size is a build of the whole module
+        self.block_threads = kernels.BLOCK_STEP_LANES
 
     def set_parts(self, count):
         """Collide the particles with the body as `count` ranges from now on, side by side on the CPU's

@@ -25,6 +25,10 @@ wp.set_module_options(MODULE_OPTIONS)
 
 from .skinning import bound_position, face_frame, face_point
 
+# step_in_block's most lanes: a particle per lane for a garment of a few hundred particles (the paper's
+# dress has 332), where a lane with two would double each pass's latency
+BLOCK_STEP_LANES = 384
+
 # closest_in_boxes: the first radius of its growing box queries, about a body's contact range (a
 # query of the whole body's boxes would test every triangle)
 BOX_QUERY_START = wp.constant(0.01)  # m
@@ -1328,7 +1332,7 @@ def _block_sync():
     ...
 
 
-@wp.kernel
+@wp.kernel(launch_bounds=BLOCK_STEP_LANES)
 def step_in_block(
     n: int,
     x0: wp.array(dtype=wp.vec3),
@@ -1417,9 +1421,10 @@ def step_in_block(
     records the follow data unless strain passes follow (then the second does), as ClothSolver.
 
     Launch: one thread per lane of one block (dim = 1, wp.launch_tiled with block_dim lanes).
-    The kernel takes about 200 registers on sm_90, so a block of 256 lanes is the most that always
-    launches. A CPU runs one lane unless wp.config.enable_cpu_blocks is set (then its lanes are fibers
-    that switch at the barriers).
+    At most BLOCK_STEP_LANES lanes, the kernel's launch bound: the CUDA compiler fits its registers to
+    that many (168 on sm_90, with 184 bytes of spills, against 204 and 256 lanes at most unbounded).
+    A CPU runs one lane unless wp.config.enable_cpu_blocks is set (then its lanes are fibers that
+    switch at the barriers).
     Inputs:
       n (int): particles
       inv_mass (float, per particle, 1/kg): inverse masses; 0 pins the particle
