@@ -27,6 +27,9 @@ from .sphere_tree import POINTS_PER_SLICE, build_sphere_tree, empty_sphere_tree,
 # range handed to another core costs tens of microseconds, a point about 15 ns per pose (0.4 ms for
 # 2,048 points over a 1/60 s frame's 13 poses); one split step a frame, faster in every case timed
 SWEEP_POINTS_PER_CORE = 2048
+# the largest displacement of a pose is taken by at most this many threads, each over a stride of the
+# points, that raise Collider.moved with far fewer atomics than a thread per point
+DISPLACEMENT_THREADS = 4096
 UNKNOWN_MOTION = 1.0e30  # Collider.moved after a pose that did not measure it: lowers every bound to nothing
 
 
@@ -273,7 +276,9 @@ class Collider:
         """moved for the pose just applied: a pose with a refitted BVH is one mesh queries read, and the
         cloth's contact bounds (kernels.cloth.BodyClearance) are lowered by how far it moved."""
         self.moved.zero_()
-        wp.launch(collision.largest_displacement, len(self.points), [self.prev_points, self.points, self.moved],
+        n = len(self.points)
+        threads = max(1, min(n, DISPLACEMENT_THREADS))
+        wp.launch(collision.largest_displacement, threads, [self.prev_points, self.points, n, threads, self.moved],
                   device=self.device)
 
     def reset_motion(self):

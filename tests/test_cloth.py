@@ -244,6 +244,25 @@ def test_collider_moved_is_the_largest_vertex_displacement_of_the_last_pose():
     assert body.moved.numpy()[0] == np.float32(UNKNOWN_MOTION)
 
 
+
+def test_largest_displacement_strides_to_the_largest_move():
+    """collision.largest_displacement: each thread takes the largest move over a stride of the points
+    and raises the maximum with it; the largest of 1,000 random moves, whichever thread's stride holds
+    it, for one thread, a few, and one per point."""
+    from warp_kernels import collision
+
+    rng = np.random.default_rng(3)
+    before = rng.normal(size=(1000, 3)).astype(np.float32)
+    for threads, where in ((1, 999), (3, 0), (7, 517), (1000, 400)):
+        after = before + rng.uniform(-0.01, 0.01, size=before.shape).astype(np.float32)
+        after[where] += 0.2
+        moved = wp.zeros(1, dtype=float)
+        wp.launch(collision.largest_displacement, threads,
+                  [wp.array(before, dtype=wp.vec3), wp.array(after, dtype=wp.vec3), len(before), threads, moved])
+        want = np.linalg.norm(after.astype(np.float64) - before, axis=1).max()
+        assert moved.numpy()[0] == pytest.approx(want, rel=1e-6)
+
+
 def _sliding_ball_poses(steps):
     """Poses of a ball that slides along x and rises into cloth above it, one per step."""
     poses = np.repeat(np.eye(4)[None, None], steps + 1, axis=0)
