@@ -19,6 +19,7 @@ order, with warps of 32 consecutive lanes:
 import argparse
 import importlib.util
 import inspect
+import re
 import sys
 import tempfile
 import textwrap
@@ -35,11 +36,12 @@ STEP, LISTED, WALK = 1.0, 4.0, 85.0
 
 
 def edited(src, edits):
-    """src with each (old, new) of edits replaced once; every old must be there."""
-    for old, new in edits:
-        if old not in src:
+    """src with each (pattern, replacement) of edits applied (re.sub, every match); each pattern must
+    match at least once."""
+    for pattern, replacement in edits:
+        src, count = re.subn(pattern, replacement, src)
+        if count == 0:
             raise RuntimeError("follow_the_leader changed: update benchmarks/hair_warps.py's counting edits")
-        src = src.replace(old, new, 1)
     return src
 
 
@@ -55,28 +57,32 @@ def counting_follow_the_leader():
 
     kernel = source(strands.follow_the_leader, "follow_the_leader")
     func = source(strands.follow_leader, "follow_leader")
+    # each edit keeps the indentation of the line it extends (both of the kernel's loops are counted: the
+    # copy is compiled reading in turn, as FOLLOW_THE_LEADER[PATHS_ALL])
     kernel_edits = [
-        ("    order: LaneOrder,\n    first: int,\n):",
+        (r"    order: LaneOrder,\n    first: int,\n\):",
          "    order: LaneOrder,\n    first: int,\n    work: wp.array(dtype=float),\n):"),
-        ("        correction = wp.vec3(0.0)\n", f"        correction = wp.vec3(0.0)\n        work[i] += {STEP}\n"),
-        ("p = follow(", "p = follow_leader_counted("),
-        ("clearance, near_leaves, beyond)", "clearance, near_leaves, beyond, work)"),
+        (r"\n( +)correction = wp\.vec3\(0\.0\)\n", rf"\n\1correction = wp.vec3(0.0)\n\1work[i] += {STEP}\n"),
+        (r"p = follow\(", "p = follow_leader_counted("),
+        (r"clearance, near_leaves, beyond\)\n( +)correction = p - predicted",
+         r"clearance, near_leaves, beyond, work)\n\1correction = p - predicted"),
     ]
     func_edits = [
-        ("    beyond: wp.array(dtype=float),\n):",
+        (r"    beyond: wp\.array\(dtype=float\),\n\):",
          "    beyond: wp.array(dtype=float),\n    work: wp.array(dtype=float),\n):"),
-        ("                elif listed:\n                    pushed, bound, leaves, origin, unlisted = ",
-         "                elif listed:\n"
-         "                    if unlisted - wp.length(p - origin) > margin + 1.0e-5:\n"
-         f"                        work[i] += {LISTED}\n"
-         "                    else:\n"
-         f"                        work[i] += {WALK}\n"
-         "                    pushed, bound, leaves, origin, unlisted = "),
+        (r"\n( +)elif listed:\n( +)pushed, bound, leaves, origin, unlisted = ",
+         "\n\\1elif listed:\n"
+         "\\2if unlisted - wp.length(p - origin) > margin + 1.0e-5:\n"
+         f"\\2    work[i] += {LISTED}\n"
+         "\\2else:\n"
+         f"\\2    work[i] += {WALK}\n"
+         "\\2pushed, bound, leaves, origin, unlisted = "),
     ]
     kernel, func = edited(kernel, kernel_edits), edited(func, func_edits)
     header = ("import warp as wp\nfrom warp_kernels._options import MODULE_OPTIONS\nwp.set_module_options(MODULE_OPTIONS)\n"
               "from warp_kernels.strands import *  # noqa\nfrom warp_kernels.strands import NO_BOUND, bound_lowering\n"
-              "paths = PATHS_ALL  # the variant with every collision path\n"
+              "paths = PATHS_ALL  # the variant with every collision path, reading each particle in its turn\n"
+              "ahead = False\n"
               "from warp_kernels.collision import *  # noqa\n\n")
     path = Path(tempfile.mkdtemp(prefix="cfx_warps_")) / "counted_ftl.py"
     path.write_text(header + "@wp.func(inline=True)\n" + func + "\n\n@wp.kernel\n" + kernel)

@@ -206,6 +206,11 @@ class HairSolver:
         # its warps waiting: 100k strands, full+mesh on an H100, 93.0 ms per frame with the lists, 53.5
         # without (same run, session 34)
         self.mesh_lists = not wp.get_device(device).is_cuda
+        # the length pass reads each particle's inputs while the particle before it is placed
+        # (strands.FOLLOW_THE_LEADER_AHEAD; the bounded-queries and sphere-list passes, the GPU's): the
+        # same strands, the loop's chain no longer waiting on memory at each step, but more live
+        # registers. Off until a GPU has timed it (benchmarks/hair.py --try read_ahead=on)
+        self.read_ahead = False
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         # each strand's root position and frame in the substep's pose (strands.root_frames)
@@ -437,7 +442,9 @@ class HairSolver:
             paths = strands.PATHS_SPHERE_LISTS
         else:
             paths = strands.PATHS_QUERIES
-        wp.launch(strands.FOLLOW_THE_LEADER[paths], r.strands,
+        length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths != strands.PATHS_ALL else (
+            strands.FOLLOW_THE_LEADER)
+        wp.launch(length_passes[paths], r.strands,
                   [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), int(self.mesh_lists), probe, motion, self.reach, self.clearance,

@@ -276,7 +276,8 @@ def test_contact_bounds_are_the_distance_and_skipping_queries_changes_nothing(he
 @pytest.mark.parametrize("collision,shape_matching,passes,order", [
     ("sphere_tree", "simplified", 1, "parts"), ("mesh", "full", 2, "parts"), ("none", "simplified", 2, "parts"),
     ("sphere_tree", "full", 3, "lanes"), ("mesh", "none", 1, "lanes"), ("sphere_tree", "simplified", 1, "lanes ahead"),
-    ("mesh", "full", 2, "lanes ragged"), ("mesh", "simplified", 1, "lanes bvh")])
+    ("mesh", "full", 2, "lanes ragged"), ("mesh", "simplified", 1, "lanes bvh"),
+    ("sphere_tree", "simplified", 1, "lanes ahead read ahead"), ("mesh", "full", 1, "lanes bvh read ahead")])
 def test_one_launch_substep_gives_the_same_strands_as_the_launches_apart(head, collision, shape_matching, passes,
                                                                         order):
     """strands.step_strands (HairSolver.fused) against root_frames, predict_positions, the shape passes
@@ -284,7 +285,8 @@ def test_one_launch_substep_gives_the_same_strands_as_the_launches_apart(head, c
     bit for bit, the full variant's warm-started rotations too, over two strand ranges or in lane order,
     and with the tree walks queued ahead (a GPU's way: from the start positions when fused), on
     strands of different lengths (lane slots past a strand's tip), and with the mesh queried through
-    its BVH instead of the lists of nearest faces (bvh, a GPU's way)."""
+    its BVH instead of the lists of nearest faces (bvh, a GPU's way), and with the length pass reading
+    each particle's inputs a particle ahead (HairSolver.read_ahead)."""
     substeps, dt = 30, 1.0 / 240.0
     moving, model, pts = _hair_on_a_turning_head(head, 256, substeps, dt, 40, 11, ragged=order.endswith("ragged"))
     if order.endswith("ragged"):
@@ -294,9 +296,10 @@ def test_one_launch_substep_gives_the_same_strands_as_the_launches_apart(head, c
     runs = []
     for fused in (False, True):
         solver = HairSolver(model, params, parts=1 if order.startswith("lanes") else 2)
-        solver.leaves_ahead = order.endswith("ahead")
+        solver.leaves_ahead = "lanes ahead" in order
         solver.lanes = order.startswith("lanes")
-        solver.mesh_lists = not order.endswith("bvh")
+        solver.mesh_lists = "bvh" not in order
+        solver.read_ahead = order.endswith("read ahead")
         solver.fused = fused
         s0, s1 = model.state(), model.state()
         moving.apply_pose(0)

@@ -1211,10 +1211,39 @@ PATHS_ALL = 2  # every path: both lists (collide_point_listed, collide_point_lis
 PATH_NAMES = {PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: ""}
 
 
-def _follow_leader(paths):
-    """follow_leader compiled with the collision paths `paths` (PATHS_*)."""
+@wp.func
+def held_bounds(i: int, use_bounds: int, lists: int, clearance: wp.array(dtype=float),
+                near_leaves: wp.array(dtype=wp.vec4i), beyond: wp.array(dtype=float)):
+    """The contact bounds a particle holds as the length pass reaches it, for follow_leader.
 
-    @wp.func(inline=True, name="follow_leader" + PATH_NAMES[paths])
+    Inputs:
+      i (int, index): the particle's element of the contact-bound arrays
+      use_bounds (int, flag): zero reads nothing (the bounds are unused)
+      lists (int, flag): non-zero also reads the particle's list and its bound
+      clearance (float, per element, m): contact bounds
+      near_leaves (vec4i, per element): listed leaf spheres or mesh faces
+      beyond (float, per element, m): bound on every unlisted leaf or face
+    Returns:
+      float (m): clearance[i], NO_BOUND unread
+      vec4i: near_leaves[i], (-1, -1, -1, -1) unread
+      float (m): beyond[i], NO_BOUND unread
+    """
+    held = float(NO_BOUND)
+    held_leaves = wp.vec4i(-1, -1, -1, -1)
+    held_beyond = float(NO_BOUND)
+    if use_bounds != 0:
+        held = clearance[i]
+        if lists != 0:
+            held_leaves = near_leaves[i]
+            held_beyond = beyond[i]
+    return held, held_leaves, held_beyond
+
+
+def _follow_leader(paths, ahead=False):
+    """follow_leader compiled with the collision paths `paths` (PATHS_*); with `ahead` it takes the
+    bounds held at the start as values (held, held_leaves, held_beyond) instead of reading them."""
+
+    @wp.func(inline=True, name="follow_leader" + PATH_NAMES[paths] + ("_ahead" if ahead else ""))
     def follow_leader(
         parent: wp.vec3,
         before: wp.vec3,
@@ -1232,6 +1261,9 @@ def _follow_leader(paths):
         probe: float,
         motion: ContactMotion,
         strand_reach: float,
+        held: float,
+        held_leaves: wp.vec4i,
+        held_beyond: float,
         clearance: wp.array(dtype=float),
         near_leaves: wp.array(dtype=wp.vec4i),
         beyond: wp.array(dtype=float),
@@ -1239,6 +1271,11 @@ def _follow_leader(paths):
         """One particle of the length pass (follow_the_leader, step_strands): put at its rest distance
         from its parent, pushed out of the collider and put back on that sphere, its contact bounds
         kept or renewed.
+
+        Compiled ahead (follow_the_leader's variant that reads a particle ahead), the bounds held at
+        the start come as values (held, held_leaves, held_beyond), read by the caller (held_bounds)
+        while the particle before is placed; otherwise it reads them from clearance, near_leaves and
+        beyond where it needs them, and those three arguments are unread.
 
         Inputs:
           parent (vec3, m): the parent's resolved position
@@ -1258,9 +1295,12 @@ def _follow_leader(paths):
           probe (float, m): query radius for particles the bound shows no deeper than probe inside
           motion (ContactMotion): how the collider moved near the strands (contact_motion)
           strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+          held (float, m): clearance[i] at the start, compiled ahead; read only with use_bounds
+          held_leaves (vec4i): near_leaves[i] at the start, compiled ahead; read only with a list
+          held_beyond (float, m): beyond[i] at the start, compiled ahead; likewise
         In/out:
-          clearance (float, per element, m): the contact bound, at start in and at the result out;
-              written only when collide_mode != COLLIDE_NONE
+          clearance (float, per element, m): the contact bound, at start in (unless compiled ahead) and
+              at the result out; written only when collide_mode != COLLIDE_NONE
           near_leaves (vec4i, per element): the listed leaf spheres (sphere tree) or faces (mesh),
               with bounds
           beyond (float, per element, m): the bound on every unlisted leaf or face, with bounds
@@ -1292,11 +1332,17 @@ def _follow_leader(paths):
                 from_center = p - motion.center[0]
                 if wp.dot(from_center, from_center) <= strand_reach * strand_reach:
                     _carried, lowered = bound_lowering(motion, start, p, strand_reach + search)
-                    held = clearance[i]
-                    bound = held - lowered
-                    if listed and held > 0.5 * NO_BOUND:
-                        leaves = near_leaves[i]
-                        unlisted = beyond[i] - lowered
+                    at_start = held
+                    if wp.static(not ahead):
+                        at_start = clearance[i]
+                    bound = at_start - lowered
+                    if listed and at_start > 0.5 * NO_BOUND:
+                        if wp.static(ahead):
+                            leaves = held_leaves
+                            unlisted = held_beyond - lowered
+                        else:
+                            leaves = near_leaves[i]
+                            unlisted = beyond[i] - lowered
             origin = p
             queried_here = use_bounds == 0 or bound <= margin + 1.0e-5
             if queried_here:
@@ -1346,14 +1392,15 @@ def _follow_leader(paths):
 follow_leader = _follow_leader(PATHS_ALL)
 
 
-def _follow_the_leader(paths):
-    """follow_the_leader compiled with the collision paths `paths` (PATHS_*)."""
-    follow = follow_leader if paths == PATHS_ALL else _follow_leader(paths)
+def _follow_the_leader(paths, ahead=False):
+    """follow_the_leader compiled with the collision paths `paths` (PATHS_*), reading each particle's
+    inputs in its turn or, with `ahead`, while the particle before it is placed."""
+    follow = follow_leader if paths == PATHS_ALL and not ahead else _follow_leader(paths, ahead)
 
     # 178 registers uncapped (CUDA, H100): one 256-thread block per SM, 8 warps to hide the serial loop's
     # latency; capped at 128, two blocks fit and the pass ran 30% faster (100k strands: 10.3 -> 7.3 ms
     # per frame) despite 352 bytes of spills. The CPU ignores the cap.
-    @wp.kernel(cuda_max_registers=128, name="follow_the_leader" + PATH_NAMES[paths])
+    @wp.kernel(cuda_max_registers=128, name="follow_the_leader" + PATH_NAMES[paths] + ("_ahead" if ahead else ""))
     def follow_the_leader(
         x: wp.array(dtype=wp.vec3),
         x_prev: wp.array(dtype=wp.vec3),
@@ -1459,32 +1506,79 @@ def _follow_the_leader(paths):
         count = strand_start[s + 1] - start
         parent = wp.vec3(0.0)  # the last two particles as resolved, carried in registers
         before = wp.vec3(0.0)
-        for k in range(count):
-            i = lane_slot(start, lane, k, lanes)
-            p = x[i]
-            correction = wp.vec3(0.0)
-            if k >= pinned_per_strand:
-                predicted = p
-                p = follow(parent, before, k, predicted, rest_length[i], i, x_prev[i], collide_mode, shape,
-                           margin, search, use_bounds, mesh_lists, probe, motion, strand_reach,
-                           clearance, near_leaves, beyond)
-                correction = p - predicted
-                x[i] = p
-            if k > 0:
-                j = lane_slot(start, lane, k - 1, lanes)
-                vel = (parent - x_prev[j]) / dt
-                if inv_mass[j] > 0.0:
-                    vel = vel - (ftl_damping / dt) * correction
-                v[j] = vel
-            before = parent
-            parent = p
-        j = lane_slot(start, lane, count - 1, lanes)
-        v[j] = (parent - x_prev[j]) / dt
+        if wp.static(ahead):
+            # each particle's inputs are read while the particle before it is placed, so that the loop's
+            # chain waits on its arithmetic rather than on memory (a particle's slot is its own: read
+            # early, it holds what it would hold in its turn); copies, since the loop reassigns them
+            lists = int(0)
+            if wp.static(paths >= PATHS_SPHERE_LISTS):
+                lists = int(collide_mode != 0)
+            i = lane_slot(start, lane, 0, lanes)
+            p_next, rest_next = wp.vec3(x[i]), float(rest_length[i])
+            start_next, mass_next = wp.vec3(x_prev[i]), float(inv_mass[i])
+            held_next, leaves_next, beyond_next = held_bounds(i, use_bounds, lists, clearance, near_leaves,
+                                                              beyond)
+            start_parent = wp.vec3(0.0)  # the parent's start position and inverse mass, for its velocity
+            mass_parent = float(0.0)
+            for k in range(count):
+                i = lane_slot(start, lane, k, lanes)
+                p, rest, x_start, mass = p_next, rest_next, start_next, mass_next
+                held, held_leaves, held_beyond = held_next, leaves_next, beyond_next
+                if k + 1 < count:
+                    n = lane_slot(start, lane, k + 1, lanes)
+                    p_next, rest_next = wp.vec3(x[n]), float(rest_length[n])
+                    start_next, mass_next = wp.vec3(x_prev[n]), float(inv_mass[n])
+                    held_next, leaves_next, beyond_next = held_bounds(n, use_bounds, lists, clearance,
+                                                                      near_leaves, beyond)
+                correction = wp.vec3(0.0)
+                if k >= pinned_per_strand:
+                    predicted = p
+                    p = follow(parent, before, k, predicted, rest, i, x_start, collide_mode, shape, margin, search,
+                               use_bounds, mesh_lists, probe, motion, strand_reach, held, held_leaves, held_beyond,
+                               clearance, near_leaves, beyond)
+                    correction = p - predicted
+                    x[i] = p
+                if k > 0:
+                    vel = (parent - start_parent) / dt
+                    if mass_parent > 0.0:
+                        vel = vel - (ftl_damping / dt) * correction
+                    v[lane_slot(start, lane, k - 1, lanes)] = vel
+                before = parent
+                parent = p
+                start_parent = x_start
+                mass_parent = mass
+            v[lane_slot(start, lane, count - 1, lanes)] = (parent - start_parent) / dt
+        else:
+            for k in range(count):
+                i = lane_slot(start, lane, k, lanes)
+                p = x[i]
+                correction = wp.vec3(0.0)
+                if k >= pinned_per_strand:
+                    predicted = p
+                    p = follow(parent, before, k, predicted, rest_length[i], i, x_prev[i], collide_mode, shape,
+                               margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, NO_BOUND,
+                               wp.vec4i(-1, -1, -1, -1), NO_BOUND, clearance, near_leaves, beyond)
+                    correction = p - predicted
+                    x[i] = p
+                if k > 0:
+                    j = lane_slot(start, lane, k - 1, lanes)
+                    vel = (parent - x_prev[j]) / dt
+                    if inv_mass[j] > 0.0:
+                        vel = vel - (ftl_damping / dt) * correction
+                    v[j] = vel
+                before = parent
+                parent = p
+            j = lane_slot(start, lane, count - 1, lanes)
+            v[j] = (parent - x_prev[j]) / dt
 
     return follow_the_leader
 
 
 FOLLOW_THE_LEADER = {paths: _follow_the_leader(paths) for paths in PATH_NAMES}
+# the GPU's paths reading a particle ahead (HairSolver.read_ahead): the same strands; more live registers
+# (sm_90 spills: bounded queries 0 -> 8 bytes, sphere lists 112 -> 236), less of the loop waiting on memory
+FOLLOW_THE_LEADER_AHEAD = {paths: _follow_the_leader(paths, ahead=True) for paths in (PATHS_QUERIES,
+                                                                                       PATHS_SPHERE_LISTS)}
 follow_the_leader = FOLLOW_THE_LEADER[PATHS_ALL]
 
 @wp.func
@@ -2029,8 +2123,8 @@ def step_strands(
         if k >= pinned_per_strand:
             predicted = p
             p = follow_leader(parent, before, k, predicted, per.rest_length[i], i, x[start + k], collide_mode, shape,
-                              margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, clearance, near_leaves,
-                              beyond)
+                              margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, NO_BOUND,
+                              wp.vec4i(-1, -1, -1, -1), NO_BOUND, clearance, near_leaves, beyond)
             correction = p - predicted
         x_out[start + k] = p
         if k > 0:
