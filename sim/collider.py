@@ -27,8 +27,8 @@ from .sphere_tree import POINTS_PER_SLICE, build_sphere_tree, empty_sphere_tree,
 # range handed to another core costs tens of microseconds, a point about 15 ns per pose (0.4 ms for
 # 2,048 points over a 1/60 s frame's 13 poses); one split step a frame, faster in every case timed
 SWEEP_POINTS_PER_CORE = 2048
-# the largest displacement of a pose is taken by at most this many threads, each over a stride of the
-# points, that raise Collider.moved with far fewer atomics than a thread per point
+# the largest displacement of a pose is taken on a GPU by at most this many threads, each over a stride
+# of the points, that raise Collider.moved with far fewer atomics than a thread per point
 DISPLACEMENT_THREADS = 4096
 UNKNOWN_MOTION = 1.0e30  # Collider.moved after a pose that did not measure it: lowers every bound to nothing
 
@@ -277,7 +277,8 @@ class Collider:
         cloth's contact bounds (kernels.cloth.BodyClearance) are lowered by how far it moved."""
         self.moved.zero_()
         n = len(self.points)
-        threads = max(1, min(n, DISPLACEMENT_THREADS))
+        # a CPU runs its threads one after another: one per point reads the points in order
+        threads = n if wp.get_device(self.device).is_cpu else max(1, min(n, DISPLACEMENT_THREADS))
         wp.launch(collision.largest_displacement, threads, [self.prev_points, self.points, n, threads, self.moved],
                   device=self.device)
 
