@@ -396,6 +396,25 @@ def test_a_step_in_one_block_is_the_launches_bit_for_bit(passes, monkeypatch):
             np.testing.assert_array_equal(getattr(got, name).numpy(), getattr(want, name).numpy(), err_msg=name)
         np.testing.assert_array_equal(got.clearance.distance.numpy(), want.clearance.distance.numpy())
 
+
+def test_a_step_in_one_block_without_a_body_is_the_launches_bit_for_bit(monkeypatch):
+    """step_in_block with no body to collide with or follow (its body arguments None): a hanging
+    chain with a strain limit, the same bit for bit as the launches, with 1 and 16 fiber lanes."""
+    model = chain([[0.05 * i, 0.0, 0.0] for i in range(40)], 50.0, 5.0, 0.01, gravity=(0.0, -9.81, 0.0),
+                  strain_limit=0.01, strain_iterations=2)
+    want, _ = run(model, 0.2, 1e-3)
+    monkeypatch.setattr(wp.config, "enable_cpu_blocks", True)
+    for threads in (1, 16):
+        solver = ClothSolver(model)
+        solver.block_step, solver.block_threads = True, threads
+        s0, s1 = model.state(), model.state()
+        for _ in range(200):
+            solver.step(s0, s1, None, 1e-3)
+            s0, s1 = s1, s0
+        np.testing.assert_array_equal(s0.x.numpy(), want.x.numpy())
+        np.testing.assert_array_equal(s0.v.numpy(), want.v.numpy())
+    assert want.x.numpy()[-1, 1] < -0.15  # the chain swung down
+
 def test_body_clearance_stays_a_lower_bound_of_the_distance_on_a_moving_body():
     """The bounds that let body_collide skip queries never claim more room than there is: cloth
     falls on a ball that slides and rises into it, re-seeded every other step."""
