@@ -439,3 +439,24 @@ def test_fused_hair_frames_follow_the_launches_apart(make, device):
     np.testing.assert_allclose(out[1], out[0], atol=1e-4)
     if device == "cpu":
         np.testing.assert_array_equal(out[1], out[0])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_read_ahead_length_pass_frames_follow_the_pass_in_turn(device):
+    """The length pass that reads each particle a step ahead (HairSolver.read_ahead, a GPU's option)
+    captured in the frame's graph with the device's other defaults: the frames of the pass reading in
+    turn, to float32 rounding (bit for bit on the CPU)."""
+    out = []
+    for ahead in (False, True):
+        scene = Scene(_fast_hair_config(device))
+        scene.solver.fused = False  # the length pass is its own launch
+        scene.solver.read_ahead = ahead
+        start = scene.state.x.numpy().copy()
+        for _ in range(4):
+            scene.advance(1.0 / scene.config.timing.fps)
+        out.append(scene.state.x.numpy())
+        assert np.abs(out[-1] - start).max() > 0.01  # the frames moved the hair
+    assert np.isfinite(out[1]).all()
+    np.testing.assert_allclose(out[1], out[0], atol=1e-4)
+    if device == "cpu":
+        np.testing.assert_array_equal(out[1], out[0])
