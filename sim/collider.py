@@ -196,7 +196,8 @@ class Collider:
                 refit_bvh(self.mesh)
             return
         wp.copy(self.prev_sphere_centers, self.sphere_centers)
-        self.moved.fill_(UNKNOWN_MOTION)  # until measured below
+        if not refit:  # a refit measures the motion (_refit_pose); a fill first would be one more launch
+            self.moved.fill_(UNKNOWN_MOTION)
         if self._pose_points is not None:
             wp.copy(self.points, self._pose_points, 0, k * n, n)
             if refit:
