@@ -100,17 +100,29 @@ class Collider:
         wp.launch(collision.pack_sphere_tree, len(self.sphere_nodes),
                   [self.sphere_centers, self.sphere_radii, self.sphere_nodes], device=self.device)
 
-    def twin(self):
+    def twin(self, spheres=True):
         """The same collider with a pose of its own: it shares the rest shape, skinning, sphere-tree
         layout and adjacency, and owns its posed points, BVH and sphere centres. Two solvers that
-        step side by side (sim.scene) each pose their own twin, so neither sees the other's substeps."""
+        step side by side (sim.scene) each pose their own twin, so neither sees the other's substeps.
+        spheres=False leaves the sphere tree out (mesh queries only): a solver that never reads it
+        (the cloth) then does not refit it at every substep."""
         twin = copy.copy(self)
         twin.points, twin.prev_points = wp.clone(self.points), wp.clone(self.prev_points)
         twin.moved = wp.clone(self.moved)
         twin.mesh = wp.Mesh(points=twin.points, indices=self.indices)
-        twin.sphere_centers, twin.prev_sphere_centers = wp.clone(self.sphere_centers), wp.clone(self.prev_sphere_centers)
-        twin.sphere_radii = wp.clone(self.sphere_radii)  # inner radii are refitted in place
-        twin.sphere_nodes = wp.clone(self.sphere_nodes)
+        if spheres:
+            twin.sphere_centers = wp.clone(self.sphere_centers)
+            twin.prev_sphere_centers = wp.clone(self.prev_sphere_centers)
+            twin.sphere_radii = wp.clone(self.sphere_radii)  # inner radii are refitted in place
+            twin.sphere_nodes = wp.clone(self.sphere_nodes)
+        else:  # every sphere array empty: the tree's launches cover no spheres, and Warp skips them
+            twin.tree = empty_sphere_tree()
+            empty = lambda dtype: wp.empty(0, dtype=dtype, device=self.device)  # noqa: E731
+            twin.sphere_rest_centers = twin.sphere_centers = twin.prev_sphere_centers = empty(wp.vec3)
+            twin.sphere_radii, twin.sphere_nodes = empty(float), empty(wp.vec4)
+            twin.sphere_is_leaf, twin.sphere_links = empty(wp.int32), empty(wp.int32)
+            twin.sphere_parent = empty(wp.int32)
+            twin.sphere_skin_indices, twin.sphere_skin_weights = empty(wp.vec4i), empty(wp.vec4)
         twin.shape = twin._shape()
         twin.bone_matrices = twin._pose_points = None
         twin._pose_buffers = {}

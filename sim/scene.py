@@ -408,7 +408,7 @@ class Scene:
             # the cloth poses a collider of its own (a twin, or a coarser proxy), so its frames and the
             # hair's touch no common data and may run side by side (advance); cloth_body is the body
             # itself posed at the cloth's frame ends, which the detail surface lifts out of
-            self.cloth_body = self.collider.twin() if self.model is not None else self.collider
+            self.cloth_body = self.collider.twin(spheres=False) if self.model is not None else self.collider
             self.cloth_collider = self.cloth_body
             if config.cloth_solver.body_proxy > 0.0:
                 try:
