@@ -362,7 +362,8 @@ class ClothSolver:
     def step(self, state_in, state_out, body, dt):
         """One step of dt. `body` (a Collider or None) must be posed for the end of the step, its
         triangle boxes holding that pose (Collider.apply_pose refits them, or a sweep of the frame's
-        poses holds them all: Collider.sweep)."""
+        poses holds them all: Collider.sweep). With block_step (a GPU's default for a small cloth) the
+        step is one launch of one thread block, the same particles as the launches below."""
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
         pins = body is not None and m.bind_particle is not None
         # a strain limit of no passes still collides twice, which the block's step does not do
