@@ -13,10 +13,17 @@ assemble, and are reported as such.
 
     python benchmarks/cuda_resources.py                       # every module, sm_90 (H100, H200)
     python benchmarks/cuda_resources.py --modules strands --arch 90
+    python benchmarks/cuda_resources.py --record              # and make the result the recorded baseline
+
+The recorded baseline (benchmarks/cuda_resources_sm90.json, every module for sm_90) is what
+tests/test_benchmarks.py holds each kernel's spills to: a change that spills more fails there until
+the baseline is recorded again, on purpose. Sessions without a GPU once tripled a hot kernel's spills
+without noticing, and an H100 lost a third of its speed to it (BENCHMARKS.md, session 34).
 """
 
 import argparse
 import importlib
+import json
 import re
 import shutil
 import subprocess
@@ -30,6 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import commit, table  # noqa: E402
 
 MODULES = ["strands", "cloth", "collision", "detail", "skinning"]
+BASELINE = Path(__file__).resolve().parent / "cuda_resources_sm90.json"
 HEADER = ["module", "kernel", "registers", "cap", "stack B", "spill stores B", "spill loads B"]
 
 
@@ -137,11 +145,37 @@ def module_resources(module, arch, ptxas, isa, workdir):
     return parse_ptxas(out.stderr + out.stdout, register_caps(ptx)), note
 
 
+def baseline_record(found, warp_version, isa):
+    """The JSON-ready baseline of {module: [KernelResources]}: per "module.kernel", registers and
+    spill stores and loads in bytes, with the Warp version and PTX ISA that produced them."""
+    kernels = {f"{module}.{k.kernel}": [k.registers, k.spill_stores, k.spill_loads]
+               for module, ks in sorted(found.items()) for k in sorted(ks, key=lambda k: k.kernel)}
+    return {"arch": 90, "warp": warp_version, "ptx_isa": isa, "kernels": kernels}
+
+
+def spill_regressions(found, baseline):
+    """Kernels of {module: [KernelResources]} that spill more than the baseline records (a kernel it
+    does not record counts as recorded without spills): ["module.kernel: stores/loads B, recorded
+    stores/loads B"]."""
+    worse = []
+    for module, ks in sorted(found.items()):
+        for k in sorted(ks, key=lambda k: k.kernel):
+            name = f"{module}.{k.kernel}"
+            _registers, stores, loads = baseline["kernels"].get(name, (0, 0, 0))
+            if k.spill_stores > stores or k.spill_loads > loads:
+                worse.append(f"{name}: spills {k.spill_stores}/{k.spill_loads} B, recorded {stores}/{loads} B")
+    return worse
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--modules", nargs="*", default=MODULES, choices=MODULES)
     parser.add_argument("--arch", type=int, default=90, help="SM architecture (90: H100 and H200)")
+    parser.add_argument("--record", action="store_true",
+                        help=f"write the result as the recorded baseline ({BASELINE.name}; every module, sm_90)")
     args = parser.parse_args()
+    if args.record and (args.arch != 90 or sorted(args.modules) != sorted(MODULES)):
+        parser.error("--record takes every module for sm_90")
     import warp as wp
 
     from sim.scene import quiet_warp
@@ -159,16 +193,26 @@ def main():
     isa = ptxas_isa(ptxas)
     print(f"# CUDA kernel resources for sm_{args.arch}, commit {commit()}, Warp {wp.config.version}, {ptxas} "
           f"(PTX ISA {isa})")
-    rows = []
+    rows, by_module = [], {}
     with tempfile.TemporaryDirectory(prefix="cfx_ptx_") as workdir:
         for name in args.modules:
             module = importlib.import_module(f"warp_kernels.{name}")
             found, note = module_resources(module, args.arch, ptxas, isa, workdir)
+            by_module[name] = found
             if note:
                 print(f"# {name}: {note}")
             for k in sorted(found, key=lambda k: k.kernel):
                 rows.append([name, k.kernel, k.registers, k.cap or "-", k.stack, k.spill_stores, k.spill_loads])
     print(table(HEADER, rows))
+    if args.arch == 90 and BASELINE.exists():
+        worse = spill_regressions(by_module, json.loads(BASELINE.read_text()))
+        print("# spills against the recorded baseline: " + ("; ".join(worse) if worse else "none above it"))
+    if args.record:
+        record = baseline_record(by_module, wp.config.version, isa)
+        kernels = ",\n".join(f"  {json.dumps(k)}: {json.dumps(v)}" for k, v in record.pop("kernels").items())
+        head = json.dumps(record)[1:-1]
+        BASELINE.write_text(f"{{{head},\n \"kernels\": {{\n{kernels}\n }}}}\n")  # a line per kernel, for diffs
+        print(f"# recorded {BASELINE}")
 
 
 if __name__ == "__main__":
