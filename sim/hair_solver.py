@@ -211,6 +211,14 @@ class HairSolver:
         # same strands, the loop's chain no longer waiting on memory at each step, but more live
         # registers. Off until a GPU has timed it (benchmarks/hair.py --try read_ahead=on)
         self.read_ahead = False
+        # a frame's substeps keep the state in lane order (begin_frame, end_frame): the fused substep
+        # then reads and writes each strand's state with its warp's strands side by side, where per
+        # particle they lie a strand apart, and the copies into and out of the lanes are made once a
+        # frame rather than every substep. Needs fused and lanes; off until a GPU has timed it
+        # (benchmarks/hair.py --try fused=on,frame_lanes=on)
+        self.frame_lanes = False
+        self._frame = None  # [the lanes' x, v, x', v'; which pair holds the state] for frame_lanes
+        self._in_frame = False  # between begin_frame and end_frame with the state in the lanes
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
         self.shape_scratch = wp.zeros(model.num_particles, dtype=wp.vec3, device=device)
         # each strand's root position and frame in the substep's pose (strands.root_frames)
@@ -496,6 +504,35 @@ class HairSolver:
             self.comb.launch(self.model, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
                              p.collision_margin, p.collision_search, self.clearance, order, r)
 
+    def begin_frame(self, state):
+        """Start a frame of substeps that keeps the state in lane order (frame_lanes, with fused and
+        lanes; otherwise nothing happens): state is copied into the lanes here, the substeps' step()
+        then read and write only the lanes, not their state_in and state_out, and end_frame copies the
+        result back. Nothing may read or change the states between the two."""
+        lane = self._lanes
+        if not (self.frame_lanes and self.fused and lane is not None and self.comb is None):
+            return
+        if self._frame is None or len(self._frame[0][0]) != lane.strands * lane.longest:
+            slots, dev = lane.strands * lane.longest, self.model.device
+            self._frame = [[wp.zeros(slots, dtype=wp.vec3, device=dev) for _ in range(4)], 0]
+        buffers = self._frame[0]
+        self._frame[1] = 0
+        wp.launch(strands.to_lanes, len(buffers[0]),
+                  [state.x, state.v, self.model.strand_start, lane.order, buffers[0], buffers[1]],
+                  device=self.model.device)
+        self._in_frame = True
+
+    def end_frame(self, state):
+        """End the frame begin_frame started: the lanes' state copied back into state."""
+        if not self._in_frame:
+            return
+        buffers, at = self._frame
+        lane = self._lanes
+        wp.launch(strands.from_lanes, len(buffers[0]),
+                  [buffers[2 * at], buffers[2 * at + 1], self.model.strand_start, lane.order, lane.longest, state.x,
+                   state.v], device=self.model.device)
+        self._in_frame = False
+
     def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r, guides):
         """step() as one launch per range (strands.step_strands), after the collider's motion."""
         m, p, dev = self.model, self.params, self.model.device
@@ -510,21 +547,27 @@ class HairSolver:
         # the last pass reads `shaped`; in particle order that is state_out.x itself, which the length
         # pass overwrites behind its windows
         shaped, spare = (lane.x, lane.prev) if lane is not None else (state_out.x, self.shape_scratch)
+        x_in, v_in, x_out, v_out, by_particle = state_in.x, state_in.v, state_out.x, state_out.v, 1
+        if self._in_frame:  # the state in lane order: this substep's pair in, the other out
+            buffers, at = self._frame
+            x_in, v_in, x_out, v_out = buffers[2 * at], buffers[2 * at + 1], buffers[2 - 2 * at], buffers[3 - 2 * at]
+            self._frame[1] = 1 - at
+            by_particle = 0
         if mode == COLLISION["sphere_tree"] and self.contact_bounds and self.leaves_ahead:
             # the walks of the lists that would run short, queued from the start positions
             dim, first = (lane.strands * lane.longest, 0) if lane is not None else (r.particles, r.first_particle)
             count = self._short_count[r]
             count.zero_()
             wp.launch(strands.find_short_lists, dim,
-                      [state_in.x, state_in.x, m.particle_strand, m.strand_start, m.pinned_per_strand,
+                      [x_in, x_in, m.particle_strand, m.strand_start, m.pinned_per_strand,
                        p.collision_margin, p.collision_search, FUSED_LIST_SLACK, motion, self.reach, self.clearance,
-                       self.beyond, order, 1, first, count, self._short], device=dev)
+                       self.beyond, order, by_particle, first, count, self._short], device=dev)
             wp.launch(strands.list_leaves_ahead, dim,
-                      [state_in.x, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start,
-                       order, 1, self.clearance, self.near_leaves, self.beyond], device=dev)
+                      [x_in, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start,
+                       order, by_particle, self.clearance, self.near_leaves, self.beyond], device=dev)
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         wp.launch(strands.step_strands, r.strands,
-                  [state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(), self.clock,
+                  [x_in, v_in, m.strand_start, m.pinned_per_strand, self._forces(), self.clock,
                    offset, dt, int(bound), c.points if bound else None,
                    c.indices if bound else None, m.particle_binding if bound else None,
                    m.bind_triangle if bound else None, m.bind_barycentric if bound else None,
@@ -533,8 +576,8 @@ class HairSolver:
                    int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots, mode,
                    c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
                    int(self.contact_bounds), int(self.mesh_lists), probe, motion, self.reach, self.clearance,
-                   self.near_leaves, self.beyond, p.ftl_damping, shaped, spare, state_out.x, state_out.v, order,
-                   0 if lane is not None else r.first_strand], device=dev)
+                   self.near_leaves, self.beyond, p.ftl_damping, shaped, spare, x_out, v_out, order,
+                   1 - by_particle, 0 if lane is not None else r.first_strand], device=dev)
         if variant == SHAPE_MATCHING["full"] and passes > 0 and (part is None or part is self.parts[-1]):
             self._rotations_exact = False
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)

@@ -195,6 +195,43 @@ def _hair_on_a_turning_head(head, sphere_leaves, substeps, dt, strands, seed, ra
     return moving, model, pts
 
 
+
+@pytest.mark.parametrize("collision,shape_matching,passes,ragged", [
+    ("sphere_tree", "simplified", 1, False), ("mesh", "full", 2, True), ("none", "simplified", 1, False)])
+def test_a_frame_kept_in_lanes_gives_the_strands_of_the_fused_substeps(head, collision, shape_matching, passes,
+                                                                        ragged):
+    """HairSolver.frame_lanes: begin_frame copies the state into lane order, the fused substeps
+    (strands.step_strands with lane_state) read and write only the lanes, and end_frame copies it
+    back: at the end of every frame of five substeps, x and v bit for bit those of the fused substeps
+    on the particle-order state, with the sphere tree's walks queued ahead from the lanes, on a
+    turning head, for strands of one length and of many."""
+    substeps, dt, frame = 20, 1.0 / 240.0, 5
+    moving, model, _pts = _hair_on_a_turning_head(head, 256, substeps, dt, 40, 7, ragged=ragged)
+    params = HairParams(collision=collision, shape_matching=shape_matching, shape_iterations=passes,
+                        wind=(1.5, 0.0, 0.5), wind_turbulence=0.6)
+    runs = []
+    for kept in (False, True):
+        solver = HairSolver(model, params, parts=1)
+        solver.fused, solver.lanes, solver.leaves_ahead, solver.frame_lanes = True, True, True, kept
+        s0, s1 = model.state(), model.state()
+        moving.apply_pose(0)
+        ends = []
+        for k in range(1, substeps + 1):
+            if k % frame == 1:
+                solver.begin_frame(s0)
+            moving.apply_pose(k)
+            solver.step(s0, s1, moving, dt, time=k * dt)
+            s0, s1 = s1, s0
+            if k % frame == 0:
+                solver.end_frame(s0)
+                ends.append((s0.x.numpy().copy(), s0.v.numpy().copy()))
+        assert solver._in_frame is False and (solver._frame is not None) == kept
+        runs.append(ends)
+    for (x, v), (x_kept, v_kept) in zip(*runs, strict=True):
+        np.testing.assert_array_equal(x_kept, x)
+        np.testing.assert_array_equal(v_kept, v)
+    assert np.abs(runs[0][-1][1]).max() > 0.1  # the hair swung
+
 @pytest.mark.parametrize("mode,ahead,lanes,lists", [
     ("sphere_tree", False, False, True), ("mesh", False, False, True), ("sphere_tree", True, False, True),
     ("sphere_tree", True, True, True), ("mesh", False, True, True), ("mesh", False, True, False)])

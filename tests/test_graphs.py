@@ -460,3 +460,25 @@ def test_read_ahead_length_pass_frames_follow_the_pass_in_turn(device):
     np.testing.assert_allclose(out[1], out[0], atol=1e-4)
     if device == "cpu":
         np.testing.assert_array_equal(out[1], out[0])
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_frame_kept_in_lanes_follows_the_fused_frames(device):
+    """The scene's captured hair frames with the state kept in lane order across each frame
+    (HairSolver.frame_lanes, begin_frame and end_frame around the substeps): the frames of the fused
+    substeps on the particle-order state, bit for bit on the CPU, to float32 rounding on CUDA."""
+    out = []
+    for kept in (False, True):
+        scene = Scene(_fast_hair_config(device))
+        scene.solver.set_parts(1)
+        scene.solver.fused, scene.solver.lanes, scene.solver.frame_lanes = True, True, kept
+        start = scene.state.x.numpy().copy()
+        for _ in range(4):
+            scene.advance(1.0 / scene.config.timing.fps)
+        out.append(scene.state.x.numpy())
+        assert np.abs(out[-1] - start).max() > 0.01  # the frames moved the hair
+        assert (scene.solver._frame is not None) == kept
+    assert np.isfinite(out[1]).all()
+    np.testing.assert_allclose(out[1], out[0], atol=1e-4)
+    if device == "cpu":
+        np.testing.assert_array_equal(out[1], out[0])

@@ -101,7 +101,7 @@ def fused_pass(x, model, size, variant, stiffness, lanes=False):
                None, None, None, None, None, None, None, 0.0,
                kernels.GuidePull(), size, variant, 1, stiffness, 1, 1, solver.rotations, solver.slots, 0,
                collision.ColliderShape(), 0.0, 0.0, 0, 1, 0.0, solver._motion, 0.0, solver.clearance,
-               solver.near_leaves, solver.beyond, 0.0, shaped, None, out, v, order, 0])
+               solver.near_leaves, solver.beyond, 0.0, shaped, None, out, v, order, 0, 0])
     return out.numpy()
 
 

@@ -1887,14 +1887,15 @@ def predict_strand(
     guide_frame: int,
     guide_next: int,
     guide_weight: float,
+    lane_state: int,
     x_out: wp.array(dtype=wp.vec3),
 ):
     """predict_positions and follow_guides for one strand, whose root frame the caller has
     (root_frames).
 
     Inputs:
-      x (vec3, per particle, m): positions at the start of the substep
-      v (vec3, per particle, m/s): velocities at the start of the substep
+      x (vec3, per particle or per slot, m): positions at the start of the substep
+      v (vec3, per particle or per slot, m/s): velocities at the start of the substep
       start (int, index): the strand's first particle
       first (int, index): the slot of the strand's first particle
       stride (int): slots from one particle to the next (window_centroid)
@@ -1918,6 +1919,8 @@ def predict_strand(
       guide_frame (int, index): the guides' earlier captured frame (guide_frames)
       guide_next (int, index): their later captured frame
       guide_weight (float): the later frame's weight
+      lane_state (int, flag): non-zero: x and v are per slot (a frame kept in lane order), else per
+          particle
     Outputs:
       x_out (vec3, per slot, m): the strand's predicted positions
     """
@@ -1925,6 +1928,9 @@ def predict_strand(
     for k in range(count):
         i = start + k
         slot = first + k * stride
+        at = i
+        if lane_state != 0:
+            at = slot
         inv_mass = per.inv_mass[slot]
         binding = int(-1)
         weight = float(0.0)
@@ -1935,7 +1941,7 @@ def predict_strand(
             weight = per.hold[slot] * hold_stiffness
             if weight > 0.0:
                 target = origin + frame * per.root_local[slot]
-        p, _vel = predicted_position(x[i], v[i], inv_mass, forces, time, dt, mesh_points, mesh_indices, binding,
+        p, _vel = predicted_position(x[at], v[at], inv_mass, forces, time, dt, mesh_points, mesh_indices, binding,
                                      bind_triangle, bind_barycentric, bind_local, target, weight)
         if k == 0:
             root = p
@@ -1991,6 +1997,7 @@ def step_strands(
     x_out: wp.array(dtype=wp.vec3),
     v_out: wp.array(dtype=wp.vec3),
     order: LaneOrder,
+    lane_state: int,
     first: int,
 ):
     """A whole hair substep in one launch, a thread per strand: root frame, prediction, the guides'
@@ -2012,8 +2019,9 @@ def step_strands(
     Launch: one thread per strand of a range of strands (dim = strands in the range), or in lane
     order one per lane (then first is 0).
     Inputs:
-      x (vec3, per particle, m): positions at the start of the substep (where the bounds hold)
-      v (vec3, per particle, m/s): velocities at the start of the substep
+      x (vec3, per particle, m): positions at the start of the substep (where the bounds hold); per
+          slot with lane_state
+      v (vec3, per particle, m/s): velocities at the start of the substep; per slot with lane_state
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
       forces (StrandForces): gravity, wind with its gusts, drag and damping
@@ -2051,6 +2059,9 @@ def step_strands(
       ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
       order (LaneOrder): particle order, or the lane order: the order of the slots (per, shaped,
           spare and the contact bounds)
+      lane_state (int, flag): non-zero: the state (x, v, x_out, v_out) is per slot too, in lane
+          order, a frame's substeps kept there (HairSolver.frame_lanes): every read and write of a
+          warp's strands then lies side by side, where per particle they lie a strand apart
       first (int, index): the range's first strand; thread t works on strand first + t
     In/out:
       rotations (quat, per window): window rotations, refined from their last values (full)
@@ -2062,8 +2073,8 @@ def step_strands(
     Outputs:
       shaped (vec3, per slot, m): scratch, the last pass's input; may be x_out itself in particle order
       spare (vec3, per slot, m): scratch for two passes or more; None otherwise
-      x_out (vec3, per particle, m): positions at the end of the substep
-      v_out (vec3, per particle, m/s): velocities at the end of the substep
+      x_out (vec3, per particle, m): positions at the end of the substep; per slot with lane_state
+      v_out (vec3, per particle, m/s): velocities at the end of the substep; per slot with lane_state
     """
     s = wp.tid() + first
     lane = s
@@ -2091,11 +2102,11 @@ def step_strands(
     if inner % 2 == 0:
         predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
                        particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
-                       per, pull, s, guide_frame, guide_next, guide_weight, shaped)
+                       per, pull, s, guide_frame, guide_next, guide_weight, lane_state, shaped)
     else:
         predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
                        particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
-                       per, pull, s, guide_frame, guide_next, guide_weight, spare)
+                       per, pull, s, guide_frame, guide_next, guide_weight, lane_state, spare)
     for n in range(inner):
         solve = int(0)
         if n == 0:
@@ -2113,8 +2124,13 @@ def step_strands(
     # solved before its first particle is placed
     parent = wp.vec3(0.0)
     before = wp.vec3(0.0)
+    # where the state of particle k is: its particle, or with lane_state its slot (state_step apart)
+    state_base, state_step = int(start), int(1)
+    if lane_state != 0:
+        state_base, state_step = base, stride
     for k in range(count):
         i = base + k * stride
+        at = state_base + k * state_step
         p = shaped[i]
         if passes > 0:
             update_window(shaped, i, stride, window_size, variant, last_exact, rotation_iterations, rotations, per)
@@ -2122,19 +2138,20 @@ def step_strands(
         correction = wp.vec3(0.0)
         if k >= pinned_per_strand:
             predicted = p
-            p = follow_leader(parent, before, k, predicted, per.rest_length[i], i, x[start + k], collide_mode, shape,
+            p = follow_leader(parent, before, k, predicted, per.rest_length[i], i, x[at], collide_mode, shape,
                               margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, NO_BOUND,
                               wp.vec4i(-1, -1, -1, -1), NO_BOUND, clearance, near_leaves, beyond)
             correction = p - predicted
-        x_out[start + k] = p
+        x_out[at] = p
         if k > 0:
-            vel = (parent - x[start + k - 1]) / dt
+            vel = (parent - x[at - state_step]) / dt
             if per.inv_mass[i - stride] > 0.0:
                 vel = vel - (ftl_damping / dt) * correction
-            v_out[start + k - 1] = vel
+            v_out[at - state_step] = vel
         before = parent
         parent = p
-    v_out[start + count - 1] = (parent - x[start + count - 1]) / dt
+    last = state_base + (count - 1) * state_step
+    v_out[last] = (parent - x[last]) / dt
 
 
 @wp.func
