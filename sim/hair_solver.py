@@ -359,7 +359,9 @@ class HairSolver:
         substep in order; branches() gives the same substep as functions that may run at once.
 
         With self.fused (the CPU's default) the substep is one launch per part after the collider's
-        motion (strands.step_strands), with the same strands bit for bit as the launches below."""
+        motion (strands.step_strands), with the same strands bit for bit as the launches below.
+        Between begin_frame and end_frame (frame_lanes) the state lives in lane order and state_in
+        and state_out are neither read nor written."""
         if part is None or part is self.parts[0]:
             self._measure_motion(collider)
         self._step_part(state_in, state_out, collider, dt, time, guides, part)
