@@ -568,7 +568,12 @@ class HairSolver:
                       [x_in, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start,
                        order, by_particle, self.clearance, self.near_leaves, self.beyond], device=dev)
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
-        wp.launch(strands.step_strands, r.strands,
+        # the sphere tree with simplified shape matching has a pass compiled with only its own paths
+        # (strands.STEP_STRANDS): the same strands, fewer registers spilled on a GPU
+        fit = (strands.PATHS_SPHERE_LISTS, True)
+        if not (mode == COLLISION["sphere_tree"] and variant == SHAPE_MATCHING["simplified"]):
+            fit = (strands.PATHS_ALL, False)
+        wp.launch(strands.STEP_STRANDS[fit], r.strands,
                   [x_in, v_in, m.strand_start, m.pinned_per_strand, self._forces(), self.clock,
                    offset, dt, int(bound), c.points if bound else None,
                    c.indices if bound else None, m.particle_binding if bound else None,

@@ -1951,207 +1951,224 @@ def predict_strand(
         x_out[slot] = p
 
 
-@wp.kernel(cuda_max_registers=128)
-def step_strands(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    strand_start: wp.array(dtype=wp.int32),
-    pinned_per_strand: int,
-    forces: StrandForces,
-    clock: wp.array(dtype=float),
-    time_offset: float,
-    dt: float,
-    bound: int,
-    mesh_points: wp.array(dtype=wp.vec3),
-    mesh_indices: wp.array(dtype=wp.int32),
-    particle_binding: wp.array(dtype=wp.int32),
-    bind_triangle: wp.array(dtype=wp.int32),
-    bind_barycentric: wp.array(dtype=wp.vec3),
-    bind_local: wp.array(dtype=wp.vec3),
-    root_binding: wp.array(dtype=wp.int32),
-    hold_stiffness: float,
-    pull: GuidePull,
-    window_size: int,
-    variant: int,
-    passes: int,
-    stiffness: float,
-    exact: int,
-    rotation_iterations: int,
-    rotations: wp.array(dtype=wp.quat),
-    per: StrandSlots,
-    collide_mode: int,
-    shape: ColliderShape,
-    margin: float,
-    search: float,
-    use_bounds: int,
-    mesh_lists: int,
-    probe: float,
-    motion: ContactMotion,
-    strand_reach: float,
-    clearance: wp.array(dtype=float),
-    near_leaves: wp.array(dtype=wp.vec4i),
-    beyond: wp.array(dtype=float),
-    ftl_damping: float,
-    shaped: wp.array(dtype=wp.vec3),
-    spare: wp.array(dtype=wp.vec3),
-    x_out: wp.array(dtype=wp.vec3),
-    v_out: wp.array(dtype=wp.vec3),
-    order: LaneOrder,
-    lane_state: int,
-    first: int,
-):
-    """A whole hair substep in one launch, a thread per strand: root frame, prediction, the guides'
-    pull, shape matching and the length pass with its collisions and velocities, the same strands
-    as the launches from root_frames to follow_the_leader.
+def _step_strands(paths, simplified=False):
+    """step_strands compiled with the collision paths `paths` (PATHS_*) of its length pass, and with
+    `simplified` for simplified shape matching only (variant is then read as SHAPE_SIMPLIFIED)."""
+    follow = follow_leader if paths == PATHS_ALL else _follow_leader(paths)
 
-    Those launches each read and write every particle once; here a strand stays with one thread
-    from start to end, so its particles are read once and written once, the predicted and the
-    shape-matched positions stay in that thread's cache, and no launch waits for another. The
-    last shape pass is folded into the length pass: the window starting at each particle is solved
-    just before the particle is placed, from positions no particle of it has left yet, so that pass
-    needs no buffer of its own and each particle is read once more, not twice. Everything but the
-    state (x, v and the results) is read per slot (StrandSlots), so in lane order a warp's threads
-    read side by side.
+    @wp.kernel(cuda_max_registers=128, name="step_strands" + PATH_NAMES[paths] + ("_simplified" if simplified else ""))
+    def step_strands(
+        x: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        strand_start: wp.array(dtype=wp.int32),
+        pinned_per_strand: int,
+        forces: StrandForces,
+        clock: wp.array(dtype=float),
+        time_offset: float,
+        dt: float,
+        bound: int,
+        mesh_points: wp.array(dtype=wp.vec3),
+        mesh_indices: wp.array(dtype=wp.int32),
+        particle_binding: wp.array(dtype=wp.int32),
+        bind_triangle: wp.array(dtype=wp.int32),
+        bind_barycentric: wp.array(dtype=wp.vec3),
+        bind_local: wp.array(dtype=wp.vec3),
+        root_binding: wp.array(dtype=wp.int32),
+        hold_stiffness: float,
+        pull: GuidePull,
+        window_size: int,
+        variant: int,
+        passes: int,
+        stiffness: float,
+        exact: int,
+        rotation_iterations: int,
+        rotations: wp.array(dtype=wp.quat),
+        per: StrandSlots,
+        collide_mode: int,
+        shape: ColliderShape,
+        margin: float,
+        search: float,
+        use_bounds: int,
+        mesh_lists: int,
+        probe: float,
+        motion: ContactMotion,
+        strand_reach: float,
+        clearance: wp.array(dtype=float),
+        near_leaves: wp.array(dtype=wp.vec4i),
+        beyond: wp.array(dtype=float),
+        ftl_damping: float,
+        shaped: wp.array(dtype=wp.vec3),
+        spare: wp.array(dtype=wp.vec3),
+        x_out: wp.array(dtype=wp.vec3),
+        v_out: wp.array(dtype=wp.vec3),
+        order: LaneOrder,
+        lane_state: int,
+        first: int,
+    ):
+        """A whole hair substep in one launch, a thread per strand: root frame, prediction, the guides'
+        pull, shape matching and the length pass with its collisions and velocities, the same strands
+        as the launches from root_frames to follow_the_leader.
 
-    contact_motion (and anchor_frame) must run first, as for follow_the_leader; find_short_lists and
-    list_leaves_ahead may, from the start positions.
+        Those launches each read and write every particle once; here a strand stays with one thread
+        from start to end, so its particles are read once and written once, the predicted and the
+        shape-matched positions stay in that thread's cache, and no launch waits for another. The
+        last shape pass is folded into the length pass: the window starting at each particle is solved
+        just before the particle is placed, from positions no particle of it has left yet, so that pass
+        needs no buffer of its own and each particle is read once more, not twice. Everything but the
+        state (x, v and the results) is read per slot (StrandSlots), so in lane order a warp's threads
+        read side by side.
 
-    Launch: one thread per strand of a range of strands (dim = strands in the range), or in lane
-    order one per lane (then first is 0).
-    Inputs:
-      x (vec3, per particle, m): positions at the start of the substep (where the bounds hold); per
-          slot with lane_state
-      v (vec3, per particle, m/s): velocities at the start of the substep; per slot with lane_state
-      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-      pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
-      forces (StrandForces): gravity, wind with its gusts, drag and damping
-      clock (float, 1 element, s): device clock
-      time_offset (float, s): time of this substep relative to clock[0]
-      dt (float, s): substep length
-      bound (int, flag): non-zero when the strands are bound to the collider (the arrays below are
-          read only then)
-      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
-      mesh_indices (int32, 3 per collider triangle): collider triangles
-      particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
-      bind_triangle (int32, per binding): collider triangle of each binding
-      bind_barycentric (vec3, per binding): weights of that triangle's corners
-      bind_local (vec3, per binding, m): offset in that triangle's frame
-      root_binding (int32, per strand): binding of the strand's root particle (read when
-          hold_stiffness > 0)
-      hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
-      pull (GuidePull): captured guides the predicted strands are pulled toward; pull.stiffness 0
-          for none
-      window_size (int): particles per window
-      variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
-      passes (int): shape-matching passes, 0 for none
-      stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
-      exact (int, flag): non-zero solves the first pass's rotations from scratch (full)
-      rotation_iterations (int): rotation refinement steps per pass otherwise (full)
-      collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
-      shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
-      margin (float, m): distance kept outside the collider
-      search (float, m): mesh query radius
-      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
-      mesh_lists (int, flag): mesh queries through lists of the nearest faces (follow_the_leader)
-      probe (float, m): query radius for particles the bound shows no deeper than probe inside
-      motion (ContactMotion): how the collider moved near these strands (contact_motion)
-      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
-      ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
-      order (LaneOrder): particle order, or the lane order: the order of the slots (per, shaped,
-          spare and the contact bounds)
-      lane_state (int, flag): non-zero: the state (x, v, x_out, v_out) is per slot too, in lane
-          order, a frame's substeps kept there (HairSolver.frame_lanes): every read and write of a
-          warp's strands then lies side by side, where per particle they lie a strand apart
-      first (int, index): the range's first strand; thread t works on strand first + t
-    In/out:
-      rotations (quat, per window): window rotations, refined from their last values (full)
-      per (StrandSlots): the particles and windows per slot; the windows' centroids and axes, or frames
-          and translations, written
-      clearance (float, per slot, m): contact bounds at x in, at x_out out (follow_the_leader)
-      near_leaves (vec4i, per slot): listed leaf spheres (follow_the_leader)
-      beyond (float, per slot, m): bound on every unlisted leaf (follow_the_leader)
-    Outputs:
-      shaped (vec3, per slot, m): scratch, the last pass's input; may be x_out itself in particle order
-      spare (vec3, per slot, m): scratch for two passes or more; None otherwise
-      x_out (vec3, per particle, m): positions at the end of the substep; per slot with lane_state
-      v_out (vec3, per particle, m/s): velocities at the end of the substep; per slot with lane_state
-    """
-    s = wp.tid() + first
-    lane = s
-    lanes = order.lanes
-    stride = int(1)
-    if lanes > 0:
-        s = order.strand_of[lane]
-        stride = lanes
-    start = strand_start[s]
-    count = strand_start[s + 1] - start
-    base = lane_slot(start, lane, 0, lanes)
-    origin = wp.vec3(0.0)
-    frame = wp.mat33(0.0)
-    if bound != 0:
-        if hold_stiffness > 0.0:
-            rb = root_binding[s]
-            origin = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
-            frame = face_frame(mesh_points, mesh_indices, bind_triangle[rb])
-    time = clock[0] + time_offset
-    guide_frame, guide_next, guide_weight = int(0), int(0), float(0.0)
-    if pull.stiffness > 0.0:
-        guide_frame, guide_next, guide_weight = guide_frames(pull, time)
-    # every pass but the last ping-pongs between spare and shaped, ending in shaped
-    inner = wp.max(passes - 1, 0)
-    if inner % 2 == 0:
-        predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
-                       particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
-                       per, pull, s, guide_frame, guide_next, guide_weight, lane_state, shaped)
-    else:
-        predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
-                       particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
-                       per, pull, s, guide_frame, guide_next, guide_weight, lane_state, spare)
-    for n in range(inner):
-        solve = int(0)
-        if n == 0:
-            solve = exact
-        if (inner - 1 - n) % 2 == 0:
-            shape_strand(spare, base, stride, count, window_size, variant, stiffness, solve, rotation_iterations,
-                         rotations, per, shaped)
+        contact_motion (and anchor_frame) must run first, as for follow_the_leader; find_short_lists and
+        list_leaves_ahead may, from the start positions.
+
+        Launch: one thread per strand of a range of strands (dim = strands in the range), or in lane
+        order one per lane (then first is 0).
+        Inputs:
+          x (vec3, per particle, m): positions at the start of the substep (where the bounds hold); per
+              slot with lane_state
+          v (vec3, per particle, m/s): velocities at the start of the substep; per slot with lane_state
+          strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+          pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
+          forces (StrandForces): gravity, wind with its gusts, drag and damping
+          clock (float, 1 element, s): device clock
+          time_offset (float, s): time of this substep relative to clock[0]
+          dt (float, s): substep length
+          bound (int, flag): non-zero when the strands are bound to the collider (the arrays below are
+              read only then)
+          mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
+          mesh_indices (int32, 3 per collider triangle): collider triangles
+          particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
+          bind_triangle (int32, per binding): collider triangle of each binding
+          bind_barycentric (vec3, per binding): weights of that triangle's corners
+          bind_local (vec3, per binding, m): offset in that triangle's frame
+          root_binding (int32, per strand): binding of the strand's root particle (read when
+              hold_stiffness > 0)
+          hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+          pull (GuidePull): captured guides the predicted strands are pulled toward; pull.stiffness 0
+              for none
+          window_size (int): particles per window
+          variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL
+          passes (int): shape-matching passes, 0 for none
+          stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+          exact (int, flag): non-zero solves the first pass's rotations from scratch (full)
+          rotation_iterations (int): rotation refinement steps per pass otherwise (full)
+          collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+          shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
+          margin (float, m): distance kept outside the collider
+          search (float, m): mesh query radius
+          use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+          mesh_lists (int, flag): mesh queries through lists of the nearest faces (follow_the_leader)
+          probe (float, m): query radius for particles the bound shows no deeper than probe inside
+          motion (ContactMotion): how the collider moved near these strands (contact_motion)
+          strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+          order (LaneOrder): particle order, or the lane order: the order of the slots (per, shaped,
+              spare and the contact bounds)
+          lane_state (int, flag): non-zero: the state (x, v, x_out, v_out) is per slot too, in lane
+              order, a frame's substeps kept there (HairSolver.frame_lanes): every read and write of a
+              warp's strands then lies side by side, where per particle they lie a strand apart
+          first (int, index): the range's first strand; thread t works on strand first + t
+        In/out:
+          rotations (quat, per window): window rotations, refined from their last values (full)
+          per (StrandSlots): the particles and windows per slot; the windows' centroids and axes, or frames
+              and translations, written
+          clearance (float, per slot, m): contact bounds at x in, at x_out out (follow_the_leader)
+          near_leaves (vec4i, per slot): listed leaf spheres (follow_the_leader)
+          beyond (float, per slot, m): bound on every unlisted leaf (follow_the_leader)
+        Outputs:
+          shaped (vec3, per slot, m): scratch, the last pass's input; may be x_out itself in particle order
+          spare (vec3, per slot, m): scratch for two passes or more; None otherwise
+          x_out (vec3, per particle, m): positions at the end of the substep; per slot with lane_state
+          v_out (vec3, per particle, m/s): velocities at the end of the substep; per slot with lane_state
+        """
+        s = wp.tid() + first
+        lane = s
+        lanes = order.lanes
+        shapes = variant
+        if wp.static(simplified):
+            shapes = int(SHAPE_SIMPLIFIED)  # a constant: the full variant's code is not compiled in
+        stride = int(1)
+        if lanes > 0:
+            s = order.strand_of[lane]
+            stride = lanes
+        start = strand_start[s]
+        count = strand_start[s + 1] - start
+        base = lane_slot(start, lane, 0, lanes)
+        origin = wp.vec3(0.0)
+        frame = wp.mat33(0.0)
+        if bound != 0:
+            if hold_stiffness > 0.0:
+                rb = root_binding[s]
+                origin = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
+                frame = face_frame(mesh_points, mesh_indices, bind_triangle[rb])
+        time = clock[0] + time_offset
+        guide_frame, guide_next, guide_weight = int(0), int(0), float(0.0)
+        if pull.stiffness > 0.0:
+            guide_frame, guide_next, guide_weight = guide_frames(pull, time)
+        # every pass but the last ping-pongs between spare and shaped, ending in shaped
+        inner = wp.max(passes - 1, 0)
+        if inner % 2 == 0:
+            predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
+                           particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
+                           per, pull, s, guide_frame, guide_next, guide_weight, lane_state, shaped)
         else:
-            shape_strand(shaped, base, stride, count, window_size, variant, stiffness, solve, rotation_iterations,
-                         rotations, per, spare)
-    last_exact = int(0)
-    if inner == 0:
-        last_exact = exact
-    # the last pass and the length pass, root to tip; x_out may be shaped itself, so each window is
-    # solved before its first particle is placed
-    parent = wp.vec3(0.0)
-    before = wp.vec3(0.0)
-    # where the state of particle k is: its particle, or with lane_state its slot (state_step apart)
-    state_base, state_step = int(start), int(1)
-    if lane_state != 0:
-        state_base, state_step = base, stride
-    for k in range(count):
-        i = base + k * stride
-        at = state_base + k * state_step
-        p = shaped[i]
-        if passes > 0:
-            update_window(shaped, i, stride, window_size, variant, last_exact, rotation_iterations, rotations, per)
-            p = shaped_position(p, i, stride, k, count, window_size, variant, stiffness, per)
-        correction = wp.vec3(0.0)
-        if k >= pinned_per_strand:
-            predicted = p
-            p = follow_leader(parent, before, k, predicted, per.rest_length[i], i, x[at], collide_mode, shape,
-                              margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, NO_BOUND,
-                              wp.vec4i(-1, -1, -1, -1), NO_BOUND, clearance, near_leaves, beyond)
-            correction = p - predicted
-        x_out[at] = p
-        if k > 0:
-            vel = (parent - x[at - state_step]) / dt
-            if per.inv_mass[i - stride] > 0.0:
-                vel = vel - (ftl_damping / dt) * correction
-            v_out[at - state_step] = vel
-        before = parent
-        parent = p
-    last = state_base + (count - 1) * state_step
-    v_out[last] = (parent - x[last]) / dt
+            predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
+                           particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
+                           per, pull, s, guide_frame, guide_next, guide_weight, lane_state, spare)
+        for n in range(inner):
+            solve = int(0)
+            if n == 0:
+                solve = exact
+            if (inner - 1 - n) % 2 == 0:
+                shape_strand(spare, base, stride, count, window_size, shapes, stiffness, solve, rotation_iterations,
+                             rotations, per, shaped)
+            else:
+                shape_strand(shaped, base, stride, count, window_size, shapes, stiffness, solve, rotation_iterations,
+                             rotations, per, spare)
+        last_exact = int(0)
+        if inner == 0:
+            last_exact = exact
+        # the last pass and the length pass, root to tip; x_out may be shaped itself, so each window is
+        # solved before its first particle is placed
+        parent = wp.vec3(0.0)
+        before = wp.vec3(0.0)
+        # where the state of particle k is: its particle, or with lane_state its slot (state_step apart)
+        state_base, state_step = int(start), int(1)
+        if lane_state != 0:
+            state_base, state_step = base, stride
+        for k in range(count):
+            i = base + k * stride
+            at = state_base + k * state_step
+            p = shaped[i]
+            if passes > 0:
+                update_window(shaped, i, stride, window_size, shapes, last_exact, rotation_iterations, rotations, per)
+                p = shaped_position(p, i, stride, k, count, window_size, shapes, stiffness, per)
+            correction = wp.vec3(0.0)
+            if k >= pinned_per_strand:
+                predicted = p
+                p = follow(parent, before, k, predicted, per.rest_length[i], i, x[at], collide_mode, shape,
+                           margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, NO_BOUND,
+                                  wp.vec4i(-1, -1, -1, -1), NO_BOUND, clearance, near_leaves, beyond)
+                correction = p - predicted
+            x_out[at] = p
+            if k > 0:
+                vel = (parent - x[at - state_step]) / dt
+                if per.inv_mass[i - stride] > 0.0:
+                    vel = vel - (ftl_damping / dt) * correction
+                v_out[at - state_step] = vel
+            before = parent
+            parent = p
+        last = state_base + (count - 1) * state_step
+        v_out[last] = (parent - x[last]) / dt
+
+    return step_strands
+
+
+# every path: the CPU's fused substep; the sphere tree with simplified shape matching: the GPU's
+# real-time hair, with fewer spilled registers
+STEP_STRANDS = {(PATHS_ALL, False): _step_strands(PATHS_ALL),
+                (PATHS_SPHERE_LISTS, True): _step_strands(PATHS_SPHERE_LISTS, simplified=True)}
+step_strands = STEP_STRANDS[(PATHS_ALL, False)]
 
 
 @wp.func
