@@ -445,13 +445,7 @@ class HairSolver:
                        0, self.clearance, self.near_leaves, self.beyond], device=dev)
         # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
-        # the pass compiled with only the collision paths it takes (strands.PATHS_*): fewer spilled registers
-        if mode == COLLISION["mesh"] and self.mesh_lists:
-            paths = strands.PATHS_ALL  # a mesh query goes through a list even without the bounds
-        elif mode == COLLISION["sphere_tree"] and self.contact_bounds:
-            paths = strands.PATHS_SPHERE_LISTS
-        else:
-            paths = strands.PATHS_QUERIES
+        paths = self._length_paths(mode)
         length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths != strands.PATHS_ALL else (
             strands.FOLLOW_THE_LEADER)
         wp.launch(length_passes[paths], r.strands,
@@ -463,6 +457,15 @@ class HairSolver:
             wp.launch(strands.from_lanes, lane.strands * lane.longest,
                       [lane.x, lane.v, m.strand_start, order, lane.longest, state_out.x, state_out.v], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
+
+    def _length_paths(self, mode):
+        """The collision paths (strands.PATHS_*) the length pass takes against collision mode `mode`: the
+        pass is compiled with only those, for fewer spilled registers."""
+        if mode == COLLISION["mesh"] and self.mesh_lists:
+            return strands.PATHS_ALL  # a mesh query goes through a list even without the bounds
+        if mode == COLLISION["sphere_tree"] and self.contact_bounds:
+            return strands.PATHS_SPHERE_LISTS
+        return strands.PATHS_QUERIES
 
     def _forces(self):
         """The parameters' forces as the kernels take them (strands.StrandForces)."""
@@ -568,10 +571,10 @@ class HairSolver:
                       [x_in, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start,
                        order, by_particle, self.clearance, self.near_leaves, self.beyond], device=dev)
         probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
-        # the sphere tree with simplified shape matching has a pass compiled with only its own paths
-        # (strands.STEP_STRANDS): the same strands, fewer registers spilled on a GPU
-        fit = (strands.PATHS_SPHERE_LISTS, True)
-        if not (mode == COLLISION["sphere_tree"] and variant == SHAPE_MATCHING["simplified"]):
+        # the pass compiled with only the collision paths it takes and, where it allows, simplified shape
+        # matching alone (strands.STEP_STRANDS): the same strands, fewer registers spilled on a GPU
+        fit = (self._length_paths(mode), variant != SHAPE_MATCHING["full"])
+        if fit not in strands.STEP_STRANDS:
             fit = (strands.PATHS_ALL, False)
         wp.launch(strands.STEP_STRANDS[fit], r.strands,
                   [x_in, v_in, m.strand_start, m.pinned_per_strand, self._forces(), self.clock,

@@ -2164,10 +2164,13 @@ def _step_strands(paths, simplified=False):
     return step_strands
 
 
-# every path: the CPU's fused substep; the sphere tree with simplified shape matching: the GPU's
-# real-time hair, with fewer spilled registers
+# every path: the CPU's fused substep; a GPU's cases with their own paths only, for fewer spilled
+# registers (sm_90: every path 904/1092 bytes; the sphere tree, simplified, 156/196; bounded queries,
+# the mesh through its BVH, 136/248, simplified 0/0)
 STEP_STRANDS = {(PATHS_ALL, False): _step_strands(PATHS_ALL),
-                (PATHS_SPHERE_LISTS, True): _step_strands(PATHS_SPHERE_LISTS, simplified=True)}
+                (PATHS_SPHERE_LISTS, True): _step_strands(PATHS_SPHERE_LISTS, simplified=True),
+                (PATHS_QUERIES, False): _step_strands(PATHS_QUERIES),
+                (PATHS_QUERIES, True): _step_strands(PATHS_QUERIES, simplified=True)}
 step_strands = STEP_STRANDS[(PATHS_ALL, False)]
 
 
