@@ -413,9 +413,10 @@ class ClothSolver:
                        adj.vf_face, adj.concave, body.triangle_bvh.id, mesh]
             moved, tie, candidates = body.moved, adj.tie, self._candidates_for(body)
         else:
-            on_body, moved, tie, candidates = [None] * 8 + [0, 0], None, 0.0, self.candidates
+            on_body, moved, tie, candidates, mesh = [None] * 8 + [0, 0], None, 0.0, self.candidates, 0
         binding = [m.particle_binding, m.bind_triangle, m.bind_barycentric, m.bind_local] if pins else [None] * 4
-        wp.launch_tiled(kernels.step_in_block, dim=[1], inputs=[
+        # with a mesh given, its queries answer every closest point: the step compiled without the boxes'
+        wp.launch_tiled(kernels.STEP_IN_BLOCK[mesh == 0], dim=[1], inputs=[
             n, state_in.x, state_in.v, m.inv_mass, m.drag, m.adj_start, m.adj_other, m.adj_rest, m.adj_k_stretch,
             m.adj_k_compress, m.adj_damping, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, dt,
             self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
@@ -431,16 +432,19 @@ class ClothSolver:
     def _collide(self, state_prev, state, body, adj, dt, record, first):
         m, p = self.model, self.params
         candidates = self._candidates_for(body)
+        mesh = body.mesh.id if self.mesh_queries and not body.bvh_stale else 0
         inputs = [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
-                  adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id,
-                  body.mesh.id if self.mesh_queries and not body.bvh_stale else 0, p.walk_steps,
+                  adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id, mesh,
+                  p.walk_steps,
                   p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), p.reseed_drift,
                   self.step_count, body.moved, int(first), p.collision_margin, p.friction, dt, state_prev.nearest,
                   state_prev.clearance, p.candidate_slack, adj.tie, int(record), state.nearest, state.clearance,
                   candidates, state.contact, self.fallbacks, state.follow_face, state.follow_barycentric,
                   state.follow_local]
         cuts = self._collide_cuts
-        run_parallel([partial(wp.launch, kernels.body_collide, b - a, [*inputs, a, k], device=m.device)
+        # with a mesh given, its queries answer every closest point: the pass compiled without the boxes'
+        kernel = kernels.BODY_COLLIDE[mesh == 0]
+        run_parallel([partial(wp.launch, kernel, b - a, [*inputs, a, k], device=m.device)
                       for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:]))])
 
     def fallback_count(self):
