@@ -419,6 +419,24 @@ def test_cuda_frames_follow_cpu_frames(make):
         np.testing.assert_allclose(out[1][key], out[0][key], atol=2e-3, err_msg=key)
 
 
+def _same_hair_frames(make, device, configure):
+    """Four captured frames of the scene make(device) with its solver set by configure(solver, False)
+    and then configure(solver, True): the same hair, to float32 rounding (bit for bit on the CPU)."""
+    out = []
+    for way in (False, True):
+        scene = Scene(make(device))
+        configure(scene.solver, way)
+        start = scene.state.x.numpy().copy()
+        for _ in range(4):
+            scene.advance(1.0 / scene.config.timing.fps)
+        out.append(scene.state.x.numpy())
+        assert np.abs(out[-1] - start).max() > 0.01  # the frames moved the hair
+    assert np.isfinite(out[1]).all()
+    np.testing.assert_allclose(out[1], out[0], atol=1e-4)
+    if device == "cpu":
+        np.testing.assert_array_equal(out[1], out[0])
+
+
 @pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("make", [lambda device: _hair_config(device, True), _fast_hair_config],
                          ids=["hair-mesh", "hair-spheres"])
@@ -426,19 +444,7 @@ def test_fused_hair_frames_follow_the_launches_apart(make, device):
     """strands.step_strands (HairSolver.fused; off on CUDA by default) captured in the frame's graph,
     with the device's defaults (on CUDA lane order and the sphere tree's walks queued ahead): the
     frames of the launches apart, to float32 rounding (bit for bit on the CPU)."""
-    out = []
-    for fused in (False, True):
-        scene = Scene(make(device))
-        scene.solver.fused = fused
-        start = scene.state.x.numpy().copy()
-        for _ in range(4):
-            scene.advance(1.0 / scene.config.timing.fps)
-        out.append(scene.state.x.numpy())
-        assert np.abs(out[-1] - start).max() > 0.01  # the frames moved the hair
-    assert np.isfinite(out[1]).all()
-    np.testing.assert_allclose(out[1], out[0], atol=1e-4)
-    if device == "cpu":
-        np.testing.assert_array_equal(out[1], out[0])
+    _same_hair_frames(make, device, lambda solver, fused: setattr(solver, "fused", fused))
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -446,20 +452,11 @@ def test_read_ahead_length_pass_frames_follow_the_pass_in_turn(device):
     """The length pass that reads each particle a step ahead (HairSolver.read_ahead, a GPU's option)
     captured in the frame's graph with the device's other defaults: the frames of the pass reading in
     turn, to float32 rounding (bit for bit on the CPU)."""
-    out = []
-    for ahead in (False, True):
-        scene = Scene(_fast_hair_config(device))
-        scene.solver.fused = False  # the length pass is its own launch
-        scene.solver.read_ahead = ahead
-        start = scene.state.x.numpy().copy()
-        for _ in range(4):
-            scene.advance(1.0 / scene.config.timing.fps)
-        out.append(scene.state.x.numpy())
-        assert np.abs(out[-1] - start).max() > 0.01  # the frames moved the hair
-    assert np.isfinite(out[1]).all()
-    np.testing.assert_allclose(out[1], out[0], atol=1e-4)
-    if device == "cpu":
-        np.testing.assert_array_equal(out[1], out[0])
+    def configure(solver, ahead):
+        solver.fused = False  # the length pass is its own launch
+        solver.read_ahead = ahead
+
+    _same_hair_frames(_fast_hair_config, device, configure)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -467,18 +464,12 @@ def test_a_frame_kept_in_lanes_follows_the_fused_frames(device):
     """The scene's captured hair frames with the state kept in lane order across each frame
     (HairSolver.frame_lanes, begin_frame and end_frame around the substeps): the frames of the fused
     substeps on the particle-order state, bit for bit on the CPU, to float32 rounding on CUDA."""
-    out = []
-    for kept in (False, True):
-        scene = Scene(_fast_hair_config(device))
-        scene.solver.set_parts(1)
-        scene.solver.fused, scene.solver.lanes, scene.solver.frame_lanes = True, True, kept
-        start = scene.state.x.numpy().copy()
-        for _ in range(4):
-            scene.advance(1.0 / scene.config.timing.fps)
-        out.append(scene.state.x.numpy())
-        assert np.abs(out[-1] - start).max() > 0.01  # the frames moved the hair
-        assert (scene.solver._frame is not None) == kept
-    assert np.isfinite(out[1]).all()
-    np.testing.assert_allclose(out[1], out[0], atol=1e-4)
-    if device == "cpu":
-        np.testing.assert_array_equal(out[1], out[0])
+    kept_frames = []
+
+    def configure(solver, kept):
+        solver.set_parts(1)
+        solver.fused, solver.lanes, solver.frame_lanes = True, True, kept
+        kept_frames.append(solver)
+
+    _same_hair_frames(_fast_hair_config, device, configure)
+    assert [solver._frame is not None for solver in kept_frames] == [False, True]
