@@ -1449,7 +1449,8 @@ def _step_in_block(boxes):
 
         Launch: one thread per lane of one block (dim = 1, wp.launch_tiled with block_dim lanes).
         At most BLOCK_STEP_LANES lanes, the kernel's launch bound: the CUDA compiler fits its registers to
-        that many (168 on sm_90, with 184 bytes of spills, against 204 and 256 lanes at most unbounded).
+        that many (168 on sm_90, with 184 bytes of spills, 24 without the box queries; unbounded, 204
+        registers and at most 256 lanes).
         A CPU runs one lane unless wp.config.enable_cpu_blocks is set (then its lanes are fibers that
         switch at the barriers).
         Inputs:
