@@ -45,6 +45,8 @@ DRESS_MEAN_MASS = 3.9e-4  # kg, the paper's dress on the built-in body (332 part
 PROFILE = False  # --profile
 DRESS_PARAMS = {}  # --dress-params: ClothParams fields of the race dress
 DETAIL_FPS = 30.0
+# the values a row switch (--sweep, --block) times: the default (None), on, off, or both
+SWITCH_VALUES = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}
 
 
 def static_collider(name, vertices, faces, device):
@@ -301,12 +303,12 @@ def main():
         print(f"# {device}: {device_name(device)}, copy bandwidth {ceilings[device]:.0f} GB/s (read + write)",
               flush=True)
     newton_1m, out = {}, []
-    blocks = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}[args.block]
+    blocks = SWITCH_VALUES[args.block]
     if not args.no_race:
         header, rows, newton_1m = race(devices, args.grids, args.frames, peers, ceilings, blocks)
         out.append(table(header, rows))
     if not args.no_detail:
-        sweeps = {"auto": (None,), "on": (True,), "off": (False,), "both": (True, False)}[args.sweep]
+        sweeps = SWITCH_VALUES[args.sweep]
         header, rows = detail(devices, args.detail_sizes, 10, newton_1m, ceilings, sweeps, blocks)
         out.append(table(header, rows))
     print()

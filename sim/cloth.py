@@ -408,7 +408,7 @@ class ClothSolver:
         passes = p.strain_iterations if p.strain_limit > 0.0 else 0
         if body is not None:
             adj = body.adjacency()
-            mesh = body.mesh.id if self.mesh_queries and not body.bvh_stale else 0
+            mesh = self._query_mesh(body)
             on_body = [body.points, body.prev_points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start,
                        adj.vf_face, adj.concave, body.triangle_bvh.id, mesh]
             moved, tie, candidates = body.moved, adj.tie, self._candidates_for(body)
@@ -429,10 +429,15 @@ class ClothSolver:
             state_out.clearance, candidates, state_out.contact, self.fallbacks, state_out.follow_face,
             state_out.follow_barycentric, state_out.follow_local], block_dim=self.block_threads, device=m.device)
 
+    def _query_mesh(self, body):
+        """The wp.Mesh id whose nearest-first queries answer the body collision's closest points (its BVH
+        refitted to this pose, with mesh_queries), or 0 for the triangle boxes' queries."""
+        return body.mesh.id if self.mesh_queries and not body.bvh_stale else 0
+
     def _collide(self, state_prev, state, body, adj, dt, record, first):
         m, p = self.model, self.params
         candidates = self._candidates_for(body)
-        mesh = body.mesh.id if self.mesh_queries and not body.bvh_stale else 0
+        mesh = self._query_mesh(body)
         inputs = [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
                   adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id, mesh,
                   p.walk_steps,
