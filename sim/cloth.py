@@ -393,62 +393,76 @@ class ClothSolver:
                        self.acc_x, self.acc_v, xn, vn], device=dev)
             xs, vs = xn, vn
         if body is not None:
-            adj = body.adjacency()
             limit = p.strain_limit > 0.0
             # the follow record is taken by the last collision pass, on the final positions
-            self._collide(state_in, state_out, body, adj, dt, record=p.follow and not limit, first=True)
+            self._collide(state_in, state_out, body, dt, record=p.follow and not limit, first=True)
         if p.strain_limit > 0.0:
             self._limit_strain(state_out, dt)
             if body is not None:  # contact has the last word, in the same pose
-                self._collide(state_out, state_out, body, adj, dt, record=p.follow, first=False)
+                self._collide(state_out, state_out, body, dt, record=p.follow, first=False)
 
     def _step_in_block(self, state_in, state_out, body, dt, pins):
         """step() as one launch of one thread block (kernels.step_in_block), the same particles bit for bit."""
         m, p, n = self.model, self.params, self.model.num_particles
         passes = p.strain_iterations if p.strain_limit > 0.0 else 0
-        if body is not None:
-            adj = body.adjacency()
-            mesh = self._query_mesh(body)
-            on_body = [body.points, body.prev_points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start,
-                       adj.vf_face, adj.concave, body.triangle_bvh.id, mesh]
-            moved, tie, candidates = body.moved, adj.tie, self._candidates_for(body)
-        else:
-            on_body, moved, tie, candidates, mesh = [None] * 8 + [0, 0], None, 0.0, self.candidates, 0
+        surface = self.body_surface(body) if body is not None else kernels.BodySurface()
+        candidates = self._candidates_for(body) if body is not None else self.candidates
         binding = [m.particle_binding, m.bind_triangle, m.bind_barycentric, m.bind_local] if pins else [None] * 4
         # with a mesh given, its queries answer every closest point: the step compiled without the boxes'
-        wp.launch_tiled(kernels.STEP_IN_BLOCK[mesh == 0], dim=[1], inputs=[
+        wp.launch_tiled(kernels.STEP_IN_BLOCK[surface.mesh == 0], dim=[1], inputs=[
             n, state_in.x, state_in.v, m.inv_mass, m.drag, m.adj_start, m.adj_other, m.adj_rest, m.adj_k_stretch,
             m.adj_k_compress, m.adj_damping, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, dt,
             self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
             int(body is not None and p.follow), state_in.follow_face, state_in.follow_barycentric,
             state_in.follow_local, p.follow_full_within, p.follow_none_beyond, int(pins), *binding, self.step_count,
             passes, m.adj_spring, m.spring_i, m.spring_j, m.spring_rest, m.spring_limited, p.strain_limit,
-            int(body is not None), *on_body, p.walk_steps, p.teleport, p.walk_trust_distance, self.reseed_radius,
-            max(1, p.walk_refresh), p.reseed_drift, moved, p.collision_margin, p.friction, state_in.nearest,
-            state_in.clearance, p.candidate_slack, tie, state_out.x, state_out.v, state_out.nearest,
-            state_out.clearance, candidates, state_out.contact, self.fallbacks, state_out.follow_face,
-            state_out.follow_barycentric, state_out.follow_local], block_dim=self.block_threads, device=m.device)
+            int(body is not None), surface, self.contact_params(), state_in.nearest, state_in.clearance, state_out.x,
+            state_out.v, state_out.nearest, state_out.clearance, candidates, state_out.contact, self.fallbacks,
+            state_out.follow_face, state_out.follow_barycentric, state_out.follow_local],
+            block_dim=self.block_threads, device=m.device)
 
-    def _query_mesh(self, body):
-        """The wp.Mesh id whose nearest-first queries answer the body collision's closest points (its BVH
-        refitted to this pose, with mesh_queries), or 0 for the triangle boxes' queries."""
-        return body.mesh.id if self.mesh_queries and not body.bvh_stale else 0
+    def body_surface(self, body):
+        """The posed body as the collision kernels read it (kernels.BodySurface). Its mesh is the wp.Mesh
+        whose nearest-first queries answer the closest points (its BVH refitted to this pose, with
+        mesh_queries), or 0 for the triangle boxes' queries."""
+        adj, surface = body.adjacency(), kernels.BodySurface()
+        surface.points = body.points
+        surface.prev_points = body.prev_points
+        surface.indices = body.indices
+        surface.vv_start, surface.vv_adj = adj.vv_start, adj.vv_adj
+        surface.vf_start, surface.vf_face = adj.vf_start, adj.vf_face
+        surface.concave = adj.concave
+        surface.bvh = body.triangle_bvh.id
+        surface.mesh = body.mesh.id if self.mesh_queries and not body.bvh_stale else 0
+        surface.moved = body.moved
+        surface.tie = adj.tie
+        return surface
 
-    def _collide(self, state_prev, state, body, adj, dt, record, first):
-        m, p = self.model, self.params
+    def contact_params(self):
+        """The body collision's settings (kernels.BodyContactParams), from params as they are now."""
+        p, c = self.params, kernels.BodyContactParams()
+        c.max_steps = p.walk_steps
+        c.teleport = p.teleport
+        c.trust_distance = p.walk_trust_distance
+        c.reseed_radius = self.reseed_radius
+        c.refresh = max(1, p.walk_refresh)
+        c.reseed_drift = p.reseed_drift
+        c.margin = p.collision_margin
+        c.friction = p.friction
+        c.candidate_slack = p.candidate_slack
+        return c
+
+    def _collide(self, state_prev, state, body, dt, record, first):
+        m = self.model
         candidates = self._candidates_for(body)
-        mesh = self._query_mesh(body)
-        inputs = [state.x, state_prev.x, state.v, m.inv_mass, body.points, body.prev_points, body.indices,
-                  adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.triangle_bvh.id, mesh,
-                  p.walk_steps,
-                  p.teleport, p.walk_trust_distance, self.reseed_radius, max(1, p.walk_refresh), p.reseed_drift,
-                  self.step_count, body.moved, int(first), p.collision_margin, p.friction, dt, state_prev.nearest,
-                  state_prev.clearance, p.candidate_slack, adj.tie, int(record), state.nearest, state.clearance,
+        surface = self.body_surface(body)
+        inputs = [state.x, state_prev.x, state.v, m.inv_mass, surface, self.contact_params(), self.step_count,
+                  int(first), dt, state_prev.nearest, state_prev.clearance, int(record), state.nearest, state.clearance,
                   candidates, state.contact, self.fallbacks, state.follow_face, state.follow_barycentric,
                   state.follow_local]
         cuts = self._collide_cuts
         # with a mesh given, its queries answer every closest point: the pass compiled without the boxes'
-        kernel = kernels.BODY_COLLIDE[mesh == 0]
+        kernel = kernels.BODY_COLLIDE[surface.mesh == 0]
         run_parallel([partial(wp.launch, kernel, b - a, [*inputs, a, k], device=m.device)
                       for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:]))])
 

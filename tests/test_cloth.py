@@ -199,17 +199,15 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     pts = directions * (0.3 + rng.uniform(0.002, 0.015, (50, 1)))  # within follow_full_within of the body
     model = ClothModel(pts, np.zeros((0, 3)), [], [], [], [], ClothParams(), masses=0.001)
     state = model.state()
-    adj = body.adjacency()
     wp.launch(kernels.nearest_vertex_brute_force, 50, [state.x, body.points, state.nearest])
     # a collision pass with no margin (nothing is inside the ball) records the follow coordinates
     steps, fallbacks = wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.int32)
     before = state.x.numpy()
+    solver = ClothSolver(model, ClothParams(collision_margin=0.0, friction=0.0, teleport=1.0, walk_trust_distance=1.0))
     wp.launch(kernels.body_collide, 50,
-              [state.x, state.x, state.v, model.inv_mass, body.points, body.prev_points, body.indices, adj.vv_start,
-               adj.vv_adj, adj.vf_start, adj.vf_face, adj.concave, body.mesh.id, 0, 16, 1.0, 1.0, 1.0, 1, 0.0, steps,
-               body.moved, 1, 0.0, 0.0, 1e-3, state.nearest, state.clearance, 0.0, adj.tie, 1, state.nearest,
-               state.clearance, ClothSolver(model).candidates, state.contact, fallbacks, state.follow_face,
-               state.follow_barycentric, state.follow_local, 0, 0])
+              [state.x, state.x, state.v, model.inv_mass, solver.body_surface(body), solver.contact_params(), steps,
+               1, 1e-3, state.nearest, state.clearance, 1, state.nearest, state.clearance, solver.candidates,
+               state.contact, fallbacks, state.follow_face, state.follow_barycentric, state.follow_local, 0, 0])
     np.testing.assert_array_equal(state.x.numpy(), before)
     assert np.all(state.follow_face.numpy() >= 0)
     angle = 0.8

@@ -597,6 +597,77 @@ class BodyCandidates:
     capacity: int
 
 
+@wp.struct
+class BodySurface:
+    """The body a cloth collides with, posed for the end of a step (sim.collider.Collider and its
+    adjacency), as body_collide and step_in_block read it.
+
+    Fields:
+      points (vec3, per body vertex, m): the body posed for the end of the step
+      prev_points (vec3, per body vertex, m): the body at the start of the step; the surface velocity
+          is (points - prev_points) / dt
+      indices (int32, 3 per body triangle): body triangles, outward winding
+      vv_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> vertex adjacency
+      vv_adj (int32, per adjacency entry): neighbouring vertices
+      vf_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> face adjacency
+      vf_face (int32, 3 per body triangle): faces incident to each vertex
+      concave (int32, per body vertex): 1 where the vertex is concave or a saddle (walk not trusted)
+      bvh (uint64): wp.Bvh id over boxes of the body triangles, in face order, that hold them in this
+          pose (sim.Collider.triangle_bvh: swept over the frame's poses, or fitted to this one)
+      mesh (uint64): 0, or a wp.Mesh id over the same posed points with its BVH refitted to this pose:
+          its nearest-first query (wp.mesh_query_point_sign_normal) then answers the closest-point
+          queries instead of the growing box queries of bvh (closest_in_boxes), whose reach of many
+          triangles keeps a GPU's launch waiting on its slowest thread; gatherings still read bvh
+      moved (float, 1 element, m): largest displacement of a body vertex from prev_points to points
+          (sim.Collider.moved)
+      tie (float, m): distances this close count as equal when signing a closest point
+    """
+
+    points: wp.array(dtype=wp.vec3)
+    prev_points: wp.array(dtype=wp.vec3)
+    indices: wp.array(dtype=wp.int32)
+    vv_start: wp.array(dtype=wp.int32)
+    vv_adj: wp.array(dtype=wp.int32)
+    vf_start: wp.array(dtype=wp.int32)
+    vf_face: wp.array(dtype=wp.int32)
+    concave: wp.array(dtype=wp.int32)
+    bvh: wp.uint64
+    mesh: wp.uint64
+    moved: wp.array(dtype=float)
+    tie: float
+
+
+@wp.struct
+class BodyContactParams:
+    """The settings of the cloth's body collision (sim.cloth.ClothParams), as body_collide reads them.
+
+    Fields:
+      max_steps (int): most steps of the nearest-vertex walk before falling back to the BVH
+      teleport (float, m): a particle that moved farther in one step restarts from the BVH
+      trust_distance (float, m): beyond this distance from its vertex a particle is re-seeded
+          periodically
+      reseed_radius (float, m): BVH query radius when re-seeding; farther particles keep their walk
+      refresh (int, steps): re-seed period of far particles; at least 1
+      reseed_drift (float, m): far particles that drifted less than this relative to the body since
+          their last query skip the re-seed; 0 re-seeds them all
+      margin (float, m): distance kept outside the body
+      friction (float): Coulomb friction coefficient
+      candidate_slack (float, m): a gathering of triangles (BodyCandidates) reaches this much farther
+          than the query it serves, so it lasts until the particle and the body have moved this far
+          between them
+    """
+
+    max_steps: int
+    teleport: float
+    trust_distance: float
+    reseed_radius: float
+    refresh: int
+    reseed_drift: float
+    margin: float
+    friction: float
+    candidate_slack: float
+
+
 @wp.func
 def gather_candidates(xp: wp.vec3, radius: float, bvh: wp.uint64, points: wp.array(dtype=wp.vec3),
                       indices: wp.array(dtype=wp.int32), p: int, candidates: BodyCandidates):
@@ -812,32 +883,13 @@ def _body_collide_for(boxes):
         x_prev: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
         inv_mass: wp.array(dtype=float),
-        points: wp.array(dtype=wp.vec3),
-        prev_points: wp.array(dtype=wp.vec3),
-        indices: wp.array(dtype=wp.int32),
-        vv_start: wp.array(dtype=wp.int32),
-        vv_adj: wp.array(dtype=wp.int32),
-        vf_start: wp.array(dtype=wp.int32),
-        vf_face: wp.array(dtype=wp.int32),
-        concave: wp.array(dtype=wp.int32),
-        bvh: wp.uint64,
-        mesh: wp.uint64,
-        max_steps: int,
-        teleport: float,
-        trust_distance: float,
-        reseed_radius: float,
-        refresh: int,
-        reseed_drift: float,
+        body: BodySurface,
+        params: BodyContactParams,
         step_count: wp.array(dtype=wp.int32),
-        body_moved: wp.array(dtype=float),
         first_pass: int,
-        margin: float,
-        friction: float,
         dt: float,
         nearest_in: wp.array(dtype=wp.int32),
         clearance_in: BodyClearance,
-        candidate_slack: float,
-        tie: float,
         record: int,
         nearest: wp.array(dtype=wp.int32),
         clearance: BodyClearance,
@@ -857,10 +909,10 @@ def _body_collide_for(boxes):
         at = clearance_in.at[p]
         body_motion = clearance_in.body_motion[p]
         if first_pass != 0:
-            measured -= body_moved[0]
-            body_motion += body_moved[0]
+            measured -= body.moved[0]
+            body_motion += body.moved[0]
             if candidates.capacity > 0:
-                candidates.body_motion[p] = candidates.body_motion[p] + body_moved[0]
+                candidates.body_motion[p] = candidates.body_motion[p] + body.moved[0]
         away = wp.length(xp - at)
         bound = measured - away
         drift = body_motion + away
@@ -878,18 +930,18 @@ def _body_collide_for(boxes):
         search = float(1.0e6)  # BVH query radius when the walk is not trusted
         listed = bool(False)  # the query is answered from the particle's gathered triangles
         if trusted:
-            if wp.length(xp - x_prev[p]) > teleport:
+            if wp.length(xp - x_prev[p]) > params.teleport:
                 trusted = False
         if trusted:
-            vtx = walk_to_nearest_vertex(xp, vtx, points, vv_start, vv_adj, max_steps)
+            vtx = walk_to_nearest_vertex(xp, vtx, body.points, body.vv_start, body.vv_adj, params.max_steps)
             if vtx < 0:
                 trusted = False
                 vtx = -1 - vtx
             else:
-                reach = wp.length(xp - points[vtx])
-                far = reach > trust_distance
-                if concave[vtx] != 0 and not far:
-                    if bound > margin:
+                reach = wp.length(xp - body.points[vtx])
+                far = reach > params.trust_distance
+                if body.concave[vtx] != 0 and not far:
+                    if bound > params.margin:
                         clear = True
                     else:
                         trusted = False
@@ -897,19 +949,19 @@ def _body_collide_for(boxes):
                         # while the particle cannot be deeper inside than the margin, a query of twice
                         # the margin tells a touch from none just as well (a BVH query's cost grows
                         # with its radius)
-                        search = reach + margin
-                        if bound > -margin:
-                            search = wp.min(search, 2.0 * margin)
+                        search = reach + params.margin
+                        if bound > -params.margin:
+                            search = wp.min(search, 2.0 * params.margin)
                         listed = candidates.capacity > 0
-                elif far and step_count[0] % refresh == 0 and drift >= reseed_drift and (
-                        bound <= trust_distance or body_motion >= reseed_drift):
+                elif far and step_count[0] % params.refresh == 0 and drift >= params.reseed_drift and (
+                        bound <= params.trust_distance or body_motion >= params.reseed_drift):
                     # a wrong vertex matters where the particle may be near enough to touch (its bound
                     # says so) or where the body moves under its follow record; a particle swaying clear of
                     # a still body keeps its walk
                     trusted = False
                     # a far particle needs the right vertex only where it can touch or follow the body,
                     # so its query looks no farther than reseed_radius
-                    search = wp.min(reach + margin, reseed_radius)
+                    search = wp.min(reach + params.margin, params.reseed_radius)
         n = wp.vec3(float(0.0), float(0.0), float(0.0))
         depth = float(0.0)  # how far to move along n to reach margin outside the surface
         hit = bool(False)
@@ -917,11 +969,11 @@ def _body_collide_for(boxes):
             # behind every incident face: the least-inside face decides the projection (at a concave
             # vertex the faces do not, and the clearance has already said no)
             if not clear:
-                best, nf = least_inside_plane(xp, vtx, points, indices, vf_start, vf_face)
-                if best < margin and vf_start[vtx + 1] > vf_start[vtx]:
+                best, nf = least_inside_plane(xp, vtx, body.points, body.indices, body.vf_start, body.vf_face)
+                if best < params.margin and body.vf_start[vtx + 1] > body.vf_start[vtx]:
                     hit = True
                     n = nf
-                    depth = margin - best
+                    depth = params.margin - best
         else:
             at = xp
             body_motion = 0.0
@@ -937,56 +989,57 @@ def _body_collide_for(boxes):
                 valid = used + search <= candidates.radius[p]
                 # a body that moves a quarter of the slack per step would use a new gathering up within
                 # a few steps: the BVH answers instead
-                if (not valid or (step_count[0] % refresh == 0 and used > 0.5 * candidate_slack)) and (
-                        4.0 * body_moved[0] <= candidate_slack):
+                renew = step_count[0] % params.refresh == 0 and used > 0.5 * params.candidate_slack
+                if (not valid or renew) and 4.0 * body.moved[0] <= params.candidate_slack:
                     wp.atomic_add(fallbacks, part, 1)
                     # not valid when more triangles were near than it has room for
-                    valid = gather_candidates(xp, search + candidate_slack, bvh, points, indices, p, candidates) >= 0
+                    valid = gather_candidates(xp, search + params.candidate_slack, body.bvh, body.points,
+                                              body.indices, p, candidates) >= 0
                 if valid:
-                    found, sd, nf, corner = closest_candidate(xp, search, tie, points, p, candidates)
+                    found, sd, nf, corner = closest_candidate(xp, search, body.tie, body.points, p, candidates)
                 else:
                     listed = False
             if not listed:
                 wp.atomic_add(fallbacks, part, 1)
-                if mesh != wp.uint64(0):
-                    q = wp.mesh_query_point_sign_normal(mesh, xp, search)
+                if body.mesh != wp.uint64(0):
+                    q = wp.mesh_query_point_sign_normal(body.mesh, xp, search)
                     if q.result:
                         found = True
-                        sd = q.sign * wp.length(xp - wp.mesh_eval_position(mesh, q.face, q.u, q.v))
-                        nf = wp.mesh_eval_face_normal(mesh, q.face)
-                        corner = closest_corner(xp, q.face, points, indices)
+                        sd = q.sign * wp.length(xp - wp.mesh_eval_position(body.mesh, q.face, q.u, q.v))
+                        nf = wp.mesh_eval_face_normal(body.mesh, q.face)
+                        corner = closest_corner(xp, q.face, body.points, body.indices)
                 elif wp.static(boxes):
-                    found, sd, nf, corner = closest_in_boxes(xp, search, tie, bvh, points, indices)
+                    found, sd, nf, corner = closest_in_boxes(xp, search, body.tie, body.bvh, body.points, body.indices)
             if found:
                 measured = sd
                 # restart the cache at the closest corner of the closest face, then settle it locally
-                vtx = walk_to_nearest_vertex(xp, corner, points, vv_start, vv_adj, max_steps)
+                vtx = walk_to_nearest_vertex(xp, corner, body.points, body.vv_start, body.vv_adj, params.max_steps)
                 if vtx < 0:
                     vtx = -1 - vtx
-                if sd < margin:
+                if sd < params.margin:
                     hit = True
                     n = nf
-                    depth = margin - sd
+                    depth = params.margin - sd
         nearest[p] = vtx
         clearance.distance[p] = measured
         clearance.at[p] = at
         clearance.body_motion[p] = body_motion
         if hit:
             x[p] = xp + depth * n
-            vb = (points[vtx] - prev_points[vtx]) / dt
+            vb = (body.points[vtx] - body.prev_points[vtx]) / dt
             rel = v[p] - vb
             vn = wp.dot(rel, n)
             if vn < 0.0:
                 tangent = rel - vn * n
                 speed = wp.length(tangent)
                 if speed > 1.0e-12:
-                    tangent = tangent * wp.max(0.0, 1.0 - friction * (-vn) / speed)
+                    tangent = tangent * wp.max(0.0, 1.0 - params.friction * (-vn) / speed)
                 rel = tangent
             v[p] = vb + rel
             contact[p] = 1
         if record != 0:
-            follow_record(x[p], vtx, points, indices, vf_start, vf_face, p, follow_face, follow_barycentric,
-                          follow_local)
+            follow_record(x[p], vtx, body.points, body.indices, body.vf_start, body.vf_face, p, follow_face,
+                          follow_barycentric, follow_local)
 
     return _body_collide_at
 
@@ -1001,32 +1054,13 @@ def _body_collide(boxes):
         x_prev: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
         inv_mass: wp.array(dtype=float),
-        points: wp.array(dtype=wp.vec3),
-        prev_points: wp.array(dtype=wp.vec3),
-        indices: wp.array(dtype=wp.int32),
-        vv_start: wp.array(dtype=wp.int32),
-        vv_adj: wp.array(dtype=wp.int32),
-        vf_start: wp.array(dtype=wp.int32),
-        vf_face: wp.array(dtype=wp.int32),
-        concave: wp.array(dtype=wp.int32),
-        bvh: wp.uint64,
-        mesh: wp.uint64,
-        max_steps: int,
-        teleport: float,
-        trust_distance: float,
-        reseed_radius: float,
-        refresh: int,
-        reseed_drift: float,
+        body: BodySurface,
+        params: BodyContactParams,
         step_count: wp.array(dtype=wp.int32),
-        body_moved: wp.array(dtype=float),
         first_pass: int,
-        margin: float,
-        friction: float,
         dt: float,
         nearest_in: wp.array(dtype=wp.int32),
         clearance_in: BodyClearance,
-        candidate_slack: float,
-        tie: float,
         record: int,
         nearest: wp.array(dtype=wp.int32),
         clearance: BodyClearance,
@@ -1070,42 +1104,14 @@ def _body_collide(boxes):
         Inputs:
           x_prev (vec3, per particle, m): positions at the start of the step, for the teleport test
           inv_mass (float, per particle, 1/kg): inverse masses; pinned particles (0) are not collided
-          points (vec3, per body vertex, m): body posed for the end of the step
-          prev_points (vec3, per body vertex, m): body at the start of the step; the surface velocity is
-              (points - prev_points) / dt
-          indices (int32, 3 per body triangle): body triangles, outward winding
-          vv_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> vertex adjacency
-          vv_adj (int32, per adjacency entry): neighbouring vertices
-          vf_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> face adjacency
-          vf_face (int32, 3 per body triangle): faces incident to each vertex
-          concave (int32, per body vertex): 1 where the vertex is concave or a saddle (walk not trusted)
-          bvh (uint64): wp.Bvh id over boxes of the body triangles, in face order, that hold them in this
-              pose (sim.Collider.triangle_bvh: swept over the frame's poses, or fitted to this one)
-          mesh (uint64): 0, or a wp.Mesh id over the same posed points with its BVH refitted to this pose:
-              its nearest-first query (wp.mesh_query_point_sign_normal) then answers the closest-point
-              queries instead of the growing box queries of bvh (closest_in_boxes), whose reach of many
-              triangles keeps a GPU's launch waiting on its slowest thread; gatherings still read bvh
-          max_steps (int): most steps of the walk before falling back to the BVH
-          teleport (float, m): a particle that moved farther in one step restarts from the BVH
-          trust_distance (float, m): beyond this distance from its vertex a particle is re-seeded
-              periodically
-          reseed_radius (float, m): BVH query radius when re-seeding; farther particles keep their walk
-          refresh (int, steps): re-seed period of far particles; at least 1
-          reseed_drift (float, m): far particles that drifted less than this relative to the body since
-              their last query skip the re-seed; 0 re-seeds them all
+          body (BodySurface): the body posed for the end of the step, and the start's pose
+          params (BodyContactParams): the walk's, the re-seeding's and the contact's settings
           step_count (int32, 1 element): the step counter of begin_step, which times the re-seeding
-          body_moved (float, 1 element, m): largest displacement of a body vertex from prev_points to
-              points (sim.Collider.moved)
           first_pass (int, flag): non-zero in the step's first pass, which lowers the clearances by
-              body_moved; a second pass in the same pose must not lower them again
-          margin (float, m): distance kept outside the body
-          friction (float): Coulomb friction coefficient
+              body.moved; a second pass in the same pose must not lower them again
           dt (float, s): step length
           nearest_in (int32, per particle): cached nearest body vertex from the last step, -1 when unknown
           clearance_in (BodyClearance): the clearances from the last pass; may be clearance itself
-          candidate_slack (float, m): a gathering reaches this much farther than the query it serves, so
-              it lasts until the particle and the body have moved this far between them
-          tie (float, m): distances this close count as equal when signing (closest_candidate)
           record (int, flag): non-zero records the follow data
           first (int, index): the range's first particle; thread t collides particle first + t
           part (int, index): the range's element of fallbacks
@@ -1124,11 +1130,9 @@ def _body_collide(boxes):
           follow_barycentric (vec3, per particle): weights of the recorded face's corners; record != 0 only
           follow_local (vec3, per particle, m): offset in the recorded face's frame; record != 0 only
         """
-        collide_body(wp.tid() + first, x, x_prev, v, inv_mass, points, prev_points, indices, vv_start, vv_adj,
-                     vf_start, vf_face, concave, bvh, mesh, max_steps, teleport, trust_distance, reseed_radius,
-                     refresh, reseed_drift, step_count, body_moved, first_pass, margin, friction, dt, nearest_in,
-                     clearance_in, candidate_slack, tie, record, nearest, clearance, candidates, contact, fallbacks,
-                     follow_face, follow_barycentric, follow_local, part)
+        collide_body(wp.tid() + first, x, x_prev, v, inv_mass, body, params, step_count, first_pass, dt, nearest_in,
+                     clearance_in, record, nearest, clearance, candidates, contact, fallbacks, follow_face,
+                     follow_barycentric, follow_local, part)
 
     return body_collide
 
@@ -1402,29 +1406,10 @@ def _step_in_block(boxes):
         spring_limited: wp.array(dtype=wp.int32),
         max_stretch: float,
         collide: int,
-        points: wp.array(dtype=wp.vec3),
-        prev_points: wp.array(dtype=wp.vec3),
-        indices: wp.array(dtype=wp.int32),
-        vv_start: wp.array(dtype=wp.int32),
-        vv_adj: wp.array(dtype=wp.int32),
-        vf_start: wp.array(dtype=wp.int32),
-        vf_face: wp.array(dtype=wp.int32),
-        concave: wp.array(dtype=wp.int32),
-        bvh: wp.uint64,
-        mesh: wp.uint64,
-        max_steps: int,
-        teleport: float,
-        trust_distance: float,
-        reseed_radius: float,
-        refresh: int,
-        reseed_drift: float,
-        body_moved: wp.array(dtype=float),
-        margin: float,
-        friction: float,
+        body: BodySurface,
+        params: BodyContactParams,
         nearest_in: wp.array(dtype=wp.int32),
         clearance_in: BodyClearance,
-        candidate_slack: float,
-        tie: float,
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
         nearest: wp.array(dtype=wp.int32),
@@ -1449,7 +1434,7 @@ def _step_in_block(boxes):
 
         Launch: one thread per lane of one block (dim = 1, wp.launch_tiled with block_dim lanes).
         At most BLOCK_STEP_LANES lanes, the kernel's launch bound: the CUDA compiler fits its registers to
-        that many (168 on sm_90, with 184 bytes of spills, 24 without the box queries; unbounded, 204
+        that many (168 on sm_90, with 192 bytes of spills, 32 without the box queries; unbounded, 204
         registers and at most 256 lanes).
         A CPU runs one lane unless wp.config.enable_cpu_blocks is set (then its lanes are fibers that
         switch at the barriers).
@@ -1485,31 +1470,13 @@ def _step_in_block(boxes):
           spring_rest (float, per spring, m): rest lengths
           spring_limited (int32, per spring): 1 where the spring is limited
           max_stretch (float, fraction of rest length): allowed stretch of the limited springs
-          collide (int, flag): non-zero collides with the body (body_collide); the body's arguments
-              below are unread otherwise and may be None or 0
-          points (vec3, per body vertex, m): body posed for the end of the step
-          prev_points (vec3, per body vertex, m): body at the start of the step
-          indices (int32, 3 per body triangle): body triangles, outward winding
-          vv_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> vertex adjacency
-          vv_adj (int32, per adjacency entry): neighbouring vertices
-          vf_start (int32, num_body_vertices + 1): CSR offsets of the vertex -> face adjacency
-          vf_face (int32, 3 per body triangle): faces incident to each vertex
-          concave (int32, per body vertex): 1 where the vertex is concave or a saddle
-          bvh (uint64): the body triangles' box BVH (body_collide)
-          mesh (uint64): 0, or the posed body's wp.Mesh with a refitted BVH (body_collide)
-          max_steps (int): most steps of the walk before falling back to the BVH
-          teleport (float, m): a particle that moved farther in one step restarts from the BVH
-          trust_distance (float, m): beyond this distance from its vertex a particle is re-seeded
-          reseed_radius (float, m): BVH query radius when re-seeding
-          refresh (int, steps): re-seed period of far particles; at least 1
-          reseed_drift (float, m): drift relative to the body before a far particle is re-seeded
-          body_moved (float, 1 element, m): largest displacement of a body vertex over the step
-          margin (float, m): distance kept outside the body
-          friction (float): Coulomb friction coefficient
+          collide (int, flag): non-zero collides with the body (body_collide); body and params are
+              unread otherwise and may be empty
+          body (BodySurface): the body posed for the end of the step (begin_step reads its points and
+              indices where it follows or pins)
+          params (BodyContactParams): the body collision's settings
           nearest_in (int32, per particle): cached nearest body vertex from the last step, -1 unknown
           clearance_in (BodyClearance): the clearances of the last step
-          candidate_slack (float, m): how much farther a gathering reaches than its query
-          tie (float, m): distances this close count as equal when signing
         In/out:
           x0 (vec3, per particle, m): positions at the start of the step, moved with the body where
               followed
@@ -1537,9 +1504,9 @@ def _step_in_block(boxes):
         stride = wp.block_dim()
         p = lane
         while p < n:
-            _begin_step_at(p, x0, v0, inv_mass, points, indices, follow, follow_face_in, follow_barycentric_in,
-                           follow_local_in, full_within, none_beyond, pins, particle_binding, bind_triangle,
-                           bind_barycentric, bind_local, dt, step_count)
+            _begin_step_at(p, x0, v0, inv_mass, body.points, body.indices, follow, follow_face_in,
+                           follow_barycentric_in, follow_local_in, full_within, none_beyond, pins, particle_binding,
+                           bind_triangle, bind_barycentric, bind_local, dt, step_count)
             p += stride
         _block_sync()
         # RK4 stages ping-pong as ClothSolver.step's launches: x0 -> stage -> scratch -> stage -> x
@@ -1570,11 +1537,9 @@ def _step_in_block(boxes):
             _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch,
                           adj_k_compress, adj_damping, gravity, wind, damping, 1.0, 0.0, dt, acc_x, acc_v, x, v)
             if collide != 0:  # its own particle only: no barrier after the stage
-                collide_body(p, x, x0, v, inv_mass, points, prev_points, indices, vv_start, vv_adj, vf_start, vf_face,
-                             concave, bvh, mesh, max_steps, teleport, trust_distance, reseed_radius, refresh,
-                             reseed_drift, step_count, body_moved, 1, margin, friction, dt, nearest_in, clearance_in,
-                             candidate_slack, tie, int(record), nearest, clearance, candidates, contact, fallbacks,
-                             follow_face, follow_barycentric, follow_local, 0)
+                collide_body(p, x, x0, v, inv_mass, body, params, step_count, 1, dt, nearest_in, clearance_in,
+                             int(record), nearest, clearance, candidates, contact, fallbacks, follow_face,
+                             follow_barycentric, follow_local, 0)
             p += stride
         if strain_passes == 0:
             return
@@ -1603,11 +1568,9 @@ def _step_in_block(boxes):
                 _limit_strain_at(p, src, inv_mass, adj_start, adj_spring, spring_i, spring_j, spring_rest,
                                  spring_limited, max_stretch, start, wp.where(last, dt, 0.0), v, dst)
                 if last and collide != 0:  # contact has the last word, in the same pose
-                    collide_body(p, x, x, v, inv_mass, points, prev_points, indices, vv_start, vv_adj, vf_start,
-                                 vf_face, concave, bvh, mesh, max_steps, teleport, trust_distance, reseed_radius,
-                                 refresh, reseed_drift, step_count, body_moved, 0, margin, friction, dt, nearest,
-                                 clearance, candidate_slack, tie, follow, nearest, clearance, candidates, contact,
-                                 fallbacks, follow_face, follow_barycentric, follow_local, 0)
+                    collide_body(p, x, x, v, inv_mass, body, params, step_count, 0, dt, nearest, clearance, follow,
+                                 nearest, clearance, candidates, contact, fallbacks, follow_face, follow_barycentric,
+                                 follow_local, 0)
                 p += stride
             if not last:
                 _block_sync()
@@ -1615,7 +1578,7 @@ def _step_in_block(boxes):
     return step_in_block
 
 
-# as BODY_COLLIDE: without the box queries, sm_90 spills at 384 lanes 184/164 -> 24/36 bytes
+# as BODY_COLLIDE: without the box queries, sm_90 spills at 384 lanes 192/172 -> 32/40 bytes
 STEP_IN_BLOCK = {boxes: _step_in_block(boxes) for boxes in (True, False)}
 step_in_block = STEP_IN_BLOCK[True]
 
