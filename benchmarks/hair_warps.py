@@ -64,15 +64,14 @@ def counting_follow_the_leader():
          "    order: LaneOrder,\n    first: int,\n    work: wp.array(dtype=float),\n):"),
         (r"\n( +)correction = wp\.vec3\(0\.0\)\n", rf"\n\1correction = wp.vec3(0.0)\n\1work[i] += {STEP}\n"),
         (r"p = follow\(", "p = follow_leader_counted("),
-        (r"clearance, near_leaves, beyond\)\n( +)correction = p - predicted",
-         r"clearance, near_leaves, beyond, work)\n\1correction = p - predicted"),
+        (r"(NO_BOUND|held_beyond)\)\n( +)correction = p - predicted", r"\1, work)\n\2correction = p - predicted"),
     ]
     func_edits = [
-        (r"    beyond: wp\.array\(dtype=float\),\n\):",
-         "    beyond: wp.array(dtype=float),\n    work: wp.array(dtype=float),\n):"),
+        (r"    held_beyond: float,\n\):",
+         "    held_beyond: float,\n    work: wp.array(dtype=float),\n):"),
         (r"\n( +)elif listed:\n( +)pushed, bound, leaves, origin, unlisted = ",
          "\n\\1elif listed:\n"
-         "\\2if unlisted - wp.length(p - origin) > margin + 1.0e-5:\n"
+         "\\2if unlisted - wp.length(p - origin) > contact.margin + 1.0e-5:\n"
          f"\\2    work[i] += {LISTED}\n"
          "\\2else:\n"
          f"\\2    work[i] += {WALK}\n"

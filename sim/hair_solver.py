@@ -443,20 +443,34 @@ class HairSolver:
             wp.launch(strands.list_leaves_ahead, dim,
                       [x_prev, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start, order,
                        0, self.clearance, self.near_leaves, self.beyond], device=dev)
-        # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
-        probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         paths = self._length_paths(mode)
         length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths != strands.PATHS_ALL else (
             strands.FOLLOW_THE_LEADER)
         wp.launch(length_passes[paths], r.strands,
-                  [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, mode,
-                   c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), int(self.mesh_lists), probe, motion, self.reach, self.clearance,
-                   self.near_leaves, self.beyond, p.ftl_damping, dt, v, order, r.first_strand], device=dev)
+                  [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, self._strand_contact(c, mode),
+                   p.ftl_damping, dt, v, order, r.first_strand], device=dev)
         if lanes:
             wp.launch(strands.from_lanes, lane.strands * lane.longest,
                       [lane.x, lane.v, m.strand_start, order, lane.longest, state_out.x, state_out.v], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
+
+    def _strand_contact(self, c, mode):
+        """Collider c as the length pass meets it in collision mode `mode` (strands.StrandContact), with
+        this solver's contact bounds."""
+        p = self.params
+        contact = strands.StrandContact()
+        contact.mode = mode
+        contact.shape = c.shape if c else self._no_shape
+        contact.margin = p.collision_margin
+        contact.search = p.collision_search
+        # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
+        contact.probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
+        contact.use_bounds = int(self.contact_bounds)
+        contact.mesh_lists = int(self.mesh_lists)
+        contact.motion = self._motion
+        contact.strand_reach = self.reach
+        contact.clearance, contact.near_leaves, contact.beyond = self.clearance, self.near_leaves, self.beyond
+        return contact
 
     def _length_paths(self, mode):
         """The collision paths (strands.PATHS_*) the length pass takes against collision mode `mode`: the
@@ -570,7 +584,6 @@ class HairSolver:
             wp.launch(strands.list_leaves_ahead, dim,
                       [x_in, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start,
                        order, by_particle, self.clearance, self.near_leaves, self.beyond], device=dev)
-        probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         # the pass compiled with only the collision paths it takes and, where it allows, simplified shape
         # matching alone (strands.STEP_STRANDS): the same strands, fewer registers spilled on a GPU
         fit = (self._length_paths(mode), variant != SHAPE_MATCHING["full"])
@@ -583,10 +596,8 @@ class HairSolver:
                    m.bind_triangle if bound else None, m.bind_barycentric if bound else None,
                    m.bind_local if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
                    self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
-                   int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots, mode,
-                   c.shape if c else self._no_shape, p.collision_margin, p.collision_search,
-                   int(self.contact_bounds), int(self.mesh_lists), probe, motion, self.reach, self.clearance,
-                   self.near_leaves, self.beyond, p.ftl_damping, shaped, spare, x_out, v_out, order,
+                   int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots,
+                   self._strand_contact(c, mode), p.ftl_damping, shaped, spare, x_out, v_out, order,
                    1 - by_particle, 0 if lane is not None else r.first_strand], device=dev)
         if variant == SHAPE_MATCHING["full"] and passes > 0 and (part is None or part is self.parts[-1]):
             self._rotations_exact = False

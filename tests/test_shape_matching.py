@@ -84,7 +84,6 @@ def fused_pass(x, model, size, variant, stiffness, lanes=False):
     neither moves x (no forces, dt irrelevant) nor lets its length pass touch it (every particle
     counted as pinned there), with the rotations solved outright; in lane order with lanes."""
     from sim.hair_solver import HairParams, HairSolver
-    from warp_kernels import collision
 
     params = HairParams(shape_matching=["simplified", "full"][variant], shape_window=size, shape_stiffness=stiffness,
                         collision="none")
@@ -99,9 +98,8 @@ def fused_pass(x, model, size, variant, stiffness, lanes=False):
     wp.launch(kernels.step_strands, model.num_strands,
               [xs, zero, model.strand_start, 1 << 20, kernels.StrandForces(), wp.zeros(1, dtype=float), 0.0, 1.0, 0,
                None, None, None, None, None, None, None, 0.0,
-               kernels.GuidePull(), size, variant, 1, stiffness, 1, 1, solver.rotations, solver.slots, 0,
-               collision.ColliderShape(), 0.0, 0.0, 0, 1, 0.0, solver._motion, 0.0, solver.clearance,
-               solver.near_leaves, solver.beyond, 0.0, shaped, None, out, v, order, 0, 0])
+               kernels.GuidePull(), size, variant, 1, stiffness, 1, 1, solver.rotations, solver.slots,
+               kernels.StrandContact(), 0.0, shaped, None, out, v, order, 0, 0])  # no collider
     return out.numpy()
 
 

@@ -1202,7 +1202,7 @@ def list_leaves_ahead(
 # The collision paths a length pass is compiled with: lists of the nearest sphere-tree leaves and mesh
 # faces kept with the contact bounds, or bounded queries only. A kernel carries the code of every path
 # it may take, and its serial loop pays for the registers that code spills at every particle step:
-# on sm_90 follow_the_leader spills 596 bytes with every path, 112 with the sphere tree's alone, none
+# on sm_90 follow_the_leader spills 632 bytes with every path, 88 with the sphere tree's alone, none
 # with the bounded queries alone (benchmarks/cuda_resources.py). The solver launches the variant its
 # collision needs (FOLLOW_THE_LEADER); step_strands, the CPU's, keeps every path.
 PATHS_QUERIES = 0  # bounded queries only (collide_point_bounded): the sphere tree walked, the mesh's BVH
@@ -1211,31 +1211,68 @@ PATHS_ALL = 2  # every path: both lists (collide_point_listed, collide_point_lis
 PATH_NAMES = {PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: ""}
 
 
+@wp.struct
+class StrandContact:
+    """The collider as the hair's length pass meets it (follow_the_leader, step_strands), and the contact
+    bounds each particle keeps of it between substeps.
+
+    Fields:
+      mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider; an empty struct when mode is COLLIDE_NONE
+      margin (float, m): distance kept outside the collider
+      search (float, m): query radius
+      probe (float, m): query radius, at most search, for particles whose bound shows them no deeper
+          than probe inside; read only when use_bounds != 0
+      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      mesh_lists (int, flag): mesh queries through lists of the nearest faces kept with the contact
+          bounds (collide_point_listed_mesh); zero queries the BVH (mesh_push_out: a GPU's default, the
+          gathering of a list inside the serial loop keeps a warp waiting longer than the walk it saves)
+      motion (ContactMotion): how the collider moved near the strands (contact_motion, with the same
+          strand_reach and search); read only when use_bounds != 0
+      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+      clearance (float, per particle or lane slot, m): lower bounds of each particle's distance from the
+          collider where it started the substep (NO_BOUND: unknown); written only when mode != COLLIDE_NONE
+      near_leaves (vec4i, per particle or lane slot): the leaf spheres (or, with mesh_lists, mesh faces)
+          listed for each particle, ascending, -1 for none; read and written only with use_bounds != 0
+      beyond (float, per particle or lane slot, m): lower bound of the distance to every unlisted leaf
+          or face; ignored where clearance is NO_BOUND; lists kept only
+    """
+
+    mode: int
+    shape: ColliderShape
+    margin: float
+    search: float
+    probe: float
+    use_bounds: int
+    mesh_lists: int
+    motion: ContactMotion
+    strand_reach: float
+    clearance: wp.array(dtype=float)
+    near_leaves: wp.array(dtype=wp.vec4i)
+    beyond: wp.array(dtype=float)
+
+
 @wp.func
-def held_bounds(i: int, use_bounds: int, lists: int, clearance: wp.array(dtype=float),
-                near_leaves: wp.array(dtype=wp.vec4i), beyond: wp.array(dtype=float)):
+def held_bounds(i: int, lists: int, contact: StrandContact):
     """The contact bounds a particle holds as the length pass reaches it, for follow_leader.
 
     Inputs:
       i (int, index): the particle's element of the contact-bound arrays
-      use_bounds (int, flag): zero reads nothing (the bounds are unused)
       lists (int, flag): non-zero also reads the particle's list and its bound
-      clearance (float, per element, m): contact bounds
-      near_leaves (vec4i, per element): listed leaf spheres or mesh faces
-      beyond (float, per element, m): bound on every unlisted leaf or face
+      contact (StrandContact): its bounds; nothing is read unless contact.use_bounds
     Returns:
-      float (m): clearance[i], NO_BOUND unread
-      vec4i: near_leaves[i], (-1, -1, -1, -1) unread
-      float (m): beyond[i], NO_BOUND unread
+      float (m): contact.clearance[i], NO_BOUND unread
+      vec4i: contact.near_leaves[i], (-1, -1, -1, -1) unread
+      float (m): contact.beyond[i], NO_BOUND unread
     """
     held = float(NO_BOUND)
     held_leaves = wp.vec4i(-1, -1, -1, -1)
     held_beyond = float(NO_BOUND)
-    if use_bounds != 0:
-        held = clearance[i]
+    if contact.use_bounds != 0:
+        held = contact.clearance[i]
         if lists != 0:
-            held_leaves = near_leaves[i]
-            held_beyond = beyond[i]
+            held_leaves = contact.near_leaves[i]
+            held_beyond = contact.beyond[i]
     return held, held_leaves, held_beyond
 
 
@@ -1252,21 +1289,10 @@ def _follow_leader(paths, ahead=False):
         length: float,
         i: int,
         start: wp.vec3,
-        collide_mode: int,
-        shape: ColliderShape,
-        margin: float,
-        search: float,
-        use_bounds: int,
-        mesh_lists: int,
-        probe: float,
-        motion: ContactMotion,
-        strand_reach: float,
+        contact: StrandContact,
         held: float,
         held_leaves: wp.vec4i,
         held_beyond: float,
-        clearance: wp.array(dtype=float),
-        near_leaves: wp.array(dtype=wp.vec4i),
-        beyond: wp.array(dtype=float),
     ):
         """One particle of the length pass (follow_the_leader, step_strands): put at its rest distance
         from its parent, pushed out of the collider and put back on that sphere, its contact bounds
@@ -1274,8 +1300,8 @@ def _follow_leader(paths, ahead=False):
 
         Compiled ahead (follow_the_leader's variant that reads a particle ahead), the bounds held at
         the start come as values (held, held_leaves, held_beyond), read by the caller (held_bounds)
-        while the particle before is placed; otherwise it reads them from clearance, near_leaves and
-        beyond where it needs them, and those three arguments are unread.
+        while the particle before is placed; otherwise it reads them from contact's clearance, near_leaves
+        and beyond where it needs them, and those three arguments are unread.
 
         Inputs:
           parent (vec3, m): the parent's resolved position
@@ -1285,25 +1311,13 @@ def _follow_leader(paths, ahead=False):
           length (float, m): its rest distance to the parent
           i (int, index): its element of the contact-bound arrays (lane_slot)
           start (vec3, m): its position at the start of the substep, where the bounds hold
-          collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
-          shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
-          margin (float, m): distance kept outside the collider
-          search (float, m): mesh query radius
-          use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
-          mesh_lists (int, flag): non-zero answers mesh queries through the lists of the nearest faces
-              (collide_point_listed_mesh), zero through the BVH (mesh_push_out)
-          probe (float, m): query radius for particles the bound shows no deeper than probe inside
-          motion (ContactMotion): how the collider moved near the strands (contact_motion)
-          strand_reach (float, m): the strands' reach from the anchor given to contact_motion
-          held (float, m): clearance[i] at the start, compiled ahead; read only with use_bounds
+          contact (StrandContact): the collider, the query settings and the contact bounds
+          held (float, m): contact.clearance[i] at the start, compiled ahead; read only with use_bounds
           held_leaves (vec4i): near_leaves[i] at the start, compiled ahead; read only with a list
           held_beyond (float, m): beyond[i] at the start, compiled ahead; likewise
         In/out:
-          clearance (float, per element, m): the contact bound, at start in (unless compiled ahead) and
-              at the result out; written only when collide_mode != COLLIDE_NONE
-          near_leaves (vec4i, per element): the listed leaf spheres (sphere tree) or faces (mesh),
-              with bounds
-          beyond (float, per element, m): the bound on every unlisted leaf or face, with bounds
+          contact.clearance, contact.near_leaves, contact.beyond: the particle's bounds, read at the
+              start (unless compiled ahead) and kept or renewed at the result
         Returns:
           vec3 (m): the resolved position
         """
@@ -1315,43 +1329,43 @@ def _follow_leader(paths, ahead=False):
                 d = parent - before
             dist = wp.length(d)
         p = parent + d * (length / dist)
-        if collide_mode != 0:
+        if contact.mode != 0:
             bound = float(NO_BOUND)
             # the lists near each particle are kept with the bounds; mesh queries go through a list
             # even without them (one made for the query), so that skipping queries changes nothing
             # a path left out of this variant is a constant False: the compiler drops its code
             listed_mesh = bool(False)
             if wp.static(paths >= PATHS_ALL):
-                listed_mesh = collide_mode == COLLIDE_MESH and mesh_lists != 0
+                listed_mesh = contact.mode == COLLIDE_MESH and contact.mesh_lists != 0
             listed = bool(False)
             if wp.static(paths >= PATHS_SPHERE_LISTS):
-                listed = use_bounds != 0 and (collide_mode == COLLIDE_SPHERE_TREE or listed_mesh)
+                listed = contact.use_bounds != 0 and (contact.mode == COLLIDE_SPHERE_TREE or listed_mesh)
             leaves = wp.vec4i(-1, -1, -1, -1)
             unlisted = float(NO_BOUND)
-            if use_bounds != 0:
-                from_center = p - motion.center[0]
-                if wp.dot(from_center, from_center) <= strand_reach * strand_reach:
-                    _carried, lowered = bound_lowering(motion, start, p, strand_reach + search)
+            if contact.use_bounds != 0:
+                from_center = p - contact.motion.center[0]
+                if wp.dot(from_center, from_center) <= contact.strand_reach * contact.strand_reach:
+                    _carried, lowered = bound_lowering(contact.motion, start, p, contact.strand_reach + contact.search)
                     at_start = held
                     if wp.static(not ahead):
-                        at_start = clearance[i]
+                        at_start = contact.clearance[i]
                     bound = at_start - lowered
                     if listed and at_start > 0.5 * NO_BOUND:
                         if wp.static(ahead):
                             leaves = held_leaves
                             unlisted = held_beyond - lowered
                         else:
-                            leaves = near_leaves[i]
-                            unlisted = beyond[i] - lowered
+                            leaves = contact.near_leaves[i]
+                            unlisted = contact.beyond[i] - lowered
             origin = p
-            queried_here = use_bounds == 0 or bound <= margin + 1.0e-5
+            queried_here = contact.use_bounds == 0 or bound <= contact.margin + 1.0e-5
             if queried_here:
                 # a particle known to be no deeper than probe inside needs only a probe-sized
                 # query: one within probe finds what a search-sized one finds, and one that finds
                 # nothing shows it outside (a query's cost grows fast with its radius)
-                reach = search
-                if use_bounds != 0 and bound > -probe:
-                    reach = probe
+                reach = contact.search
+                if contact.use_bounds != 0 and bound > -contact.probe:
+                    reach = contact.probe
                 # putting the particle back at rest length can re-enter the collider near a
                 # crease (between two spheres, in a concave corner); a second round settles it
                 queried = p
@@ -1360,16 +1374,16 @@ def _follow_leader(paths, ahead=False):
                     pushed = p
                     if listed_mesh:
                         pushed, bound, leaves, origin, unlisted = collide_point_listed_mesh(
-                            p, shape.mesh, margin, reach, search, leaves, origin, unlisted)
+                            p, contact.shape.mesh, contact.margin, reach, contact.search, leaves, origin, unlisted)
                     elif listed:
                         pushed, bound, leaves, origin, unlisted = collide_point_listed(
-                            p, shape, margin, reach, leaves, origin, unlisted)
+                            p, contact.shape, contact.margin, reach, leaves, origin, unlisted)
                     else:
-                        mode = collide_mode
+                        mode = contact.mode
                         if wp.static(paths == PATHS_SPHERE_LISTS):
                             mode = COLLIDE_SPHERE_TREE  # a constant: the mesh's query is not compiled in
-                        pushed, bound = collide_point_bounded(p, mode, shape, margin, reach)
-                    reach = search
+                        pushed, bound = collide_point_bounded(p, mode, contact.shape, contact.margin, reach)
+                    reach = contact.search
                     if pushed == p:
                         break
                     p = pushed
@@ -1378,13 +1392,13 @@ def _follow_leader(paths, ahead=False):
                     if dist > 1.0e-12:
                         p = parent + d * (length / dist)
                 bound = bound - wp.length(p - queried)
-            clearance[i] = bound
+            contact.clearance[i] = bound
             if listed:
                 # a list not queried is the one read above, and its bound holds at p itself
                 if queried_here:
-                    near_leaves[i] = leaves
+                    contact.near_leaves[i] = leaves
                     unlisted = unlisted - wp.length(p - origin)
-                beyond[i] = unlisted
+                contact.beyond[i] = unlisted
         return p
     return follow_leader
 
@@ -1408,18 +1422,7 @@ def _follow_the_leader(paths, ahead=False):
         strand_start: wp.array(dtype=wp.int32),
         rest_length: wp.array(dtype=float),
         pinned_per_strand: int,
-        collide_mode: int,
-        shape: ColliderShape,
-        margin: float,
-        search: float,
-        use_bounds: int,
-        mesh_lists: int,
-        probe: float,
-        motion: ContactMotion,
-        strand_reach: float,
-        clearance: wp.array(dtype=float),
-        near_leaves: wp.array(dtype=wp.vec4i),
-        beyond: wp.array(dtype=float),
+        contact: StrandContact,
         ftl_damping: float,
         dt: float,
         v: wp.array(dtype=wp.vec3),
@@ -1434,12 +1437,12 @@ def _follow_the_leader(paths, ahead=False):
         free particles, d_(i+1) the child's correction (dynamic FTL); the correction is carried to the
         next particle in a register rather than stored.
 
-        Contact bounds (use_bounds != 0): each particle keeps a lower bound of its distance from the
+        Contact bounds (contact.use_bounds != 0): each particle keeps a lower bound of its distance from the
         collider, set by its last query and lowered every substep by how far it and the collider near it
         moved, both seen in the frame that follows the anchor triangle (contact_motion, motion_near): the
         particle's move is measured from x_prev carried by motion.rigid. While that bound stays above
         margin no query could push the particle, so none is made: most hair is centimetres from the
-        head, and the queries of this serial loop are its cost. A particle farther than strand_reach
+        head, and the queries of this serial loop are its cost. A particle farther than the strands' reach
         from motion.center gets a full query. The result is the same as querying every particle,
         except for particles already deeper than search inside the collider, which no query sees
         anyway until they are within margin of its surface. A caller that moves particles or the collider in any other
@@ -1467,19 +1470,6 @@ def _follow_the_leader(paths, ahead=False):
           rest_length (float, per particle, m): rest distance to the previous particle (unused for roots)
           pinned_per_strand (int): leading particles of each strand left where they are; at least 1,
               since a root has no parent to follow (with 0 it would read the previous strand's tip)
-          collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
-          shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
-          margin (float, m): distance kept outside the collider
-          search (float, m): mesh query radius
-          use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
-          mesh_lists (int, flag): mesh queries through lists of the nearest faces (collide_point_listed_mesh),
-              kept with the contact bounds; zero queries the BVH (a GPU's default: the gathering of a list
-              inside the serial loop keeps a warp waiting longer than the BVH walk it saves)
-          probe (float, m): query radius, at most search, for particles whose bound shows them no
-              deeper than probe inside; read only when use_bounds != 0
-          motion (ContactMotion): how the collider moved near these strands (contact_motion, with the
-              same reach and search); read only when use_bounds != 0
-          strand_reach (float, m): the strands' reach from the anchor given to contact_motion
           ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
           dt (float, s): substep length
           order (LaneOrder): particle order, or the lane order (then first is 0 and thread t works on
@@ -1488,12 +1478,7 @@ def _follow_the_leader(paths, ahead=False):
         In/out:
           x (vec3, per particle, m): predicted positions in; lengths and collisions resolved out (the
               loop reads each particle's parent back from it)
-          clearance (float, per particle, m): contact bounds at x_prev in, at x out (NO_BOUND: unknown);
-              written only when collide_mode != COLLIDE_NONE
-          near_leaves (vec4i, per particle): the leaf spheres (or, with mesh_lists, mesh faces) listed
-              for each particle (ascending indices, -1 for none); read and written only with use_bounds != 0
-          beyond (float, per particle, m): lower bound of the distance to every unlisted leaf or face, at
-              x_prev in, at x out; ignored where clearance is NO_BOUND; lists kept only
+          contact (StrandContact): the collider and its settings; its contact bounds at x_prev in, at x out
         Outputs:
           v (vec3, per particle, m/s): velocities at the end of the substep
         """
@@ -1512,12 +1497,11 @@ def _follow_the_leader(paths, ahead=False):
             # early, it holds what it would hold in its turn); copies, since the loop reassigns them
             lists = int(0)
             if wp.static(paths >= PATHS_SPHERE_LISTS):
-                lists = int(collide_mode != 0)
+                lists = int(contact.mode != 0)
             i = lane_slot(start, lane, 0, lanes)
             p_next, rest_next = wp.vec3(x[i]), float(rest_length[i])
             start_next, mass_next = wp.vec3(x_prev[i]), float(inv_mass[i])
-            held_next, leaves_next, beyond_next = held_bounds(i, use_bounds, lists, clearance, near_leaves,
-                                                              beyond)
+            held_next, leaves_next, beyond_next = held_bounds(i, lists, contact)
             start_parent = wp.vec3(0.0)  # the parent's start position and inverse mass, for its velocity
             mass_parent = float(0.0)
             for k in range(count):
@@ -1528,14 +1512,12 @@ def _follow_the_leader(paths, ahead=False):
                     n = lane_slot(start, lane, k + 1, lanes)
                     p_next, rest_next = wp.vec3(x[n]), float(rest_length[n])
                     start_next, mass_next = wp.vec3(x_prev[n]), float(inv_mass[n])
-                    held_next, leaves_next, beyond_next = held_bounds(n, use_bounds, lists, clearance,
-                                                                      near_leaves, beyond)
+                    held_next, leaves_next, beyond_next = held_bounds(n, lists, contact)
                 correction = wp.vec3(0.0)
                 if k >= pinned_per_strand:
                     predicted = p
-                    p = follow(parent, before, k, predicted, rest, i, x_start, collide_mode, shape, margin, search,
-                               use_bounds, mesh_lists, probe, motion, strand_reach, held, held_leaves, held_beyond,
-                               clearance, near_leaves, beyond)
+                    p = follow(parent, before, k, predicted, rest, i, x_start, contact, held, held_leaves,
+                               held_beyond)
                     correction = p - predicted
                     x[i] = p
                 if k > 0:
@@ -1555,9 +1537,8 @@ def _follow_the_leader(paths, ahead=False):
                 correction = wp.vec3(0.0)
                 if k >= pinned_per_strand:
                     predicted = p
-                    p = follow(parent, before, k, predicted, rest_length[i], i, x_prev[i], collide_mode, shape,
-                               margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, NO_BOUND,
-                               wp.vec4i(-1, -1, -1, -1), NO_BOUND, clearance, near_leaves, beyond)
+                    p = follow(parent, before, k, predicted, rest_length[i], i, x_prev[i], contact, NO_BOUND,
+                               wp.vec4i(-1, -1, -1, -1), NO_BOUND)
                     correction = p - predicted
                     x[i] = p
                 if k > 0:
@@ -1576,7 +1557,7 @@ def _follow_the_leader(paths, ahead=False):
 
 FOLLOW_THE_LEADER = {paths: _follow_the_leader(paths) for paths in PATH_NAMES}
 # the GPU's paths reading a particle ahead (HairSolver.read_ahead): the same strands; more live registers
-# (sm_90 spills: bounded queries 0 -> 8 bytes, sphere lists 112 -> 236), less of the loop waiting on memory
+# (sm_90 spills: bounded queries none either way, sphere lists 88 -> 220 bytes), less of the loop waiting on memory
 FOLLOW_THE_LEADER_AHEAD = {paths: _follow_the_leader(paths, ahead=True) for paths in (PATHS_QUERIES,
                                                                                        PATHS_SPHERE_LISTS)}
 follow_the_leader = FOLLOW_THE_LEADER[PATHS_ALL]
@@ -1984,18 +1965,7 @@ def _step_strands(paths, simplified=False):
         rotation_iterations: int,
         rotations: wp.array(dtype=wp.quat),
         per: StrandSlots,
-        collide_mode: int,
-        shape: ColliderShape,
-        margin: float,
-        search: float,
-        use_bounds: int,
-        mesh_lists: int,
-        probe: float,
-        motion: ContactMotion,
-        strand_reach: float,
-        clearance: wp.array(dtype=float),
-        near_leaves: wp.array(dtype=wp.vec4i),
-        beyond: wp.array(dtype=float),
+        contact: StrandContact,
         ftl_damping: float,
         shaped: wp.array(dtype=wp.vec3),
         spare: wp.array(dtype=wp.vec3),
@@ -2052,15 +2022,6 @@ def _step_strands(paths, simplified=False):
           stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
           exact (int, flag): non-zero solves the first pass's rotations from scratch (full)
           rotation_iterations (int): rotation refinement steps per pass otherwise (full)
-          collide_mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
-          shape (ColliderShape): the collider; an empty struct when collide_mode is COLLIDE_NONE
-          margin (float, m): distance kept outside the collider
-          search (float, m): mesh query radius
-          use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
-          mesh_lists (int, flag): mesh queries through lists of the nearest faces (follow_the_leader)
-          probe (float, m): query radius for particles the bound shows no deeper than probe inside
-          motion (ContactMotion): how the collider moved near these strands (contact_motion)
-          strand_reach (float, m): the strands' reach from the anchor given to contact_motion
           ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
           order (LaneOrder): particle order, or the lane order: the order of the slots (per, shaped,
               spare and the contact bounds)
@@ -2072,9 +2033,8 @@ def _step_strands(paths, simplified=False):
           rotations (quat, per window): window rotations, refined from their last values (full)
           per (StrandSlots): the particles and windows per slot; the windows' centroids and axes, or frames
               and translations, written
-          clearance (float, per slot, m): contact bounds at x in, at x_out out (follow_the_leader)
-          near_leaves (vec4i, per slot): listed leaf spheres (follow_the_leader)
-          beyond (float, per slot, m): bound on every unlisted leaf (follow_the_leader)
+          contact (StrandContact): the collider and its settings; its contact bounds per slot, at x in,
+              at x_out out (follow_the_leader)
         Outputs:
           shaped (vec3, per slot, m): scratch, the last pass's input; may be x_out itself in particle order
           spare (vec3, per slot, m): scratch for two passes or more; None otherwise
@@ -2146,9 +2106,8 @@ def _step_strands(paths, simplified=False):
             correction = wp.vec3(0.0)
             if k >= pinned_per_strand:
                 predicted = p
-                p = follow(parent, before, k, predicted, per.rest_length[i], i, x[at], collide_mode, shape,
-                           margin, search, use_bounds, mesh_lists, probe, motion, strand_reach, NO_BOUND,
-                                  wp.vec4i(-1, -1, -1, -1), NO_BOUND, clearance, near_leaves, beyond)
+                p = follow(parent, before, k, predicted, per.rest_length[i], i, x[at], contact, NO_BOUND,
+                           wp.vec4i(-1, -1, -1, -1), NO_BOUND)
                 correction = p - predicted
             x_out[at] = p
             if k > 0:
@@ -2165,8 +2124,8 @@ def _step_strands(paths, simplified=False):
 
 
 # every path: the CPU's fused substep; a GPU's cases with their own paths only, for fewer spilled
-# registers (sm_90: every path 904/1092 bytes; the sphere tree, simplified, 156/196; bounded queries,
-# the mesh through its BVH, 136/248, simplified 0/0)
+# registers (sm_90: every path 964/1056 bytes; the sphere tree, simplified, 112/100; bounded queries,
+# the mesh through its BVH, 36/32, simplified 0/0)
 STEP_STRANDS = {(PATHS_ALL, False): _step_strands(PATHS_ALL),
                 (PATHS_SPHERE_LISTS, True): _step_strands(PATHS_SPHERE_LISTS, simplified=True),
                 (PATHS_QUERIES, False): _step_strands(PATHS_QUERIES),
