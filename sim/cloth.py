@@ -374,8 +374,8 @@ class ClothSolver:
                   [state_in.x, state_in.v, m.inv_mass, body.points if body else None, body.indices if body else None,
                    int(body is not None and p.follow), state_in.follow_face, state_in.follow_barycentric,
                    state_in.follow_local, p.follow_full_within, p.follow_none_beyond, int(pins),
-                   m.particle_binding if pins else None, m.bind_triangle if pins else None,
-                   m.bind_barycentric if pins else None, m.bind_local if pins else None, dt, self.step_count],
+                   m.particle_binding if pins else None, body.skin_binding(m) if pins else skinning.SkinBinding(), dt,
+                   self.step_count],
                   device=dev)
         # RK4 on y = (x, v): stages at 0, dt/2, dt/2, dt, each a full force evaluation; stage states
         # ping-pong between two buffer pairs because neighbours read a stage while it is replaced, and
@@ -407,7 +407,7 @@ class ClothSolver:
         passes = p.strain_iterations if p.strain_limit > 0.0 else 0
         surface = self.body_surface(body) if body is not None else kernels.BodySurface()
         candidates = self._candidates_for(body) if body is not None else self.candidates
-        binding = [m.particle_binding, m.bind_triangle, m.bind_barycentric, m.bind_local] if pins else [None] * 4
+        binding = [m.particle_binding, body.skin_binding(m)] if pins else [None, skinning.SkinBinding()]
         # with a mesh given, its queries answer every closest point: the step compiled without the boxes'
         wp.launch_tiled(kernels.STEP_IN_BLOCK[surface.mesh == 0], dim=[1], inputs=[
             n, state_in.x, state_in.v, m.inv_mass, m.drag, m.adj_start, m.adj_other, m.adj_rest, m.adj_k_stretch,

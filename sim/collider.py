@@ -236,6 +236,16 @@ class Collider:
                       device=self.device)
             self._pack_spheres()
 
+    def skin_binding(self, bound):
+        """The bindings of `bound` (a model with bind_triangle, bind_barycentric and bind_local, made by
+        skinning.compute_bindings on this collider's triangles) on the current pose, as kernels read them
+        (warp_kernels.skinning.SkinBinding)."""
+        binding = skinning.SkinBinding()
+        binding.mesh_points, binding.mesh_indices = self.points, self.indices
+        binding.triangle, binding.barycentric = bound.bind_triangle, bound.bind_barycentric
+        binding.local = bound.bind_local
+        return binding
+
     def adjacency(self):
         """CSR vertex->vertex and vertex->face adjacency and per-vertex concave flags, built once
         (the cloth's nearest-vertex walk runs on them)."""

@@ -8,7 +8,7 @@ from functools import partial
 import numpy as np
 import warp as wp
 
-from warp_kernels import collision, strands
+from warp_kernels import collision, skinning, strands
 
 from .errors import SimulationError
 from .graphs import cpu_cores
@@ -395,15 +395,13 @@ class HairSolver:
         lanes = lane.strands if lane is not None else 0
         order = lane.order if lanes else self._particle_order
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
+        skin = c.skin_binding(m) if bound else skinning.SkinBinding()
         if bound and hold > 0.0:
             wp.launch(strands.root_frames, r.strands,
-                      [c.points, c.indices, m.bind_triangle, m.bind_barycentric, m.bind_local, m.root_binding,
-                       self.root_origin, self.root_frame, r.first_strand], device=dev)
+                      [skin, m.root_binding, self.root_origin, self.root_frame, r.first_strand], device=dev)
         wp.launch(strands.predict_positions, r.particles,
-                  [state_in.x, state_in.v, m.inv_mass, self._forces(), self.clock, offset, dt, int(bound),
-                   c.points if bound else None, c.indices if bound else None, m.particle_binding if bound else None,
-                   m.bind_triangle if bound else None,
-                   m.bind_barycentric if bound else None, m.bind_local if bound else None, m.particle_strand,
+                  [state_in.x, state_in.v, m.inv_mass, self._forces(), self.clock, offset, dt, int(bound), skin,
+                   m.particle_binding if bound else None, m.particle_strand,
                    self.root_origin, self.root_frame, m.root_local if bound else None, self.hold, hold,
                    predicted, state_out.v, r.first_particle], device=dev)
         if guides is not None and p.guide_stiffness > 0.0:
@@ -591,10 +589,8 @@ class HairSolver:
             fit = (strands.PATHS_ALL, False)
         wp.launch(strands.STEP_STRANDS[fit], r.strands,
                   [x_in, v_in, m.strand_start, m.pinned_per_strand, self._forces(), self.clock,
-                   offset, dt, int(bound), c.points if bound else None,
-                   c.indices if bound else None, m.particle_binding if bound else None,
-                   m.bind_triangle if bound else None, m.bind_barycentric if bound else None,
-                   m.bind_local if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
+                   offset, dt, int(bound), c.skin_binding(m) if bound else skinning.SkinBinding(),
+                   m.particle_binding if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
                    self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
                    int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots,
                    self._strand_contact(c, mode), p.ftl_damping, shaped, spare, x_out, v_out, order,

@@ -8,6 +8,7 @@ import warp as wp
 from sim.cloth import ClothModel, ClothParams, ClothSolver, body_candidates
 from sim.collider import UNKNOWN_MOTION, Collider
 from warp_kernels import cloth as kernels
+from warp_kernels import skinning
 
 PLAIN = dict(damping=0.0, air_drag=0.0, spring_damping=0.0, gravity=(0.0, 0.0, 0.0), follow=False)
 
@@ -217,8 +218,8 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     body.set_poses(M[None, None])
     body.apply_pose(0)
     wp.launch(kernels.begin_step, 50, [state.x, state.v, model.inv_mass, body.points, body.indices, 1, state.follow_face,
-                                       state.follow_barycentric, state.follow_local, 0.02, 0.08, 0, None, None, None,
-                                       None, 1e-3, steps])
+                                       state.follow_barycentric, state.follow_local, 0.02, 0.08, 0, None,
+                                       skinning.SkinBinding(), 1e-3, steps])
     assert steps.numpy()[0] == 1
     np.testing.assert_allclose(state.x.numpy(), pts @ R.T + M[:3, 3], atol=1e-5)
 

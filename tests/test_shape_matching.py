@@ -97,9 +97,8 @@ def fused_pass(x, model, size, variant, stiffness, lanes=False):
     shaped = wp.zeros(slots, dtype=wp.vec3)
     wp.launch(kernels.step_strands, model.num_strands,
               [xs, zero, model.strand_start, 1 << 20, kernels.StrandForces(), wp.zeros(1, dtype=float), 0.0, 1.0, 0,
-               None, None, None, None, None, None, None, 0.0,
-               kernels.GuidePull(), size, variant, 1, stiffness, 1, 1, solver.rotations, solver.slots,
-               kernels.StrandContact(), 0.0, shaped, None, out, v, order, 0, 0])  # no collider
+               kernels.SkinBinding(), None, None, 0.0, kernels.GuidePull(), size, variant, 1, stiffness, 1, 1,
+               solver.rotations, solver.slots, kernels.StrandContact(), 0.0, shaped, None, out, v, order, 0, 0])
     return out.numpy()
 
 

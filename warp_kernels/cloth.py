@@ -23,7 +23,7 @@ from .collision import closest_on_triangle, pseudo_normal_weight
 
 wp.set_module_options(MODULE_OPTIONS)
 
-from .skinning import bound_position, face_frame, face_point
+from .skinning import SkinBinding, bound_position, face_frame, face_point
 
 # step_in_block's most lanes: a particle per lane for a garment of a few hundred particles (the paper's
 # dress has 332), where a lane with two would double each pass's latency
@@ -1260,9 +1260,7 @@ def _begin_step_at(
     none_beyond: float,
     pins: int,
     particle_binding: wp.array(dtype=wp.int32),
-    bind_triangle: wp.array(dtype=wp.int32),
-    bind_barycentric: wp.array(dtype=wp.vec3),
-    bind_local: wp.array(dtype=wp.vec3),
+    pinned: SkinBinding,
     dt: float,
     step_count: wp.array(dtype=wp.int32),
 ):
@@ -1273,7 +1271,7 @@ def _begin_step_at(
         if pins != 0:
             b = particle_binding[p]
             if b >= 0:
-                target = bound_position(points, indices, bind_triangle, bind_barycentric, bind_local, b)
+                target = bound_position(pinned, b)
                 v[p] = (target - x[p]) / dt
         return
     if follow == 0:
@@ -1308,9 +1306,7 @@ def begin_step(
     none_beyond: float,
     pins: int,
     particle_binding: wp.array(dtype=wp.int32),
-    bind_triangle: wp.array(dtype=wp.int32),
-    bind_barycentric: wp.array(dtype=wp.vec3),
-    bind_local: wp.array(dtype=wp.vec3),
+    pinned: SkinBinding,
     dt: float,
     step_count: wp.array(dtype=wp.int32),
 ):
@@ -1339,10 +1335,8 @@ def begin_step(
       none_beyond (float, m): particles this far away do not follow; at least full_within
       pins (int, flag): non-zero drives the bound pinned particles
       particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound;
-          this and the three bind_* arrays may be None when pins is 0
-      bind_triangle (int32, per binding): body triangle of each binding
-      bind_barycentric (vec3, per binding): weights of that triangle's corners
-      bind_local (vec3, per binding, m): offset in that triangle's frame
+          this may be None and pinned empty when pins is 0
+      pinned (SkinBinding): the pinned particles' bindings on the body posed for the end of the step
       dt (float, s): step length
     In/out:
       x (vec3, per particle, m): positions, moved with the body where followed
@@ -1350,7 +1344,7 @@ def begin_step(
       step_count (int32, 1 element): step counter, incremented by one
     """
     _begin_step_at(wp.tid(), x, v, inv_mass, points, indices, follow, face, barycentric, local, full_within,
-                   none_beyond, pins, particle_binding, bind_triangle, bind_barycentric, bind_local, dt, step_count)
+                   none_beyond, pins, particle_binding, pinned, dt, step_count)
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -1394,9 +1388,7 @@ def _step_in_block(boxes):
         none_beyond: float,
         pins: int,
         particle_binding: wp.array(dtype=wp.int32),
-        bind_triangle: wp.array(dtype=wp.int32),
-        bind_barycentric: wp.array(dtype=wp.vec3),
-        bind_local: wp.array(dtype=wp.vec3),
+        pinned: SkinBinding,
         step_count: wp.array(dtype=wp.int32),
         strain_passes: int,
         adj_spring: wp.array(dtype=wp.int32),
@@ -1460,9 +1452,7 @@ def _step_in_block(boxes):
           none_beyond (float, m): particles this far away do not follow
           pins (int, flag): non-zero drives the bound pinned particles (begin_step)
           particle_binding (int32, per particle): binding of each pinned particle, -1 when unbound
-          bind_triangle (int32, per binding): body triangle of each binding
-          bind_barycentric (vec3, per binding): weights of that triangle's corners
-          bind_local (vec3, per binding, m): offset in that triangle's frame
+          pinned (SkinBinding): the pinned particles' bindings on the body posed for the end of the step
           strain_passes (int): Jacobi passes of the strain limit (limit_strain); 0 for none
           adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
           spring_i (int32, per spring): first particle of each spring
@@ -1506,7 +1496,7 @@ def _step_in_block(boxes):
         while p < n:
             _begin_step_at(p, x0, v0, inv_mass, body.points, body.indices, follow, follow_face_in,
                            follow_barycentric_in, follow_local_in, full_within, none_beyond, pins, particle_binding,
-                           bind_triangle, bind_barycentric, bind_local, dt, step_count)
+                           pinned, dt, step_count)
             p += stride
         _block_sync()
         # RK4 stages ping-pong as ClothSolver.step's launches: x0 -> stage -> scratch -> stage -> x

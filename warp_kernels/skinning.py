@@ -147,54 +147,62 @@ def skin_listed_points(
     points[i] = skinned_point(rest_points, skin_indices, skin_weights, bone_matrices, bone_offset, i)
 
 
-@wp.func
-def bound_position(mesh_points: wp.array(dtype=wp.vec3), mesh_indices: wp.array(dtype=wp.int32),
-                   bind_triangle: wp.array(dtype=wp.int32), bind_barycentric: wp.array(dtype=wp.vec3),
-                   bind_local: wp.array(dtype=wp.vec3), b: int):
+@wp.struct
+class SkinBinding:
+    """Points bound to the triangles of a posed mesh (compute_bindings): hair roots, pinned cloth.
+
+    Fields:
+      mesh_points (vec3, per mesh vertex, m): posed mesh vertices
+      mesh_indices (int32, 3 per triangle): mesh triangles
+      triangle (int32, per binding): triangle of each binding
+      barycentric (vec3, per binding): weights of that triangle's corners
+      local (vec3, per binding, m): offset in that triangle's frame (compute_bindings)
+    """
+
+    mesh_points: wp.array(dtype=wp.vec3)
+    mesh_indices: wp.array(dtype=wp.int32)
+    triangle: wp.array(dtype=wp.int32)
+    barycentric: wp.array(dtype=wp.vec3)
+    local: wp.array(dtype=wp.vec3)
+
+
+# inlined: left to the compiler, the CPU's copies of the struct per particle made the fused hair substep
+# 3% slower (the real-time hair on two cores, benchmarks/turns.py)
+@wp.func(inline=True)
+def bound_position(binding: SkinBinding, b: int):
     """Where binding b puts its point on the posed mesh.
 
     The barycentric point carries the position, the offset in the triangle frame carries what lies
     off the surface (a hair root above the skin), so the bound point moves rigidly with the triangle.
 
     Inputs:
-      mesh_points (vec3, per mesh vertex, m): posed mesh vertices
-      mesh_indices (int32, 3 per triangle): mesh triangles
-      bind_triangle (int32, per binding): triangle of each binding
-      bind_barycentric (vec3, per binding): weights of that triangle's corners
-      bind_local (vec3, per binding, m): offset in that triangle's frame (compute_bindings)
+      binding (SkinBinding): the posed mesh and the bindings
       b (int, index): the binding
     Returns:
       vec3 (m): the bound point
     """
-    f = bind_triangle[b]
-    return face_point(mesh_points, mesh_indices, f, bind_barycentric[b]) + face_frame(mesh_points, mesh_indices, f) * bind_local[b]
+    f = binding.triangle[b]
+    return (face_point(binding.mesh_points, binding.mesh_indices, f, binding.barycentric[b])
+            + face_frame(binding.mesh_points, binding.mesh_indices, f) * binding.local[b])
 
 
 @wp.kernel
 def evaluate_bindings(
-    mesh_points: wp.array(dtype=wp.vec3),
-    mesh_indices: wp.array(dtype=wp.int32),
+    binding: SkinBinding,
     bind_particle: wp.array(dtype=wp.int32),
-    bind_triangle: wp.array(dtype=wp.int32),
-    bind_barycentric: wp.array(dtype=wp.vec3),
-    bind_local: wp.array(dtype=wp.vec3),
     positions: wp.array(dtype=wp.vec3),
 ):
     """Place each bound particle at its barycentric point plus its offset in the triangle frame.
 
     Launch: one thread per binding (dim = num_bindings).
     Inputs:
-      mesh_points (vec3, per mesh vertex, m): posed mesh vertices
-      mesh_indices (int32, 3 per triangle): mesh triangles
+      binding (SkinBinding): the posed mesh and the bindings
       bind_particle (int32, per binding): particle each binding places
-      bind_triangle (int32, per binding): triangle of each binding
-      bind_barycentric (vec3, per binding): weights of that triangle's corners
-      bind_local (vec3, per binding, m): offset in that triangle's frame
     Outputs:
       positions (vec3, per particle, m): only the bound particles' entries are written
     """
     b = wp.tid()
-    positions[bind_particle[b]] = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, b)
+    positions[bind_particle[b]] = bound_position(binding, b)
 
 
 @wp.kernel

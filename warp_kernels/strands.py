@@ -37,7 +37,7 @@ wp.set_module_options(MODULE_OPTIONS)
 from .collision import (COLLIDE_MESH, COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded,
                         collide_point_listed, collide_point_listed_mesh, list_deep_point, pseudo_normal_distance,
                         sphere_tree_nearest)
-from .skinning import bound_position, face_frame, triangle_frame
+from .skinning import SkinBinding, bound_position, face_frame, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
 TAUT = wp.constant(0.995)  # hold_in_comb: a root-to-comb chain this close to straight is laid straight
@@ -129,12 +129,8 @@ def predicted_position(
     forces: StrandForces,
     time: float,
     dt: float,
-    mesh_points: wp.array(dtype=wp.vec3),
-    mesh_indices: wp.array(dtype=wp.int32),
+    skin: SkinBinding,
     binding: int,
-    bind_triangle: wp.array(dtype=wp.int32),
-    bind_barycentric: wp.array(dtype=wp.vec3),
-    bind_local: wp.array(dtype=wp.vec3),
     target: wp.vec3,
     weight: float,
 ):
@@ -149,13 +145,9 @@ def predicted_position(
       forces (StrandForces): gravity, wind with its gusts, drag and damping
       time (float, s): the gusts' time
       dt (float, s): substep length
-      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep; read
-          only with a binding
-      mesh_indices (int32, 3 per collider triangle): collider triangles
+      skin (SkinBinding): the bindings on the collider posed for the end of the substep; read only
+          with a binding
       binding (int, index): the pinned particle's binding, -1 for none
-      bind_triangle (int32, per binding): collider triangle of each binding
-      bind_barycentric (vec3, per binding): weights of that triangle's corners
-      bind_local (vec3, per binding, m): offset in that triangle's frame
       target (vec3, m): the particle's groomed position carried by its root's frame in this pose
           (root origin + root frame * groomed offset); read only when weight > 0
       weight (float, fraction): share of the way to target moved; 0 for none
@@ -165,7 +157,7 @@ def predicted_position(
     """
     if inv_mass == 0.0:
         if binding >= 0:
-            p = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, binding)
+            p = bound_position(skin, binding)
     else:
         air = forces.wind
         if forces.turbulence > 0.0:
@@ -198,12 +190,8 @@ def predict_positions(
     time_offset: float,
     dt: float,
     bound: int,
-    mesh_points: wp.array(dtype=wp.vec3),
-    mesh_indices: wp.array(dtype=wp.int32),
+    skin: SkinBinding,
     particle_binding: wp.array(dtype=wp.int32),
-    bind_triangle: wp.array(dtype=wp.int32),
-    bind_barycentric: wp.array(dtype=wp.vec3),
-    bind_local: wp.array(dtype=wp.vec3),
     particle_strand: wp.array(dtype=wp.int32),
     root_origin: wp.array(dtype=wp.vec3),
     root_frame: wp.array(dtype=wp.mat33),
@@ -237,12 +225,8 @@ def predict_positions(
       time_offset (float, s): time of this substep relative to clock[0]
       dt (float, s): substep length
       bound (int, flag): non-zero when the strands are bound to the collider below
-      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
-      mesh_indices (int32, 3 per collider triangle): collider triangles
+      skin (SkinBinding): the bindings on the collider posed for the end of the substep
       particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
-      bind_triangle (int32, per binding): collider triangle of each binding
-      bind_barycentric (vec3, per binding): weights of that triangle's corners
-      bind_local (vec3, per binding, m): offset in that triangle's frame
       particle_strand (int32, per particle): strand of each particle
       root_origin (vec3, per strand, m): the root's bound position for this pose (root_frames)
       root_frame (mat33, per strand): the root triangle's frame for this pose (root_frames)
@@ -266,19 +250,14 @@ def predict_positions(
         if weight > 0.0:
             s = particle_strand[i]
             target = root_origin[s] + root_frame[s] * root_local[i]
-    p, vel = predicted_position(p, v[i], inv_mass[i], forces, clock[0] + time_offset, dt, mesh_points, mesh_indices, binding,
-                                bind_triangle, bind_barycentric, bind_local, target, weight)
+    p, vel = predicted_position(p, v[i], inv_mass[i], forces, clock[0] + time_offset, dt, skin, binding, target, weight)
     x_out[i] = p
     v_out[i] = vel
 
 
 @wp.kernel
 def root_frames(
-    mesh_points: wp.array(dtype=wp.vec3),
-    mesh_indices: wp.array(dtype=wp.int32),
-    bind_triangle: wp.array(dtype=wp.int32),
-    bind_barycentric: wp.array(dtype=wp.vec3),
-    bind_local: wp.array(dtype=wp.vec3),
+    skin: SkinBinding,
     root_binding: wp.array(dtype=wp.int32),
     root_origin: wp.array(dtype=wp.vec3),
     root_frame: wp.array(dtype=wp.mat33),
@@ -290,11 +269,7 @@ def root_frames(
 
     Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
-      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
-      mesh_indices (int32, 3 per collider triangle): collider triangles
-      bind_triangle (int32, per binding): collider triangle of each binding
-      bind_barycentric (vec3, per binding): weights of that triangle's corners
-      bind_local (vec3, per binding, m): offset in that triangle's frame
+      skin (SkinBinding): the bindings on the collider posed for the end of the substep
       root_binding (int32, per strand): binding of the strand's root particle
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     Outputs:
@@ -303,8 +278,8 @@ def root_frames(
     """
     s = wp.tid() + first
     rb = root_binding[s]
-    root_origin[s] = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
-    root_frame[s] = face_frame(mesh_points, mesh_indices, bind_triangle[rb])
+    root_origin[s] = bound_position(skin, rb)
+    root_frame[s] = face_frame(skin.mesh_points, skin.mesh_indices, skin.triangle[rb])
 
 
 @wp.func
@@ -1853,12 +1828,8 @@ def predict_strand(
     time: float,
     dt: float,
     bound: int,
-    mesh_points: wp.array(dtype=wp.vec3),
-    mesh_indices: wp.array(dtype=wp.int32),
+    skin: SkinBinding,
     particle_binding: wp.array(dtype=wp.int32),
-    bind_triangle: wp.array(dtype=wp.int32),
-    bind_barycentric: wp.array(dtype=wp.vec3),
-    bind_local: wp.array(dtype=wp.vec3),
     origin: wp.vec3,
     frame: wp.mat33,
     hold_stiffness: float,
@@ -1885,12 +1856,8 @@ def predict_strand(
       time (float, s): the gusts' time
       dt (float, s): substep length
       bound (int, flag): non-zero when the strand is bound to the collider
-      mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
-      mesh_indices (int32, 3 per collider triangle): collider triangles
+      skin (SkinBinding): the bindings on the collider posed for the end of the substep
       particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
-      bind_triangle (int32, per binding): collider triangle of each binding
-      bind_barycentric (vec3, per binding): weights of that triangle's corners
-      bind_local (vec3, per binding, m): offset in that triangle's frame
       origin (vec3, m): the root's position in this pose
       frame (mat33): the root triangle's frame in this pose
       hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
@@ -1922,8 +1889,7 @@ def predict_strand(
             weight = per.hold[slot] * hold_stiffness
             if weight > 0.0:
                 target = origin + frame * per.root_local[slot]
-        p, _vel = predicted_position(x[at], v[at], inv_mass, forces, time, dt, mesh_points, mesh_indices, binding,
-                                     bind_triangle, bind_barycentric, bind_local, target, weight)
+        p, _vel = predicted_position(x[at], v[at], inv_mass, forces, time, dt, skin, binding, target, weight)
         if k == 0:
             root = p
         if pull.stiffness > 0.0:
@@ -1948,12 +1914,8 @@ def _step_strands(paths, simplified=False):
         time_offset: float,
         dt: float,
         bound: int,
-        mesh_points: wp.array(dtype=wp.vec3),
-        mesh_indices: wp.array(dtype=wp.int32),
+        skin: SkinBinding,
         particle_binding: wp.array(dtype=wp.int32),
-        bind_triangle: wp.array(dtype=wp.int32),
-        bind_barycentric: wp.array(dtype=wp.vec3),
-        bind_local: wp.array(dtype=wp.vec3),
         root_binding: wp.array(dtype=wp.int32),
         hold_stiffness: float,
         pull: GuidePull,
@@ -2005,12 +1967,8 @@ def _step_strands(paths, simplified=False):
           dt (float, s): substep length
           bound (int, flag): non-zero when the strands are bound to the collider (the arrays below are
               read only then)
-          mesh_points (vec3, per collider vertex, m): collider posed for the end of the substep
-          mesh_indices (int32, 3 per collider triangle): collider triangles
+          skin (SkinBinding): the bindings on the collider posed for the end of the substep
           particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
-          bind_triangle (int32, per binding): collider triangle of each binding
-          bind_barycentric (vec3, per binding): weights of that triangle's corners
-          bind_local (vec3, per binding, m): offset in that triangle's frame
           root_binding (int32, per strand): binding of the strand's root particle (read when
               hold_stiffness > 0)
           hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
@@ -2059,8 +2017,8 @@ def _step_strands(paths, simplified=False):
         if bound != 0:
             if hold_stiffness > 0.0:
                 rb = root_binding[s]
-                origin = bound_position(mesh_points, mesh_indices, bind_triangle, bind_barycentric, bind_local, rb)
-                frame = face_frame(mesh_points, mesh_indices, bind_triangle[rb])
+                origin = bound_position(skin, rb)
+                frame = face_frame(skin.mesh_points, skin.mesh_indices, skin.triangle[rb])
         time = clock[0] + time_offset
         guide_frame, guide_next, guide_weight = int(0), int(0), float(0.0)
         if pull.stiffness > 0.0:
@@ -2068,13 +2026,13 @@ def _step_strands(paths, simplified=False):
         # every pass but the last ping-pongs between spare and shaped, ending in shaped
         inner = wp.max(passes - 1, 0)
         if inner % 2 == 0:
-            predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
-                           particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
-                           per, pull, s, guide_frame, guide_next, guide_weight, lane_state, shaped)
+            predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, skin, particle_binding, origin,
+                           frame, hold_stiffness, per, pull, s, guide_frame, guide_next, guide_weight, lane_state,
+                           shaped)
         else:
-            predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, mesh_points, mesh_indices,
-                           particle_binding, bind_triangle, bind_barycentric, bind_local, origin, frame, hold_stiffness,
-                           per, pull, s, guide_frame, guide_next, guide_weight, lane_state, spare)
+            predict_strand(x, v, start, base, stride, count, forces, time, dt, bound, skin, particle_binding, origin,
+                           frame, hold_stiffness, per, pull, s, guide_frame, guide_next, guide_weight, lane_state,
+                           spare)
         for n in range(inner):
             solve = int(0)
             if n == 0:
