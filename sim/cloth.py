@@ -251,6 +251,10 @@ class ClothModel:
         self.spring_k_compress = arr(k_compress.astype(np.float32), float)
         self.spring_damping = arr(np.full(len(pairs), p.spring_damping, np.float32), float)
         self.spring_limited = arr((self.spring_kind_np == STRETCH).astype(np.int32), wp.int32)
+        # the arrays above as the kernels take them
+        self.springs = kernels.SpringNetwork()
+        for name in kernels.SpringNetwork.vars:
+            setattr(self.springs, name, getattr(self, name))
         self.pinned = arr(self.pinned_np.astype(np.int32), wp.int32)
         self.bind_particle = None
 
@@ -387,9 +391,8 @@ class ClothSolver:
             last = k == 3
             xn, vn = (state_out.x, state_out.v) if last else buffers[k % 2]
             wp.launch(kernels.rk4_stage, n,
-                      [x0, v0, xs, vs, m.inv_mass, m.drag, m.adj_start, m.adj_other, m.adj_rest, m.adj_k_stretch,
-                       m.adj_k_compress, m.adj_damping,
-                       wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, weight, h_next, dt if last else 0.0,
+                      [x0, v0, xs, vs, m.inv_mass, m.drag, m.springs, wp.vec3(*p.gravity), wp.vec3(*p.wind),
+                       p.damping, weight, h_next, dt if last else 0.0,
                        self.acc_x, self.acc_v, xn, vn], device=dev)
             xs, vs = xn, vn
         if body is not None:
@@ -410,12 +413,12 @@ class ClothSolver:
         binding = [m.particle_binding, body.skin_binding(m)] if pins else [None, skinning.SkinBinding()]
         # with a mesh given, its queries answer every closest point: the step compiled without the boxes'
         wp.launch_tiled(kernels.STEP_IN_BLOCK[surface.mesh == 0], dim=[1], inputs=[
-            n, state_in.x, state_in.v, m.inv_mass, m.drag, m.adj_start, m.adj_other, m.adj_rest, m.adj_k_stretch,
-            m.adj_k_compress, m.adj_damping, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping, dt,
+            n, state_in.x, state_in.v, m.inv_mass, m.drag, m.springs, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping,
+            dt,
             self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
             int(body is not None and p.follow), state_in.follow_face, state_in.follow_barycentric,
             state_in.follow_local, p.follow_full_within, p.follow_none_beyond, int(pins), *binding, self.step_count,
-            passes, m.adj_spring, m.spring_i, m.spring_j, m.spring_rest, m.spring_limited, p.strain_limit,
+            passes, p.strain_limit,
             int(body is not None), surface, self.contact_params(), state_in.nearest, state_in.clearance, state_out.x,
             state_out.v, state_out.nearest, state_out.clearance, candidates, state_out.contact, self.fallbacks,
             state_out.follow_face, state_out.follow_barycentric, state_out.follow_local],
@@ -485,8 +488,8 @@ class ClothSolver:
             last = k == passes - 1
             dst = state.x if last else spare
             wp.launch(kernels.limit_strain, n,
-                      [src, m.inv_mass, m.adj_start, m.adj_spring, m.spring_i, m.spring_j, m.spring_rest,
-                       m.spring_limited, p.strain_limit, start, dt if last else 0.0, state.v, dst], device=dev)
+                      [src, m.inv_mass, m.springs, p.strain_limit, start, dt if last else 0.0, state.v, dst],
+                      device=dev)
             # the pass's input becomes the next one's spare, except state.x, which only the last writes
             src, spare = dst, (self.x_stage if src is state.x else src)
 

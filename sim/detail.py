@@ -440,8 +440,7 @@ class ClothDetail:
         p, dev, nv, n = self.params, self.device, self.surface.topology.num_vertices, self.tessellation
         nt = len(self.surface.topology.coarse_triangles)
         wp.launch(cloth_kernels.elastic_forces, cm.num_particles,
-                  [st.x, cm.adj_start, cm.adj_spring, cm.spring_i, cm.spring_j, cm.spring_rest,
-                   cm.spring_k_stretch, cm.spring_k_compress, self.coarse_force], device=dev)
+                  [st.x, cm.springs, self.coarse_force], device=dev)
         self.carry_forces(base, self.coarse_force, self.force)
         wp.launch(kernels.vertical_forces, nv, [base, self.nbr_start, self.nbr, self.force, self.vertical], device=dev)
         wp.launch(kernels.edge_length_deficit, self.num_edges, [self.face_grid, self.edge_face, self.edge_side, n, base,

@@ -82,10 +82,12 @@ def test_spring_force_kernel_matches_float64_reference():
     v = np.concatenate([vi, vj]).astype(np.float32)
     f = wp.zeros(n, dtype=wp.vec3)
     f32 = lambda a: wp.array(a.astype(np.float32), dtype=float)  # noqa: E731
-    wp.launch(kernels.spring_forces, n, [wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3),
-                                         wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32),
-                                         wp.array(np.arange(n, 2 * n, dtype=np.int32), dtype=wp.int32),
-                                         f32(rest), f32(ks), f32(kc), f32(c), f])
+    springs = kernels.SpringNetwork()
+    springs.spring_i = wp.array(np.arange(n, dtype=np.int32), dtype=wp.int32)
+    springs.spring_j = wp.array(np.arange(n, 2 * n, dtype=np.int32), dtype=wp.int32)
+    springs.spring_rest, springs.spring_k_stretch, springs.spring_k_compress, springs.spring_damping = (
+        f32(rest), f32(ks), f32(kc), f32(c))
+    wp.launch(kernels.spring_forces, n, [wp.array(x, dtype=wp.vec3), wp.array(v, dtype=wp.vec3), springs, f])
     xi, xj, vi, vj = (a.astype(np.float32).astype(np.float64) for a in (xi, xj, vi, vj))
     rest, ks, kc, c = (a.astype(np.float32).astype(np.float64) for a in (rest, ks, kc, c))
     d = xi - xj

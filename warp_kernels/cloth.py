@@ -66,19 +66,54 @@ def spring_force(xi: wp.vec3, xj: wp.vec3, vi: wp.vec3, vj: wp.vec3, rest: float
     return -(k * (length - rest) + damping * wp.dot(vi - vj, n)) * n
 
 
-@wp.func
+@wp.struct
+class SpringNetwork:
+    """A cloth's springs (sim.cloth.ClothModel.springs): per spring, and gathered per particle through a CSR
+    adjacency with a slot per spring end, whose constants are copied per slot so that the force pass
+    (particle_acceleration) reads them in order.
+
+    Fields:
+      adj_start (int32, num_particles + 1): CSR offsets of each particle's adjacency slots
+      adj_spring (int32, 2 per spring, one slot per end): spring index of each slot
+      adj_other (int32, 2 per spring): the other particle of the slot's spring
+      adj_rest (float, 2 per spring, m): rest length of the slot's spring
+      adj_k_stretch (float, 2 per spring, N/m): stiffness when stretched
+      adj_k_compress (float, 2 per spring, N/m): stiffness when compressed
+      adj_damping (float, 2 per spring, N s/m): dashpot coefficient
+      spring_i (int32, per spring): first particle of each spring
+      spring_j (int32, per spring): second particle of each spring
+      spring_rest (float, per spring, m): rest lengths
+      spring_k_stretch (float, per spring, N/m): stiffness when stretched
+      spring_k_compress (float, per spring, N/m): stiffness when compressed
+      spring_damping (float, per spring, N s/m): dashpot coefficients
+      spring_limited (int32, per spring): 1 where the strain limit caps the spring's stretch (limit_strain)
+    """
+
+    adj_start: wp.array(dtype=wp.int32)
+    adj_spring: wp.array(dtype=wp.int32)
+    adj_other: wp.array(dtype=wp.int32)
+    adj_rest: wp.array(dtype=float)
+    adj_k_stretch: wp.array(dtype=float)
+    adj_k_compress: wp.array(dtype=float)
+    adj_damping: wp.array(dtype=float)
+    spring_i: wp.array(dtype=wp.int32)
+    spring_j: wp.array(dtype=wp.int32)
+    spring_rest: wp.array(dtype=float)
+    spring_k_stretch: wp.array(dtype=float)
+    spring_k_compress: wp.array(dtype=float)
+    spring_damping: wp.array(dtype=float)
+    spring_limited: wp.array(dtype=wp.int32)
+
+
+# inlined: the struct passed per particle to a call would be copied on the CPU
+@wp.func(inline=True)
 def particle_acceleration(
     p: int,
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     drag: wp.array(dtype=float),
-    adj_start: wp.array(dtype=wp.int32),
-    adj_other: wp.array(dtype=wp.int32),
-    adj_rest: wp.array(dtype=float),
-    adj_k_stretch: wp.array(dtype=float),
-    adj_k_compress: wp.array(dtype=float),
-    adj_damping: wp.array(dtype=float),
+    springs: SpringNetwork,
     gravity: wp.vec3,
     wind: wp.vec3,
     damping: float,
@@ -96,12 +131,7 @@ def particle_acceleration(
       v (vec3, per particle, m/s): velocities
       inv_mass (float, per particle, 1/kg): inverse masses; 0 pins the particle
       drag (float, per particle, 1/s): air drag coefficient over mass (c/m)
-      adj_start (int32, num_particles + 1): CSR offsets of each particle's adjacency slots
-      adj_other (int32, 2 per spring, one slot per end): the other particle of the slot's spring
-      adj_rest (float, 2 per spring, m): rest length of the slot's spring
-      adj_k_stretch (float, 2 per spring, N/m): stiffness when stretched
-      adj_k_compress (float, 2 per spring, N/m): stiffness when compressed
-      adj_damping (float, 2 per spring, N s/m): dashpot coefficient
+      springs (SpringNetwork): the cloth's springs, per spring and per particle's slot (ClothModel.springs)
       gravity (vec3, m/s^2): acceleration of gravity, e.g. (0, -9.81, 0)
       wind (vec3, m/s): air velocity that the drag pulls toward
       damping (float, 1/s): global velocity damping
@@ -114,9 +144,13 @@ def particle_acceleration(
     xp = x[p]
     vp = v[p]
     f = wp.vec3(0.0)
-    for k in range(adj_start[p], adj_start[p + 1]):
-        q = adj_other[k]
-        f += spring_force(xp, x[q], vp, v[q], adj_rest[k], adj_k_stretch[k], adj_k_compress[k], adj_damping[k])
+    # the arrays read in the loop as locals: read through the struct, the CPU's build loads each one's data
+    # pointer again at every slot (the stores around may alias the struct as far as the compiler knows)
+    other, rest, k_stretch, k_compress, dashpot = (springs.adj_other, springs.adj_rest, springs.adj_k_stretch,
+                                                   springs.adj_k_compress, springs.adj_damping)
+    for k in range(springs.adj_start[p], springs.adj_start[p + 1]):
+        q = other[k]
+        f += spring_force(xp, x[q], vp, v[q], rest[k], k_stretch[k], k_compress[k], dashpot[k])
     return f * w + gravity + drag[p] * (wind - vp) - damping * vp
 
 
@@ -124,12 +158,7 @@ def particle_acceleration(
 def spring_forces(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
-    spring_i: wp.array(dtype=wp.int32),
-    spring_j: wp.array(dtype=wp.int32),
-    spring_rest: wp.array(dtype=float),
-    spring_k_stretch: wp.array(dtype=float),
-    spring_k_compress: wp.array(dtype=float),
-    spring_damping: wp.array(dtype=float),
+    springs: SpringNetwork,
     force: wp.array(dtype=wp.vec3),
 ):
     """Force of every spring on its first particle (the second gets the negative), for tools and tests.
@@ -141,20 +170,15 @@ def spring_forces(
     Inputs:
       x (vec3, per particle, m): positions
       v (vec3, per particle, m/s): velocities
-      spring_i (int32, per spring): first particle of each spring
-      spring_j (int32, per spring): second particle of each spring
-      spring_rest (float, per spring, m): rest lengths
-      spring_k_stretch (float, per spring, N/m): stiffness when stretched
-      spring_k_compress (float, per spring, N/m): stiffness when compressed
-      spring_damping (float, per spring, N s/m): dashpot coefficients
+      springs (SpringNetwork): the cloth's springs, per spring and per particle's slot (ClothModel.springs)
     Outputs:
       force (vec3, per spring, N): force on particle spring_i[s]
     """
     s = wp.tid()
-    i = spring_i[s]
-    j = spring_j[s]
-    force[s] = spring_force(x[i], x[j], v[i], v[j], spring_rest[s], spring_k_stretch[s], spring_k_compress[s],
-                            spring_damping[s])
+    i = springs.spring_i[s]
+    j = springs.spring_j[s]
+    force[s] = spring_force(x[i], x[j], v[i], v[j], springs.spring_rest[s], springs.spring_k_stretch[s],
+                            springs.spring_k_compress[s], springs.spring_damping[s])
 
 
 # inlined: a call per particle made the kernels that share it about 1% slower on the CPU
@@ -167,12 +191,7 @@ def _rk4_stage_at(
     vs: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     drag: wp.array(dtype=float),
-    adj_start: wp.array(dtype=wp.int32),
-    adj_other: wp.array(dtype=wp.int32),
-    adj_rest: wp.array(dtype=float),
-    adj_k_stretch: wp.array(dtype=float),
-    adj_k_compress: wp.array(dtype=float),
-    adj_damping: wp.array(dtype=float),
+    springs: SpringNetwork,
     gravity: wp.vec3,
     wind: wp.vec3,
     damping: float,
@@ -185,8 +204,7 @@ def _rk4_stage_at(
     v_next: wp.array(dtype=wp.vec3),
 ):
     """rk4_stage for particle p: its body, which step_in_block also runs."""
-    kv = particle_acceleration(p, xs, vs, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch, adj_k_compress,
-                               adj_damping, gravity, wind, damping)
+    kv = particle_acceleration(p, xs, vs, inv_mass, drag, springs, gravity, wind, damping)
     kx = vs[p]
     sum_x = acc_x[p] + weight * kx
     sum_v = acc_v[p] + weight * kv
@@ -210,12 +228,7 @@ def rk4_stage(
     vs: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
     drag: wp.array(dtype=float),
-    adj_start: wp.array(dtype=wp.int32),
-    adj_other: wp.array(dtype=wp.int32),
-    adj_rest: wp.array(dtype=float),
-    adj_k_stretch: wp.array(dtype=float),
-    adj_k_compress: wp.array(dtype=float),
-    adj_damping: wp.array(dtype=float),
+    springs: SpringNetwork,
     gravity: wp.vec3,
     wind: wp.vec3,
     damping: float,
@@ -244,12 +257,7 @@ def rk4_stage(
       vs (vec3, per particle, m/s): velocities of this stage (v0 for the first)
       inv_mass (float, per particle, 1/kg): inverse masses; 0 pins the particle
       drag (float, per particle, 1/s): air drag coefficient over mass (c/m)
-      adj_start (int32, num_particles + 1): CSR offsets of each particle's adjacency slots
-      adj_other (int32, 2 per spring, one slot per end): the other particle of the slot's spring
-      adj_rest (float, 2 per spring, m): rest length of the slot's spring
-      adj_k_stretch (float, 2 per spring, N/m): stiffness when stretched
-      adj_k_compress (float, 2 per spring, N/m): stiffness when compressed
-      adj_damping (float, 2 per spring, N s/m): dashpot coefficient
+      springs (SpringNetwork): the cloth's springs, per spring and per particle's slot (ClothModel.springs)
       gravity (vec3, m/s^2): acceleration of gravity, e.g. (0, -9.81, 0)
       wind (vec3, m/s): air velocity that the drag pulls toward
       damping (float, 1/s): global velocity damping
@@ -266,9 +274,8 @@ def rk4_stage(
           close_dt > 0; must not alias xs, which neighbours are still reading
       v_next (vec3, per particle, m/s): velocities likewise; must not alias vs
     """
-    _rk4_stage_at(wp.tid(), x0, v0, xs, vs, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch,
-                  adj_k_compress, adj_damping, gravity, wind, damping, weight, h_next, close_dt, acc_x, acc_v, x_next,
-                  v_next)
+    _rk4_stage_at(wp.tid(), x0, v0, xs, vs, inv_mass, drag, springs, gravity, wind, damping, weight, h_next, close_dt,
+                  acc_x, acc_v, x_next, v_next)
 
 
 # inlined: a call per particle made the kernels that share it about 1% slower on the CPU
@@ -277,12 +284,7 @@ def _limit_strain_at(
     p: int,
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
-    adj_start: wp.array(dtype=wp.int32),
-    adj_spring: wp.array(dtype=wp.int32),
-    spring_i: wp.array(dtype=wp.int32),
-    spring_j: wp.array(dtype=wp.int32),
-    spring_rest: wp.array(dtype=float),
-    spring_limited: wp.array(dtype=wp.int32),
+    springs: SpringNetwork,
     max_stretch: float,
     x_start: wp.array(dtype=wp.vec3),
     dt: float,
@@ -296,16 +298,16 @@ def _limit_strain_at(
         # the mean of the over-stretched limited springs' corrections, each split by inverse mass
         corr = wp.vec3(0.0)
         count = float(0.0)
-        for k in range(adj_start[p], adj_start[p + 1]):
-            s = adj_spring[k]
-            if spring_limited[s] == 0:
+        for k in range(springs.adj_start[p], springs.adj_start[p + 1]):
+            s = springs.adj_spring[k]
+            if springs.spring_limited[s] == 0:
                 continue
-            q = spring_j[s]
+            q = springs.spring_j[s]
             if q == p:
-                q = spring_i[s]
+                q = springs.spring_i[s]
             d = x[p] - x[q]
             length = wp.length(d)
-            limit = spring_rest[s] * (1.0 + max_stretch)
+            limit = springs.spring_rest[s] * (1.0 + max_stretch)
             if length > limit:
                 wq = inv_mass[q]
                 corr -= (w / (w + wq)) * (length - limit) * d / length
@@ -321,12 +323,7 @@ def _limit_strain_at(
 def limit_strain(
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
-    adj_start: wp.array(dtype=wp.int32),
-    adj_spring: wp.array(dtype=wp.int32),
-    spring_i: wp.array(dtype=wp.int32),
-    spring_j: wp.array(dtype=wp.int32),
-    spring_rest: wp.array(dtype=float),
-    spring_limited: wp.array(dtype=wp.int32),
+    springs: SpringNetwork,
     max_stretch: float,
     x_start: wp.array(dtype=wp.vec3),
     dt: float,
@@ -346,12 +343,7 @@ def limit_strain(
     Inputs:
       x (vec3, per particle, m): positions before this pass
       inv_mass (float, per particle, 1/kg): inverse masses; pinned particles (0) do not move
-      adj_start (int32, num_particles + 1): CSR offsets of each particle's incident springs
-      adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
-      spring_i (int32, per spring): first particle of each spring
-      spring_j (int32, per spring): second particle of each spring
-      spring_rest (float, per spring, m): rest lengths
-      spring_limited (int32, per spring): 1 where the spring is limited (the stretch springs), else 0
+      springs (SpringNetwork): the cloth's springs, per spring and per particle's slot (ClothModel.springs)
       max_stretch (float, fraction of rest length): allowed stretch, e.g. 0.03 for 3%
       x_start (vec3, per particle, m): positions before the first pass; read only when dt > 0, and
           may be x_out itself (each thread reads its particle's before writing it)
@@ -361,8 +353,7 @@ def limit_strain(
     Outputs:
       x_out (vec3, per particle, m): corrected positions; must not alias x
     """
-    _limit_strain_at(wp.tid(), x, inv_mass, adj_start, adj_spring, spring_i, spring_j, spring_rest, spring_limited,
-                     max_stretch, x_start, dt, v, x_out)
+    _limit_strain_at(wp.tid(), x, inv_mass, springs, max_stretch, x_start, dt, v, x_out)
 
 
 @wp.func
@@ -1364,12 +1355,7 @@ def _step_in_block(boxes):
         v0: wp.array(dtype=wp.vec3),
         inv_mass: wp.array(dtype=float),
         drag: wp.array(dtype=float),
-        adj_start: wp.array(dtype=wp.int32),
-        adj_other: wp.array(dtype=wp.int32),
-        adj_rest: wp.array(dtype=float),
-        adj_k_stretch: wp.array(dtype=float),
-        adj_k_compress: wp.array(dtype=float),
-        adj_damping: wp.array(dtype=float),
+        springs: SpringNetwork,
         gravity: wp.vec3,
         wind: wp.vec3,
         damping: float,
@@ -1391,11 +1377,6 @@ def _step_in_block(boxes):
         pinned: SkinBinding,
         step_count: wp.array(dtype=wp.int32),
         strain_passes: int,
-        adj_spring: wp.array(dtype=wp.int32),
-        spring_i: wp.array(dtype=wp.int32),
-        spring_j: wp.array(dtype=wp.int32),
-        spring_rest: wp.array(dtype=float),
-        spring_limited: wp.array(dtype=wp.int32),
         max_stretch: float,
         collide: int,
         body: BodySurface,
@@ -1434,12 +1415,7 @@ def _step_in_block(boxes):
           n (int): particles
           inv_mass (float, per particle, 1/kg): inverse masses; 0 pins the particle
           drag (float, per particle, 1/s): air drag coefficient over mass (c/m)
-          adj_start (int32, num_particles + 1): CSR offsets of each particle's adjacency slots
-          adj_other (int32, 2 per spring, one slot per end): the other particle of the slot's spring
-          adj_rest (float, 2 per spring, m): rest length of the slot's spring
-          adj_k_stretch (float, 2 per spring, N/m): stiffness when stretched
-          adj_k_compress (float, 2 per spring, N/m): stiffness when compressed
-          adj_damping (float, 2 per spring, N s/m): dashpot coefficient
+          springs (SpringNetwork): the cloth's springs, per spring and per particle's slot (ClothModel.springs)
           gravity (vec3, m/s^2): acceleration of gravity
           wind (vec3, m/s): air velocity that the drag pulls toward
           damping (float, 1/s): global velocity damping
@@ -1454,11 +1430,6 @@ def _step_in_block(boxes):
           particle_binding (int32, per particle): binding of each pinned particle, -1 when unbound
           pinned (SkinBinding): the pinned particles' bindings on the body posed for the end of the step
           strain_passes (int): Jacobi passes of the strain limit (limit_strain); 0 for none
-          adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
-          spring_i (int32, per spring): first particle of each spring
-          spring_j (int32, per spring): second particle of each spring
-          spring_rest (float, per spring, m): rest lengths
-          spring_limited (int32, per spring): 1 where the spring is limited
           max_stretch (float, fraction of rest length): allowed stretch of the limited springs
           collide (int, flag): non-zero collides with the body (body_collide); body and params are
               unread otherwise and may be empty
@@ -1502,30 +1473,27 @@ def _step_in_block(boxes):
         # RK4 stages ping-pong as ClothSolver.step's launches: x0 -> stage -> scratch -> stage -> x
         p = lane
         while p < n:
-            _rk4_stage_at(p, x0, v0, x0, v0, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch,
-                          adj_k_compress, adj_damping, gravity, wind, damping, 1.0, 0.5 * dt, 0.0, acc_x, acc_v,
-                          x_stage, v_stage)
-            p += stride
-        _block_sync()
-        p = lane
-        while p < n:
-            _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch,
-                          adj_k_compress, adj_damping, gravity, wind, damping, 2.0, 0.5 * dt, 0.0, acc_x, acc_v,
-                          x_scratch, v_scratch)
-            p += stride
-        _block_sync()
-        p = lane
-        while p < n:
-            _rk4_stage_at(p, x0, v0, x_scratch, v_scratch, inv_mass, drag, adj_start, adj_other, adj_rest,
-                          adj_k_stretch, adj_k_compress, adj_damping, gravity, wind, damping, 2.0, dt, 0.0, acc_x,
+            _rk4_stage_at(p, x0, v0, x0, v0, inv_mass, drag, springs, gravity, wind, damping, 1.0, 0.5 * dt, 0.0, acc_x,
                           acc_v, x_stage, v_stage)
+            p += stride
+        _block_sync()
+        p = lane
+        while p < n:
+            _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, springs, gravity, wind, damping, 2.0, 0.5 * dt,
+                          0.0, acc_x, acc_v, x_scratch, v_scratch)
+            p += stride
+        _block_sync()
+        p = lane
+        while p < n:
+            _rk4_stage_at(p, x0, v0, x_scratch, v_scratch, inv_mass, drag, springs, gravity, wind, damping, 2.0, dt,
+                          0.0, acc_x, acc_v, x_stage, v_stage)
             p += stride
         _block_sync()
         record = follow != 0 and strain_passes == 0
         p = lane
         while p < n:
-            _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, adj_start, adj_other, adj_rest, adj_k_stretch,
-                          adj_k_compress, adj_damping, gravity, wind, damping, 1.0, 0.0, dt, acc_x, acc_v, x, v)
+            _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, springs, gravity, wind, damping, 1.0, 0.0, dt,
+                          acc_x, acc_v, x, v)
             if collide != 0:  # its own particle only: no barrier after the stage
                 collide_body(p, x, x0, v, inv_mass, body, params, step_count, 1, dt, nearest_in, clearance_in,
                              int(record), nearest, clearance, candidates, contact, fallbacks, follow_face,
@@ -1555,8 +1523,7 @@ def _step_in_block(boxes):
                 dst = x
             p = lane
             while p < n:
-                _limit_strain_at(p, src, inv_mass, adj_start, adj_spring, spring_i, spring_j, spring_rest,
-                                 spring_limited, max_stretch, start, wp.where(last, dt, 0.0), v, dst)
+                _limit_strain_at(p, src, inv_mass, springs, max_stretch, start, wp.where(last, dt, 0.0), v, dst)
                 if last and collide != 0:  # contact has the last word, in the same pose
                     collide_body(p, x, x, v, inv_mass, body, params, step_count, 0, dt, nearest, clearance, follow,
                                  nearest, clearance, candidates, contact, fallbacks, follow_face, follow_barycentric,
@@ -1576,13 +1543,7 @@ step_in_block = STEP_IN_BLOCK[True]
 @wp.kernel
 def elastic_forces(
     x: wp.array(dtype=wp.vec3),
-    adj_start: wp.array(dtype=wp.int32),
-    adj_spring: wp.array(dtype=wp.int32),
-    spring_i: wp.array(dtype=wp.int32),
-    spring_j: wp.array(dtype=wp.int32),
-    spring_rest: wp.array(dtype=float),
-    spring_k_stretch: wp.array(dtype=float),
-    spring_k_compress: wp.array(dtype=float),
+    springs: SpringNetwork,
     force: wp.array(dtype=wp.vec3),
 ):
     """Net elastic spring force on each particle, without damping, gravity or drag.
@@ -1593,23 +1554,18 @@ def elastic_forces(
     Launch: one thread per particle (dim = num_particles).
     Inputs:
       x (vec3, per particle, m): positions
-      adj_start (int32, num_particles + 1): CSR offsets of each particle's incident springs
-      adj_spring (int32, 2 per spring, one slot per end): spring index of each adjacency slot
-      spring_i (int32, per spring): first particle of each spring
-      spring_j (int32, per spring): second particle of each spring
-      spring_rest (float, per spring, m): rest lengths
-      spring_k_stretch (float, per spring, N/m): stiffness when stretched
-      spring_k_compress (float, per spring, N/m): stiffness when compressed
+      springs (SpringNetwork): the cloth's springs, per spring and per particle's slot (ClothModel.springs)
     Outputs:
       force (vec3, per particle, N): sum of the spring forces on the particle
     """
     p = wp.tid()
     f = wp.vec3(0.0)
     still = wp.vec3(0.0)  # no dashpot: velocities do not enter
-    for k in range(adj_start[p], adj_start[p + 1]):
-        s = adj_spring[k]
-        q = spring_j[s]
+    for k in range(springs.adj_start[p], springs.adj_start[p + 1]):
+        s = springs.adj_spring[k]
+        q = springs.spring_j[s]
         if q == p:
-            q = spring_i[s]
-        f += spring_force(x[p], x[q], still, still, spring_rest[s], spring_k_stretch[s], spring_k_compress[s], 0.0)
+            q = springs.spring_i[s]
+        f += spring_force(x[p], x[q], still, still, springs.spring_rest[s], springs.spring_k_stretch[s],
+                          springs.spring_k_compress[s], 0.0)
     force[p] = f
