@@ -445,14 +445,14 @@ class HairSolver:
         length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths != strands.PATHS_ALL else (
             strands.FOLLOW_THE_LEADER)
         wp.launch(length_passes[paths], r.strands,
-                  [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, self._strand_contact(c, mode),
+                  [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, self.strand_contact(c, mode),
                    p.ftl_damping, dt, v, order, r.first_strand], device=dev)
         if lanes:
             wp.launch(strands.from_lanes, lane.strands * lane.longest,
                       [lane.x, lane.v, m.strand_start, order, lane.longest, state_out.x, state_out.v], device=dev)
         self._comb(state_in, state_out, c, mode, dt, offset, order, r)
 
-    def _strand_contact(self, c, mode):
+    def strand_contact(self, c, mode):
         """Collider c as the length pass meets it in collision mode `mode` (strands.StrandContact), with
         this solver's contact bounds."""
         p = self.params
@@ -593,7 +593,7 @@ class HairSolver:
                    m.particle_binding if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
                    self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
                    int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots,
-                   self._strand_contact(c, mode), p.ftl_damping, shaped, spare, x_out, v_out, order,
+                   self.strand_contact(c, mode), p.ftl_damping, shaped, spare, x_out, v_out, order,
                    1 - by_particle, 0 if lane is not None else r.first_strand], device=dev)
         if variant == SHAPE_MATCHING["full"] and passes > 0 and (part is None or part is self.parts[-1]):
             self._rotations_exact = False
