@@ -424,28 +424,26 @@ class HairSolver:
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
             self._rotations_exact = False  # once every part has solved its windows outright
         mode = COLLISION[p.collision] if collider is not None else 0
-        motion = self._motion
         x, x_prev, v, inv_mass, rest = state_out.x, state_in.x, state_out.v, m.inv_mass, m.rest_length
         if lanes:
             wp.launch(strands.to_lanes, lane.strands * lane.longest,
                       [state_out.x, state_in.x, m.strand_start, order, lane.x, lane.prev], device=dev)
             x, x_prev, v, inv_mass, rest = lane.x, lane.prev, lane.v, lane.inv_mass, lane.rest_length
+        contact = self.strand_contact(c, mode)
         if mode != 0 and self.contact_bounds and self.leaves_ahead and mode != COLLISION["mesh"]:
             dim, first = (lane.strands * lane.longest, 0) if lanes else (r.particles, r.first_particle)
             count = self._short_count[r]
             count.zero_()
             wp.launch(strands.find_short_lists, dim,
-                      [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, p.collision_margin,
-                       p.collision_search, LIST_SLACK, motion, self.reach, self.clearance, self.beyond, order, 0, first,
-                       count, self._short], device=dev)
+                      [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, contact, LIST_SLACK, order,
+                       0, first, count, self._short], device=dev)
             wp.launch(strands.list_leaves_ahead, dim,
-                      [x_prev, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start, order,
-                       0, self.clearance, self.near_leaves, self.beyond], device=dev)
+                      [x_prev, contact, count, self._short, first, m.strand_start, order, 0], device=dev)
         paths = self._length_paths(mode)
         length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths != strands.PATHS_ALL else (
             strands.FOLLOW_THE_LEADER)
         wp.launch(length_passes[paths], r.strands,
-                  [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, self.strand_contact(c, mode),
+                  [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, contact,
                    p.ftl_damping, dt, v, order, r.first_strand], device=dev)
         if lanes:
             wp.launch(strands.from_lanes, lane.strands * lane.longest,
@@ -554,7 +552,6 @@ class HairSolver:
         """step() as one launch per range (strands.step_strands), after the collider's motion."""
         m, p, dev = self.model, self.params, self.model.device
         mode = COLLISION[p.collision] if c is not None else 0
-        motion = self._motion
         bound = m.bind_particle is not None and c is not None
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
         if getattr(m, "root_local", None) is not self._slots_root_local:
@@ -570,18 +567,17 @@ class HairSolver:
             x_in, v_in, x_out, v_out = buffers[2 * at], buffers[2 * at + 1], buffers[2 - 2 * at], buffers[3 - 2 * at]
             self._frame[1] = 1 - at
             by_particle = 0
+        contact = self.strand_contact(c, mode)
         if mode == COLLISION["sphere_tree"] and self.contact_bounds and self.leaves_ahead:
             # the walks of the lists that would run short, queued from the start positions
             dim, first = (lane.strands * lane.longest, 0) if lane is not None else (r.particles, r.first_particle)
             count = self._short_count[r]
             count.zero_()
             wp.launch(strands.find_short_lists, dim,
-                      [x_in, x_in, m.particle_strand, m.strand_start, m.pinned_per_strand,
-                       p.collision_margin, p.collision_search, FUSED_LIST_SLACK, motion, self.reach, self.clearance,
-                       self.beyond, order, by_particle, first, count, self._short], device=dev)
+                      [x_in, x_in, m.particle_strand, m.strand_start, m.pinned_per_strand, contact, FUSED_LIST_SLACK,
+                       order, by_particle, first, count, self._short], device=dev)
             wp.launch(strands.list_leaves_ahead, dim,
-                      [x_in, c.shape, p.collision_search, motion, count, self._short, first, m.strand_start,
-                       order, by_particle, self.clearance, self.near_leaves, self.beyond], device=dev)
+                      [x_in, contact, count, self._short, first, m.strand_start, order, by_particle], device=dev)
         # the pass compiled with only the collision paths it takes and, where it allows, simplified shape
         # matching alone (strands.STEP_STRANDS): the same strands, fewer registers spilled on a GPU
         fit = (self._length_paths(mode), variant != SHAPE_MATCHING["full"])
@@ -593,7 +589,7 @@ class HairSolver:
                    m.particle_binding if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
                    self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
                    int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots,
-                   self.strand_contact(c, mode), p.ftl_damping, shaped, spare, x_out, v_out, order,
+                   contact, p.ftl_damping, shaped, spare, x_out, v_out, order,
                    1 - by_particle, 0 if lane is not None else r.first_strand], device=dev)
         if variant == SHAPE_MATCHING["full"] and passes > 0 and (part is None or part is self.parts[-1]):
             self._rotations_exact = False

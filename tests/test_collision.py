@@ -427,7 +427,7 @@ def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_s
         if kernel is not strand_kernels.list_leaves_ahead:
             return launch(kernel, dim, inputs, *args, **kwargs)
         launch(kernel, dim, inputs, *args, **kwargs)
-        motion = inputs[3]
+        motion = inputs[1].motion  # the strands.StrandContact
         x, x_prev, before = queued.pop()
         seen.append((x, x_prev, before, [solver.clearance.numpy()[order], solver.near_leaves.numpy()[order],
                                          solver.beyond.numpy()[order]], motion.rigid.numpy()[0].astype(np.float64),

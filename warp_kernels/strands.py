@@ -740,6 +740,47 @@ class ContactMotion:
     cells: wp.array(dtype=wp.int32)
 
 
+@wp.struct
+class StrandContact:
+    """The collider as the hair's length pass meets it (follow_the_leader, step_strands), and the contact
+    bounds each particle keeps of it between substeps.
+
+    Fields:
+      mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
+      shape (ColliderShape): the collider; an empty struct when mode is COLLIDE_NONE
+      margin (float, m): distance kept outside the collider
+      search (float, m): query radius
+      probe (float, m): query radius, at most search, for particles whose bound shows them no deeper
+          than probe inside; read only when use_bounds != 0
+      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
+      mesh_lists (int, flag): mesh queries through lists of the nearest faces kept with the contact
+          bounds (collide_point_listed_mesh); zero queries the BVH (mesh_push_out: a GPU's default, the
+          gathering of a list inside the serial loop keeps a warp waiting longer than the walk it saves)
+      motion (ContactMotion): how the collider moved near the strands (contact_motion, with the same
+          strand_reach and search); read only when use_bounds != 0
+      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
+      clearance (float, per particle or lane slot, m): lower bounds of each particle's distance from the
+          collider where it started the substep (NO_BOUND: unknown); written only when mode != COLLIDE_NONE
+      near_leaves (vec4i, per particle or lane slot): the leaf spheres (or, with mesh_lists, mesh faces)
+          listed for each particle, ascending, -1 for none; read and written only with use_bounds != 0
+      beyond (float, per particle or lane slot, m): lower bound of the distance to every unlisted leaf
+          or face; ignored where clearance is NO_BOUND; lists kept only
+    """
+
+    mode: int
+    shape: ColliderShape
+    margin: float
+    search: float
+    probe: float
+    use_bounds: int
+    mesh_lists: int
+    motion: ContactMotion
+    strand_reach: float
+    clearance: wp.array(dtype=float)
+    near_leaves: wp.array(dtype=wp.vec4i)
+    beyond: wp.array(dtype=float)
+
+
 @wp.func
 def motion_units(distance: float):
     """A displacement as ContactMotion counts it: in MOTION_UNIT, rounded up (two counts over the
@@ -1038,13 +1079,8 @@ def find_short_lists(
     particle_strand: wp.array(dtype=wp.int32),
     strand_start: wp.array(dtype=wp.int32),
     pinned_per_strand: int,
-    margin: float,
-    search: float,
+    contact: StrandContact,
     slack: float,
-    motion: ContactMotion,
-    strand_reach: float,
-    clearance: wp.array(dtype=float),
-    beyond: wp.array(dtype=float),
     order: LaneOrder,
     by_particle: int,
     first: int,
@@ -1072,13 +1108,9 @@ def find_short_lists(
       particle_strand (int32, per particle): the strand of each particle (particle order only)
       strand_start (int32, num_strands + 1): first particle of each strand, then the total count
       pinned_per_strand (int): leading particles of each strand that follow_the_leader leaves alone
-      margin (float, m): distance kept outside the collider
-      search (float, m): the collider query radius (the motion grid's half width is strand_reach + search)
+      contact (StrandContact): the collider's settings, its motion and the contact bounds (anchored at
+          x_prev) that follow_the_leader will read
       slack (float, m): how far short of margin a bound may be from running out and still be listed
-      motion (ContactMotion): how the collider moved near these strands (contact_motion)
-      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
-      clearance (float, per particle, m): contact bounds (NO_BOUND: unknown), anchored at x_prev
-      beyond (float, per particle, m): bound of the distance to every unlisted leaf
       order (LaneOrder): particle order, or the lane order (then first is 0)
       by_particle (int, flag): non-zero: x and x_prev are in particle order even in lane order (the
           state step_strands starts from)
@@ -1104,34 +1136,29 @@ def find_short_lists(
     if k < pinned_per_strand:
         return
     p = x[j]
-    if wp.length(p - motion.center[0]) > strand_reach:
+    if wp.length(p - contact.motion.center[0]) > contact.strand_reach:
         return  # follow_the_leader queries such a particle outright
-    _carried, lowered = bound_lowering(motion, x_prev[j], p, strand_reach + search)
+    _carried, lowered = bound_lowering(contact.motion, x_prev[j], p, contact.strand_reach + contact.search)
     bound = float(NO_BOUND)
     unlisted = float(NO_BOUND)
-    held = clearance[i]
+    held = contact.clearance[i]
     if held > 0.5 * NO_BOUND:
         bound = held - lowered
-        unlisted = beyond[i] - lowered
-    if bound <= margin + slack and unlisted <= margin + slack:
+        unlisted = contact.beyond[i] - lowered
+    if bound <= contact.margin + slack and unlisted <= contact.margin + slack:
         queue[first + wp.atomic_add(short_count, 0, 1)] = i
 
 
 @wp.kernel
 def list_leaves_ahead(
     x_prev: wp.array(dtype=wp.vec3),
-    shape: ColliderShape,
-    search: float,
-    motion: ContactMotion,
+    contact: StrandContact,
     short_count: wp.array(dtype=wp.int32),
     queue: wp.array(dtype=wp.int32),
     first: int,
     strand_start: wp.array(dtype=wp.int32),
     order: LaneOrder,
     by_particle: int,
-    clearance: wp.array(dtype=float),
-    near_leaves: wp.array(dtype=wp.vec4i),
-    beyond: wp.array(dtype=float),
 ):
     """List afresh the four sphere-tree leaves nearest each particle find_short_lists queued.
 
@@ -1144,9 +1171,6 @@ def list_leaves_ahead(
     right after it; threads past the queue's length return at once.
     Inputs:
       x_prev (vec3, per particle, m): positions at the start of the substep, where the bounds hold
-      shape (ColliderShape): the collider, posed for the end of the substep
-      search (float, m): cap of the tree's distances
-      motion (ContactMotion): how the collider moved near these strands (contact_motion)
       short_count (int32, 1 element): particles queued
       queue (int32, per particle of the range): the queued particles, from element first
       first (int, index): the range's first particle
@@ -1155,9 +1179,9 @@ def list_leaves_ahead(
       order (LaneOrder): the order of the queue and the bounds (find_short_lists')
       by_particle (int, flag): non-zero: x_prev is in particle order even in lane order
     In/out:
-      clearance (float, per particle, m): the queued particles' nearest leaf distance out
-      near_leaves (vec4i, per particle): the queued particles' four nearest leaves out
-      beyond (float, per particle, m): the queued particles' fifth nearest leaf distance out
+      contact (StrandContact): the collider posed for the end of the substep (the tree's distances
+          capped at its search) and its motion in; the queued particles' bounds out: their nearest leaf
+          distance (clearance), four nearest leaves (near_leaves) and fifth nearest leaf distance (beyond)
     """
     t = wp.tid()
     if t >= short_count[0]:
@@ -1167,11 +1191,11 @@ def list_leaves_ahead(
     if by_particle != 0 and order.lanes > 0:
         k = i / order.lanes
         j = strand_start[order.strand_of[i - k * order.lanes]] + k
-    carried = wp.transform_point(motion.rigid[0], x_prev[j])
-    leaves, nearest, fifth = sphere_tree_nearest(carried, shape, search)
-    near_leaves[i] = leaves
-    clearance[i] = nearest
-    beyond[i] = fifth
+    carried = wp.transform_point(contact.motion.rigid[0], x_prev[j])
+    leaves, nearest, fifth = sphere_tree_nearest(carried, contact.shape, contact.search)
+    contact.near_leaves[i] = leaves
+    contact.clearance[i] = nearest
+    contact.beyond[i] = fifth
 
 
 # The collision paths a length pass is compiled with: lists of the nearest sphere-tree leaves and mesh
@@ -1184,47 +1208,6 @@ PATHS_QUERIES = 0  # bounded queries only (collide_point_bounded): the sphere tr
 PATHS_SPHERE_LISTS = 1  # the sphere tree alone, its leaf lists and walks: for COLLIDE_SPHERE_TREE only
 PATHS_ALL = 2  # every path: both lists (collide_point_listed, collide_point_listed_mesh) and the queries
 PATH_NAMES = {PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: ""}
-
-
-@wp.struct
-class StrandContact:
-    """The collider as the hair's length pass meets it (follow_the_leader, step_strands), and the contact
-    bounds each particle keeps of it between substeps.
-
-    Fields:
-      mode (int): COLLIDE_NONE, COLLIDE_SPHERE_TREE or COLLIDE_MESH
-      shape (ColliderShape): the collider; an empty struct when mode is COLLIDE_NONE
-      margin (float, m): distance kept outside the collider
-      search (float, m): query radius
-      probe (float, m): query radius, at most search, for particles whose bound shows them no deeper
-          than probe inside; read only when use_bounds != 0
-      use_bounds (int, flag): non-zero skips the queries the contact bounds rule out
-      mesh_lists (int, flag): mesh queries through lists of the nearest faces kept with the contact
-          bounds (collide_point_listed_mesh); zero queries the BVH (mesh_push_out: a GPU's default, the
-          gathering of a list inside the serial loop keeps a warp waiting longer than the walk it saves)
-      motion (ContactMotion): how the collider moved near the strands (contact_motion, with the same
-          strand_reach and search); read only when use_bounds != 0
-      strand_reach (float, m): the strands' reach from the anchor given to contact_motion
-      clearance (float, per particle or lane slot, m): lower bounds of each particle's distance from the
-          collider where it started the substep (NO_BOUND: unknown); written only when mode != COLLIDE_NONE
-      near_leaves (vec4i, per particle or lane slot): the leaf spheres (or, with mesh_lists, mesh faces)
-          listed for each particle, ascending, -1 for none; read and written only with use_bounds != 0
-      beyond (float, per particle or lane slot, m): lower bound of the distance to every unlisted leaf
-          or face; ignored where clearance is NO_BOUND; lists kept only
-    """
-
-    mode: int
-    shape: ColliderShape
-    margin: float
-    search: float
-    probe: float
-    use_bounds: int
-    mesh_lists: int
-    motion: ContactMotion
-    strand_reach: float
-    clearance: wp.array(dtype=float)
-    near_leaves: wp.array(dtype=wp.vec4i)
-    beyond: wp.array(dtype=float)
 
 
 @wp.func
