@@ -150,16 +150,14 @@ class CombGrip:
         """(G,) current grip particle of each held strand (they slide toward the tips)."""
         return self.grip.numpy()[self.comb.strands]
 
-    def launch(self, model, state_out, state_in, blend, dt, collide_mode, shape, margin, search, clearance, order,
-               part):
+    def launch(self, model, state_out, state_in, blend, dt, contact, order, part):
         """Hold the gripped strands of `part` (a sim.hair_solver.StrandRange) after the length pass;
-        `clearance` is its contact bounds, which the moved particles lose, in its order (`order`, a
-        strands.LaneOrder)."""
+        `contact` (a strands.StrandContact) is the collider and the length pass's contact bounds, which the
+        moved particles lose, in its order (`order`, a strands.LaneOrder)."""
         wp.launch(strand_kernels.hold_in_comb, part.strands,
                   [state_out.x, state_in.x, model.strand_start, model.rest_length, model.pinned_per_strand,
-                   self.grip_from, self.grip_to, float(blend), SWEEPS, int(collide_mode), shape, float(margin),
-                   float(search), float(dt), self.grip, state_out.v, clearance, order, part.first_strand],
-                  device=model.device)
+                   self.grip_from, self.grip_to, float(blend), SWEEPS, contact, float(dt), self.grip, state_out.v,
+                   order, part.first_strand], device=model.device)
 
 
 # -- on a scene, from a timeline ---------------------------------------------------------------------

@@ -448,7 +448,7 @@ class HairSolver:
         if lanes:
             wp.launch(strands.from_lanes, lane.strands * lane.longest,
                       [lane.x, lane.v, m.strand_start, order, lane.longest, state_out.x, state_out.v], device=dev)
-        self._comb(state_in, state_out, c, mode, dt, offset, order, r)
+        self._comb(state_in, state_out, contact, dt, offset, order, r)
 
     def strand_contact(self, c, mode):
         """Collider c as the length pass meets it in collision mode `mode` (strands.StrandContact), with
@@ -512,12 +512,10 @@ class HairSolver:
                        c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
                        self.reach, p.collision_search, motion], device=dev)
 
-    def _comb(self, state_in, state_out, c, mode, dt, offset, order, r):
+    def _comb(self, state_in, state_out, contact, dt, offset, order, r):
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps
-            p = self.params
-            blend = min(max(offset / (dt * p.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
-            self.comb.launch(self.model, state_out, state_in, blend, dt, mode, c.shape if c else self._no_shape,
-                             p.collision_margin, p.collision_search, self.clearance, order, r)
+            blend = min(max(offset / (dt * self.params.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
+            self.comb.launch(self.model, state_out, state_in, blend, dt, contact, order, r)
 
     def begin_frame(self, state):
         """Start a frame of substeps that keeps the state in lane order (frame_lanes, with fused and
@@ -593,7 +591,7 @@ class HairSolver:
                    1 - by_particle, 0 if lane is not None else r.first_strand], device=dev)
         if variant == SHAPE_MATCHING["full"] and passes > 0 and (part is None or part is self.parts[-1]):
             self._rotations_exact = False
-        self._comb(state_in, state_out, c, mode, dt, offset, order, r)
+        self._comb(state_in, state_out, contact, dt, offset, order, r)
 
     def contact_motion(self):
         """What the last substep measured of the collider's motion near the strands, as NumPy:

@@ -12,7 +12,6 @@ from sim.comb import Comb, CombGrip, place_comb
 from sim.hair_solver import HairParams, HairSolver
 from sim.strands import StrandBuilder
 from warp_kernels import strands as strand_kernels
-from warp_kernels.collision import ColliderShape
 
 SPACING = 0.01
 
@@ -40,9 +39,11 @@ def _hold(x, grip, target, pinned=2):
     g = wp.array([grip], dtype=int)
     t = wp.array([target], dtype=wp.vec3)
     bounds = wp.full(len(x), 1.0, dtype=float)  # the length pass's contact bounds, lost where the comb moves hair
+    contact = strand_kernels.StrandContact()  # no collider
+    contact.clearance = bounds
     wp.launch(strand_kernels.hold_in_comb, 1, [xa, wp.array(x, dtype=wp.vec3), start, wp.array(rest, dtype=float),
-                                               pinned, t, t, 1.0, 16, 0, ColliderShape(), 0.0, 0.0, 0.01, g, v, bounds,
-                                               strand_kernels.LaneOrder(), 0])
+                                               pinned, t, t, 1.0, 16, contact, 0.01, g, v, strand_kernels.LaneOrder(),
+                                               0])
     if grip >= 0:  # a held strand: every particle after the root was moved
         np.testing.assert_array_equal(bounds.numpy(), np.r_[np.ones(pinned), np.full(len(x) - pinned, np.float32(strand_kernels.NO_BOUND))])
     else:

@@ -2094,14 +2094,10 @@ def hold_in_comb(
     grip_to: wp.array(dtype=wp.vec3),
     blend: float,
     iterations: int,
-    collide_mode: int,
-    shape: ColliderShape,
-    margin: float,
-    search: float,
+    contact: StrandContact,
     dt: float,
     grip: wp.array(dtype=int),
     v: wp.array(dtype=wp.vec3),
-    clearance: wp.array(dtype=float),
     order: LaneOrder,
     first: int,
 ):
@@ -2128,21 +2124,17 @@ def hold_in_comb(
       grip_to (vec3, per strand, m): and at its end (the comb is dragged during the frame)
       blend (float, fraction): how far through the frame this substep ends, (0, 1]
       iterations (int): backward/forward sweep pairs for the root-to-grip chain
-      collide_mode (int): 0 none, 1 sphere tree, 2 mesh: held hair is kept out of the head (the comb
-          cannot pull hair into it)
-      shape (ColliderShape): the collider
-      margin (float, m): clearance kept from the collider
-      search (float, m): mesh query radius
       dt (float, s): substep length
-      order (LaneOrder): the order of clearance, as follow_the_leader's
+      order (LaneOrder): the order of the contact bounds, as follow_the_leader's
       first (int, index): the range's first strand; thread t works on strand first + t (0 for all of them)
     In/out:
       x (vec3, per particle, m): positions after follow_the_leader in; held by the comb out
       grip (int, per strand): particle index within the strand held by the comb, -1 for none; moves
           toward the tip as the hair slides
       v (vec3, per particle, m/s): velocities, recomputed for the moved particles of gripped strands
-      clearance (float, per particle, m): follow_the_leader's contact bounds, set to NO_BOUND for
-          the particles this moves
+      contact (StrandContact): the collider (mode none, sphere tree or mesh: held hair is kept out of
+          the head, the comb cannot pull hair into it; queried within its search radius, kept its
+          margin out); the contact bounds (clearance) of the particles this moves set to NO_BOUND
     """
     s = wp.tid() + first
     g = grip[s]
@@ -2205,14 +2197,14 @@ def hold_in_comb(
             follow = 1  # a chain too short to take up its slack (one segment) or not yet converged
         if k > held or follow != 0:
             p = _toward(x[k - 1], p, rest_length[k])
-        if collide_mode != 0:
-            pushed = collide_point(p, collide_mode, shape, margin, search)
+        if contact.mode != 0:
+            pushed = collide_point(p, contact.mode, contact.shape, contact.margin, contact.search)
             if wp.length(pushed - p) > 0.0:
                 p = _toward(x[k - 1], pushed, rest_length[k])
                 follow = 1
         x[k] = p
         v[k] = (x[k] - x_prev[k]) / dt
-        clearance[lane_slot(start, lane, k - start, order.lanes)] = NO_BOUND
+        contact.clearance[lane_slot(start, lane, k - start, order.lanes)] = NO_BOUND
 
 
 @wp.kernel
