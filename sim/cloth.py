@@ -90,9 +90,7 @@ class ClothState:
     x: wp.array
     v: wp.array
     nearest: wp.array  # cached nearest body vertex per particle (-1: unknown)
-    follow_face: wp.array  # body face each particle was last recorded against (-1: none)
-    follow_barycentric: wp.array
-    follow_local: wp.array
+    follow: kernels.FollowRecord  # where each particle was last recorded against the body (face -1: none)
     contact: wp.array  # 1 where the particle touched the body in the last step
     clearance: kernels.BodyClearance  # lower bounds of the distance from the body, kept between queries
 
@@ -107,6 +105,15 @@ def unknown_clearance(count, device):
     clearance.at = wp.zeros(count, dtype=wp.vec3, device=device)
     clearance.body_motion = wp.full(count, UNKNOWN, dtype=float, device=device)
     return clearance
+
+
+def follow_record(count, device):
+    """A kernels.FollowRecord for `count` particles with nothing recorded yet."""
+    record = kernels.FollowRecord()
+    record.face = wp.full(count, -1, dtype=wp.int32, device=device)
+    record.barycentric = wp.zeros(count, dtype=wp.vec3, device=device)
+    record.local = wp.zeros(count, dtype=wp.vec3, device=device)
+    return record
 
 
 def body_candidates(count, capacity, device):
@@ -277,9 +284,7 @@ class ClothModel:
             x=wp.array(self.rest_positions_np, dtype=wp.vec3, device=d),
             v=wp.zeros(n, dtype=wp.vec3, device=d),
             nearest=wp.full(n, -1, dtype=wp.int32, device=d),
-            follow_face=wp.full(n, -1, dtype=wp.int32, device=d),
-            follow_barycentric=wp.zeros(n, dtype=wp.vec3, device=d),
-            follow_local=wp.zeros(n, dtype=wp.vec3, device=d),
+            follow=follow_record(n, d),
             contact=wp.zeros(n, dtype=wp.int32, device=d),
             clearance=unknown_clearance(n, d),
         )
@@ -376,8 +381,8 @@ class ClothSolver:
             return
         wp.launch(kernels.begin_step, n,
                   [state_in.x, state_in.v, m.inv_mass, body.points if body else None, body.indices if body else None,
-                   int(body is not None and p.follow), state_in.follow_face, state_in.follow_barycentric,
-                   state_in.follow_local, p.follow_full_within, p.follow_none_beyond, int(pins),
+                   int(body is not None and p.follow), state_in.follow, p.follow_full_within, p.follow_none_beyond,
+                   int(pins),
                    m.particle_binding if pins else None, body.skin_binding(m) if pins else skinning.SkinBinding(), dt,
                    self.step_count],
                   device=dev)
@@ -414,14 +419,13 @@ class ClothSolver:
         # with a mesh given, its queries answer every closest point: the step compiled without the boxes'
         wp.launch_tiled(kernels.STEP_IN_BLOCK[surface.mesh == 0], dim=[1], inputs=[
             n, state_in.x, state_in.v, m.inv_mass, m.drag, m.springs, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping,
-            dt,
-            self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
-            int(body is not None and p.follow), state_in.follow_face, state_in.follow_barycentric,
-            state_in.follow_local, p.follow_full_within, p.follow_none_beyond, int(pins), *binding, self.step_count,
+            dt, self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
+            int(body is not None and p.follow), state_in.follow, p.follow_full_within, p.follow_none_beyond, int(pins),
+            *binding, self.step_count,
             passes, p.strain_limit,
             int(body is not None), surface, self.contact_params(), state_in.nearest, state_in.clearance, state_out.x,
             state_out.v, state_out.nearest, state_out.clearance, candidates, state_out.contact, self.fallbacks,
-            state_out.follow_face, state_out.follow_barycentric, state_out.follow_local],
+            state_out.follow],
             block_dim=self.block_threads, device=m.device)
 
     def body_surface(self, body):
@@ -461,8 +465,7 @@ class ClothSolver:
         surface = self.body_surface(body)
         inputs = [state.x, state_prev.x, state.v, m.inv_mass, surface, self.contact_params(), self.step_count,
                   int(first), dt, state_prev.nearest, state_prev.clearance, int(record), state.nearest, state.clearance,
-                  candidates, state.contact, self.fallbacks, state.follow_face, state.follow_barycentric,
-                  state.follow_local]
+                  candidates, state.contact, self.fallbacks, state.follow]
         cuts = self._collide_cuts
         # with a mesh given, its queries answer every closest point: the pass compiled without the boxes'
         kernel = kernels.BODY_COLLIDE[surface.mesh == 0]

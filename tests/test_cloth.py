@@ -210,17 +210,17 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     wp.launch(kernels.body_collide, 50,
               [state.x, state.x, state.v, model.inv_mass, solver.body_surface(body), solver.contact_params(), steps,
                1, 1e-3, state.nearest, state.clearance, 1, state.nearest, state.clearance, solver.candidates,
-               state.contact, fallbacks, state.follow_face, state.follow_barycentric, state.follow_local, 0, 0])
+               state.contact, fallbacks, state.follow, 0, 0])
     np.testing.assert_array_equal(state.x.numpy(), before)
-    assert np.all(state.follow_face.numpy() >= 0)
+    assert np.all(state.follow.face.numpy() >= 0)
     angle = 0.8
     R = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
     M = np.eye(4)
     M[:3, :3], M[:3, 3] = R, [0.3, -0.1, 0.2]
     body.set_poses(M[None, None])
     body.apply_pose(0)
-    wp.launch(kernels.begin_step, 50, [state.x, state.v, model.inv_mass, body.points, body.indices, 1, state.follow_face,
-                                       state.follow_barycentric, state.follow_local, 0.02, 0.08, 0, None,
+    wp.launch(kernels.begin_step, 50, [state.x, state.v, model.inv_mass, body.points, body.indices, 1, state.follow,
+                                       0.02, 0.08, 0, None,
                                        skinning.SkinBinding(), 1e-3, steps])
     assert steps.numpy()[0] == 1
     np.testing.assert_allclose(state.x.numpy(), pts @ R.T + M[:3, 3], atol=1e-5)
@@ -393,8 +393,11 @@ def test_a_step_in_one_block_is_the_launches_bit_for_bit(passes, monkeypatch):
     for threads in (1, 64):
         got, got_queries, got_contacts = _cloth_on_the_sliding_ball(params, steps, block=True, threads=threads)
         assert (got_queries, got_contacts) == (queries, contacts)
-        for name in ("x", "v", "nearest", "contact", "follow_face", "follow_barycentric", "follow_local"):
+        for name in ("x", "v", "nearest", "contact"):
             np.testing.assert_array_equal(getattr(got, name).numpy(), getattr(want, name).numpy(), err_msg=name)
+        for name in ("face", "barycentric", "local"):
+            np.testing.assert_array_equal(getattr(got.follow, name).numpy(), getattr(want.follow, name).numpy(),
+                                          err_msg=name)
         np.testing.assert_array_equal(got.clearance.distance.numpy(), want.clearance.distance.numpy())
 
 

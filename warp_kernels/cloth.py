@@ -478,6 +478,23 @@ def closest_corner(p: wp.vec3, face: int, points: wp.array(dtype=wp.vec3), indic
     return nearest_corner(p, corners, points)
 
 
+@wp.struct
+class FollowRecord:
+    """Where each cloth particle was last recorded against the body (follow_record, by body_collide), so
+    that begin_step carries it with the face under the body's next pose (Oshita & Makinouchi §3.4).
+
+    Fields:
+      face (int32, per particle): body face recorded, -1 when none
+      barycentric (vec3, per particle): weights of the face's corners at the particle's closest point
+      local (vec3, per particle, m): the particle's offset from that point in the face's frame
+          (skinning.face_frame)
+    """
+
+    face: wp.array(dtype=wp.int32)
+    barycentric: wp.array(dtype=wp.vec3)
+    local: wp.array(dtype=wp.vec3)
+
+
 @wp.func
 def follow_record(
     xp: wp.vec3,
@@ -487,9 +504,7 @@ def follow_record(
     vf_start: wp.array(dtype=wp.int32),
     vf_face: wp.array(dtype=wp.int32),
     p: int,
-    face: wp.array(dtype=wp.int32),
-    barycentric: wp.array(dtype=wp.vec3),
-    local: wp.array(dtype=wp.vec3),
+    recorded: FollowRecord,
 ):
     """Record particle p relative to its nearest body face, for following the body next step.
 
@@ -506,13 +521,10 @@ def follow_record(
       vf_face (int32, 3 per body triangle): faces incident to each vertex
       p (int, index): the particle, the slot written in the outputs
     Outputs:
-      face (int32, per particle): body face recorded, -1 when none
-      barycentric (vec3, per particle): weights of the face's corners at the closest point; written only
-          when a face is found
-      local (vec3, per particle, m): offset of the particle from that point in the face frame; written
-          only when a face is found
+      recorded (FollowRecord): slot p's face (-1 when none); its weights and offset only when a face is
+          found
     """
-    face[p] = -1
+    recorded.face[p] = -1
     if vtx < 0:
         return
     best_d = float(1.0e30)
@@ -527,9 +539,10 @@ def follow_record(
             best_f = f
             best_w = w
     if best_f >= 0:
-        face[p] = best_f
-        barycentric[p] = best_w
-        local[p] = wp.transpose(face_frame(points, indices, best_f)) * (xp - face_point(points, indices, best_f, best_w))
+        recorded.face[p] = best_f
+        recorded.barycentric[p] = best_w
+        recorded.local[p] = wp.transpose(face_frame(points, indices, best_f)) * (
+            xp - face_point(points, indices, best_f, best_w))
 
 
 @wp.struct
@@ -887,9 +900,7 @@ def _body_collide_for(boxes):
         candidates: BodyCandidates,
         contact: wp.array(dtype=wp.int32),
         fallbacks: wp.array(dtype=wp.int32),
-        follow_face: wp.array(dtype=wp.int32),
-        follow_barycentric: wp.array(dtype=wp.vec3),
-        follow_local: wp.array(dtype=wp.vec3),
+        recorded: FollowRecord,
         part: int,
     ):
         """body_collide for particle p: its body, which step_in_block also runs."""
@@ -913,7 +924,7 @@ def _body_collide_for(boxes):
             clearance.at[p] = at
             clearance.body_motion[p] = body_motion
             if record != 0:
-                follow_face[p] = -1
+                recorded.face[p] = -1
             return
         vtx = nearest_in[p]
         trusted = vtx >= 0
@@ -1029,8 +1040,7 @@ def _body_collide_for(boxes):
             v[p] = vb + rel
             contact[p] = 1
         if record != 0:
-            follow_record(x[p], vtx, body.points, body.indices, body.vf_start, body.vf_face, p, follow_face,
-                          follow_barycentric, follow_local)
+            follow_record(x[p], vtx, body.points, body.indices, body.vf_start, body.vf_face, p, recorded)
 
     return _body_collide_at
 
@@ -1058,9 +1068,7 @@ def _body_collide(boxes):
         candidates: BodyCandidates,
         contact: wp.array(dtype=wp.int32),
         fallbacks: wp.array(dtype=wp.int32),
-        follow_face: wp.array(dtype=wp.int32),
-        follow_barycentric: wp.array(dtype=wp.vec3),
-        follow_local: wp.array(dtype=wp.vec3),
+        recorded: FollowRecord,
         first: int,
         part: int,
     ):
@@ -1117,13 +1125,10 @@ def _body_collide(boxes):
           nearest (int32, per particle): nearest body vertex after this pass; may be nearest_in itself
           clearance (BodyClearance): the clearances after this pass
           contact (int32, per particle): 1 where the particle was pushed out, else 0
-          follow_face (int32, per particle): body face recorded (-1 none); written only when record != 0
-          follow_barycentric (vec3, per particle): weights of the recorded face's corners; record != 0 only
-          follow_local (vec3, per particle, m): offset in the recorded face's frame; record != 0 only
+          recorded (FollowRecord): each particle's place on its nearest face; written only when record != 0
         """
         collide_body(wp.tid() + first, x, x_prev, v, inv_mass, body, params, step_count, first_pass, dt, nearest_in,
-                     clearance_in, record, nearest, clearance, candidates, contact, fallbacks, follow_face,
-                     follow_barycentric, follow_local, part)
+                     clearance_in, record, nearest, clearance, candidates, contact, fallbacks, recorded, part)
 
     return body_collide
 
@@ -1244,9 +1249,7 @@ def _begin_step_at(
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     follow: int,
-    face: wp.array(dtype=wp.int32),
-    barycentric: wp.array(dtype=wp.vec3),
-    local: wp.array(dtype=wp.vec3),
+    recorded: FollowRecord,
     full_within: float,
     none_beyond: float,
     pins: int,
@@ -1267,10 +1270,10 @@ def _begin_step_at(
         return
     if follow == 0:
         return
-    f = face[p]
+    f = recorded.face[p]
     if f < 0:
         return
-    offset = local[p]
+    offset = recorded.local[p]
     dist = wp.length(offset)
     w = float(1.0)
     if dist > full_within:
@@ -1278,7 +1281,7 @@ def _begin_step_at(
         w = 1.0 - t * t * (3.0 - 2.0 * t)
     if w <= 0.0:
         return
-    target = face_point(points, indices, f, barycentric[p]) + face_frame(points, indices, f) * offset
+    target = face_point(points, indices, f, recorded.barycentric[p]) + face_frame(points, indices, f) * offset
     x[p] = x[p] + w * (target - x[p])
 
 
@@ -1290,9 +1293,7 @@ def begin_step(
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     follow: int,
-    face: wp.array(dtype=wp.int32),
-    barycentric: wp.array(dtype=wp.vec3),
-    local: wp.array(dtype=wp.vec3),
+    recorded: FollowRecord,
     full_within: float,
     none_beyond: float,
     pins: int,
@@ -1319,9 +1320,7 @@ def begin_step(
           are both 0
       indices (int32, 3 per body triangle): body triangles; None when follow and pins are both 0
       follow (int, flag): non-zero moves free particles with the body
-      face (int32, per particle): body face recorded by body_collide (follow_face), -1 when none
-      barycentric (vec3, per particle): recorded weights of that face's corners (follow_barycentric)
-      local (vec3, per particle, m): recorded offset in that face's frame (follow_local)
+      recorded (FollowRecord): where body_collide recorded each particle on the body
       full_within (float, m): particles this close to the body follow it fully
       none_beyond (float, m): particles this far away do not follow; at least full_within
       pins (int, flag): non-zero drives the bound pinned particles
@@ -1334,8 +1333,8 @@ def begin_step(
       v (vec3, per particle, m/s): velocities; set for the bound pinned particles
       step_count (int32, 1 element): step counter, incremented by one
     """
-    _begin_step_at(wp.tid(), x, v, inv_mass, points, indices, follow, face, barycentric, local, full_within,
-                   none_beyond, pins, particle_binding, pinned, dt, step_count)
+    _begin_step_at(wp.tid(), x, v, inv_mass, points, indices, follow, recorded, full_within, none_beyond, pins,
+                   particle_binding, pinned, dt, step_count)
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -1367,9 +1366,7 @@ def _step_in_block(boxes):
         acc_x: wp.array(dtype=wp.vec3),
         acc_v: wp.array(dtype=wp.vec3),
         follow: int,
-        follow_face_in: wp.array(dtype=wp.int32),
-        follow_barycentric_in: wp.array(dtype=wp.vec3),
-        follow_local_in: wp.array(dtype=wp.vec3),
+        recorded_in: FollowRecord,
         full_within: float,
         none_beyond: float,
         pins: int,
@@ -1390,9 +1387,7 @@ def _step_in_block(boxes):
         candidates: BodyCandidates,
         contact: wp.array(dtype=wp.int32),
         fallbacks: wp.array(dtype=wp.int32),
-        follow_face: wp.array(dtype=wp.int32),
-        follow_barycentric: wp.array(dtype=wp.vec3),
-        follow_local: wp.array(dtype=wp.vec3),
+        recorded: FollowRecord,
     ):
         """A whole step of a small cloth in one launch: begin_step, the four rk4_stage, body_collide and
         the strain limit's passes with its second body_collide, as sim.cloth.ClothSolver.step launches
@@ -1421,9 +1416,7 @@ def _step_in_block(boxes):
           damping (float, 1/s): global velocity damping
           dt (float, s): step length
           follow (int, flag): non-zero moves free particles with the body (begin_step)
-          follow_face_in (int32, per particle): the follow record of the last step (begin_step's face)
-          follow_barycentric_in (vec3, per particle): its corner weights
-          follow_local_in (vec3, per particle, m): its offset in the face's frame
+          recorded_in (FollowRecord): the follow record of the last step (begin_step's)
           full_within (float, m): particles this close to the body follow it fully
           none_beyond (float, m): particles this far away do not follow
           pins (int, flag): non-zero drives the bound pinned particles (begin_step)
@@ -1457,16 +1450,14 @@ def _step_in_block(boxes):
           nearest (int32, per particle): nearest body vertex after the step
           clearance (BodyClearance): the clearances after the step
           contact (int32, per particle): 1 where the last body_collide pushed the particle out
-          follow_face (int32, per particle): body face recorded for the next step (follow != 0)
-          follow_barycentric (vec3, per particle): weights of the recorded face's corners
-          follow_local (vec3, per particle, m): offset in the recorded face's frame
+          recorded (FollowRecord): the follow record for the next step (follow != 0)
         """
         _block, lane = wp.tid()
         stride = wp.block_dim()
         p = lane
         while p < n:
-            _begin_step_at(p, x0, v0, inv_mass, body.points, body.indices, follow, follow_face_in,
-                           follow_barycentric_in, follow_local_in, full_within, none_beyond, pins, particle_binding,
+            _begin_step_at(p, x0, v0, inv_mass, body.points, body.indices, follow, recorded_in, full_within,
+                           none_beyond, pins, particle_binding,
                            pinned, dt, step_count)
             p += stride
         _block_sync()
@@ -1496,8 +1487,7 @@ def _step_in_block(boxes):
                           acc_x, acc_v, x, v)
             if collide != 0:  # its own particle only: no barrier after the stage
                 collide_body(p, x, x0, v, inv_mass, body, params, step_count, 1, dt, nearest_in, clearance_in,
-                             int(record), nearest, clearance, candidates, contact, fallbacks, follow_face,
-                             follow_barycentric, follow_local, 0)
+                             int(record), nearest, clearance, candidates, contact, fallbacks, recorded, 0)
             p += stride
         if strain_passes == 0:
             return
@@ -1526,8 +1516,7 @@ def _step_in_block(boxes):
                 _limit_strain_at(p, src, inv_mass, springs, max_stretch, start, wp.where(last, dt, 0.0), v, dst)
                 if last and collide != 0:  # contact has the last word, in the same pose
                     collide_body(p, x, x, v, inv_mass, body, params, step_count, 0, dt, nearest, clearance, follow,
-                                 nearest, clearance, candidates, contact, fallbacks, follow_face, follow_barycentric,
-                                 follow_local, 0)
+                                 nearest, clearance, candidates, contact, fallbacks, recorded, 0)
                 p += stride
             if not last:
                 _block_sync()
