@@ -255,10 +255,18 @@ class Collider:
 
     def _refit_pose(self):
         """The BVHs refitted to a pose just applied (not swept), and its motion measured."""
-        refit_bvh(self.mesh)
-        if self._boxes is not None:  # the triangle boxes follow a refitted pose where no sweep bounds them
-            self._boxes.fit(self.points, self.points, self.indices)
+        self.refit_mesh()
         self._measure_motion()
+
+    def refit_mesh(self):
+        """Refit the mesh's BVH (and the triangle boxes, where no sweep bounds them) to the current
+        points, without measuring the motion: for a solver that refits a pose left stale
+        (apply_pose(k, refit=False)) itself, beside work that does not read the BVH
+        (HairSolver.step)."""
+        refit_bvh(self.mesh)
+        if self._boxes is not None and self._swept is None:  # the boxes follow a refitted pose
+            self._boxes.fit(self.points, self.points, self.indices)
+        self.bvh_stale = False
 
     @property
     def triangle_bvh(self):

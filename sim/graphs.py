@@ -13,16 +13,16 @@ On a CUDA device a frame is one CUDA graph. On the CPU Warp records a frame's op
 replays them in a loop in C++, without Python's cost per launch; a mesh's BVH refit is the one
 operation it does not record there, so a CPU frame is split into recorded pieces with the refits
 between them (refit_bvh). Work on disjoint data can be split into branches (run_parallel) that a CPU
-frame replays on several threads at once, and whole frames of different solvers can be replayed
-side by side (run_side_by_side). With graphs disabled `run` calls the frame's function
-directly, so every path shares one definition of the frame.
+frame replays on several threads at once, a refit among them (beside launches that do not read that
+BVH), and whole frames of different solvers can be replayed side by side (run_side_by_side). With
+graphs disabled `run` calls the frame's function directly, so every path shares one definition of
+the frame.
 """
 
 import os
 import threading
 import warnings
 from concurrent.futures import ThreadPoolExecutor
-from functools import partial
 
 import warp as wp
 
@@ -42,10 +42,11 @@ def _replay_pool():
 def run_parallel(branches):
     """Run `branches`, functions that only launch work and touch disjoint data (the strand ranges
     of one hair substep), as one step of a frame. In a frame captured on the CPU each branch becomes
-    a graph of its own, and a replay runs them on up to one thread per core, each thread taking the
-    next branch left: Warp runs a CPU launch on one thread, and a replay releases Python's lock, so
-    the branches use the machine's cores, and more branches than cores even out their differences.
-    Anywhere else (CUDA, eager frames, graphs off) they run one after the other."""
+    a recorded frame of its own (its mesh refits between its pieces), and a replay runs them on up
+    to one thread per core, each thread taking the next branch left: Warp runs a CPU launch on one
+    thread, and a replay and a refit release Python's lock, so the branches use the machine's cores,
+    and more branches than cores even out their differences. Anywhere else (CUDA, eager frames,
+    graphs off) they run one after the other."""
     if len(branches) > 1 and _cpu_frame is not None:
         _cpu_frame.split_parallel(branches)
         return
@@ -130,9 +131,9 @@ class _SharedCores:
                 graph = offer[0].pop(0)
             self._replay(offer, graph)
 
-    def _replay(self, offer, graph):
+    def _replay(self, offer, branch):
         try:
-            wp.capture_launch(graph)
+            branch.launch()
         except Exception as error:  # raised by the thread that offered the step
             offer[2] = error
         finally:
@@ -157,10 +158,11 @@ class _SharedCores:
                     self.ready.acquire()
 
 
-def _replay_on_cores(graphs):
-    """Replay `graphs` (the branches of one parallel step) on at most one thread per core, each
-    thread taking the next branch not yet taken until none is left, and return when all are done."""
-    run_on_cores([partial(wp.capture_launch, graph) for graph in graphs])
+def _replay_on_cores(branches):
+    """Replay `branches` (the recorded _CpuFrames of one parallel step) on at most one thread per
+    core, each thread taking the next branch not yet taken until none is left, and return when all
+    are done."""
+    run_on_cores([branch.launch for branch in branches])
 
 
 def run_on_cores(calls):
@@ -246,9 +248,10 @@ class _CpuFrame:
     def __init__(self, device):
         self.device, self.steps = device, []
 
-    def capture(self, frame):
+    def capture(self, frame, load_modules=True):
         global _cpu_frame
-        wp.capture_begin(device=self.device)
+        outer = _cpu_frame  # a branch of a parallel step is captured inside its frame's capture
+        wp.capture_begin(device=self.device, force_module_load=load_modules)
         _cpu_frame = self
         try:
             frame()
@@ -256,7 +259,7 @@ class _CpuFrame:
             wp.capture_end(device=self.device)
             raise
         finally:
-            _cpu_frame = None
+            _cpu_frame = outer
         self.steps.append(wp.capture_end(device=self.device))
 
     def split(self, host_step):
@@ -265,20 +268,16 @@ class _CpuFrame:
         wp.capture_begin(device=self.device, force_module_load=False)
 
     def split_parallel(self, branches):
-        """Capture each branch as its own graph; launch() replays them at the same time."""
+        """Capture each branch as a frame of its own; launch() replays them at the same time."""
         self.steps.append(wp.capture_end(device=self.device))
-        graphs = []
-        for branch in branches:
-            wp.capture_begin(device=self.device, force_module_load=False)
-            try:
-                branch()
-            except Exception:
-                wp.capture_end(device=self.device)
-                wp.capture_begin(device=self.device, force_module_load=False)  # capture() ends this one
-                raise
-            graphs.append(wp.capture_end(device=self.device))
-        self.steps.append(tuple(graphs))
-        wp.capture_begin(device=self.device, force_module_load=False)
+        recorded = []
+        try:
+            for branch in branches:
+                recorded.append(_CpuFrame(self.device))
+                recorded[-1].capture(branch, load_modules=False)
+        finally:
+            wp.capture_begin(device=self.device, force_module_load=False)  # capture() ends this one
+        self.steps.append(tuple(recorded))
 
     def launch(self):
         kept = []

@@ -11,7 +11,7 @@ import warp as wp
 from warp_kernels import collision, skinning, strands
 
 from .errors import SimulationError
-from .graphs import cpu_cores
+from .graphs import cpu_cores, run_parallel
 
 SHAPE_MATCHING = {"simplified": 0, "full": 1, "none": -1}
 COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
@@ -498,10 +498,19 @@ class HairSolver:
 
     def _measure_motion(self, c):
         """Launch the measure of how collider c moved near the strands this substep
-        (strands.contact_motion) into self._motion, for the contact bounds of the length pass."""
+        (strands.contact_motion) into self._motion, for the contact bounds of the length pass; and
+        where the strands query c's mesh and its BVH was left stale (Collider.apply_pose(k,
+        refit=False)), its refit beside the measure, which does not read it: on the CPU's cores at
+        once (sim.graphs.run_parallel), where the refit alone would leave all but one idle."""
+        mode = COLLISION[self.params.collision] if c is not None else 0
+        if mode == COLLISION["mesh"] and c.bvh_stale:
+            run_parallel([c.refit_mesh, partial(self._launch_motion, c, mode)])
+        else:
+            self._launch_motion(c, mode)
+
+    def _launch_motion(self, c, mode):
         m, p, dev = self.model, self.params, self.model.device
         motion = self._motion
-        mode = COLLISION[p.collision] if c is not None else 0
         if mode != 0 and self.contact_bounds:
             adjacency = c.adjacency()
             wp.launch(strands.anchor_frame, strands.MOTION_GRID ** 3,

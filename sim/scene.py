@@ -560,7 +560,7 @@ class Scene:
                 mesh = self.config.solver.collision == "mesh"
                 tasks.append(self._solver_frame(("hair", held), self.collider, poses[self.config.solver.substeps],
                                                 frame_dt, animate, self._step_hair, self._hair_refs, bvh=mesh,
-                                                listed=None if mesh else self._hair_root_vertices(),
+                                                refit_in_step=mesh, listed=None if mesh else self._hair_root_vertices(),
                                                 around=(lambda: self.solver.begin_frame(self.state),
                                                         lambda: self.solver.end_frame(self.state))))
             if self.cloth_model is not None:
@@ -597,7 +597,7 @@ class Scene:
                 self.time = t0 + frame_dt
 
     def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True, end_pose=None,
-                      listed=None, sweep=False, refit_last=False, around=None):
+                      listed=None, sweep=False, refit_last=False, refit_in_step=False, around=None):
         """One solver's frame against `collider`, substep_poses = (times, poses) at the start and the
         end of each substep: the poses are uploaded now, and the returned (graph key, task) runs the
         frame. bvh=False: the solver makes no mesh queries, so the BVH is not refitted at all, and the
@@ -608,6 +608,8 @@ class Scene:
         over all the frame's poses (Collider.sweep); refit_last: the mesh BVH is refitted at the
         frame's last pose all the same (for the detail surface's lift after it). end_pose: another
         collider the frame poses once, at its end (the body beside a cloth's collision proxy).
+        refit_in_step (with bvh): the step refits the BVH itself, beside work that does not read it
+        (HairSolver.step), so the poses leave it stale.
         around: (begin, end) called before the first substep and after the last (the hair's
         HairSolver.begin_frame and end_frame)."""
         times, poses = substep_poses
@@ -629,7 +631,8 @@ class Scene:
                 around[0]()
             for k in range(1, substeps + 1):
                 last = k == substeps
-                collider.apply_pose(k, refit=bvh or (refit_last and last), listed=None if last else listed)
+                collider.apply_pose(k, refit=(bvh and not refit_in_step) or (refit_last and last),
+                                    listed=None if last else listed)
                 step(dt, float(times[k]))
             if around is not None:
                 around[1]()

@@ -161,7 +161,10 @@ def test_hair_in_strand_ranges_side_by_side_equals_one_range():
             scene.advance(1.0 / scene.config.timing.fps)
         steps = [step for graph, _ in scene.graphs._graphs.values() for step in graph.steps]
         branched = [step for step in steps if isinstance(step, tuple)]
-        assert (len(branched) > 0) == (parts > 1) and all(len(step) == parts for step in branched)
+        # each substep first refits the mesh beside the motion measure (two branches), then steps the ranges
+        ranges = [step for step in branched if len(step) != 2]
+        assert len(branched) - len(ranges) == 10  # 5 substeps in each of the two graphs
+        assert (len(ranges) > 0) == (parts > 1) and all(len(step) == parts for step in ranges)
         results.append(scene.state.x.numpy())
     np.testing.assert_array_equal(results[0], results[1])
     assert np.abs(results[0] - Scene(_hair_config("cpu", True)).state.x.numpy()).max() > 0.01  # the hair moved
@@ -296,27 +299,40 @@ def test_async_readback_on_the_cpu_copies_at_once():
     np.testing.assert_array_equal(wait()["x"], np.arange(12, dtype=np.float32).reshape(4, 3))
 
 
+def _count_refits(monkeypatch):
+    """A list that gains an item at every refit of a wp.Mesh's BVH."""
+    refits = []
+    refit = wp.Mesh.refit
+    monkeypatch.setattr(wp.Mesh, "refit", lambda mesh: (refits.append(1), refit(mesh))[1])
+    return refits
+
+
+def _three_hair_frames(collision, refit_every_pose, refits, head=None):
+    """A small groom's scene after three frames (eager, captured, replayed) of 4 substeps colliding by
+    `collision`, `refits` cleared after the scene is built; refit_every_pose: every pose refits the
+    BVH first, as Collider.apply_pose's default does."""
+    scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "frames": 3, "preroll": 0.0, "stats": False},
+                                   "head": head or {}, "hair": {"count": 60, "vertices": 10, "style": "wavy"},
+                                   "solver": {"substeps": 4, "collision": collision}}))
+    if refit_every_pose:
+        pose = scene.collider.apply_pose
+        scene.collider.apply_pose = lambda k, refit=True, listed=None, pose=pose: pose(k, True)
+    refits.clear()
+    for _ in range(3):
+        scene.advance(1.0 / scene.config.timing.fps)
+    return scene
+
+
 def test_sphere_tree_hair_frames_leave_the_bvh_to_the_first_query_and_step_the_same_hair(monkeypatch):
     """Hair colliding with the sphere tree makes no mesh queries, so its frames do not refit the
     collider's BVH, and poses before a frame's last move only the root triangles' vertices: the
     strands and the frame's final body are bit-identical to posing all of it and refitting every
     substep, and the first host query after the frames refits it once and answers as one built on
     the posed mesh."""
-    refits = []
-    refit = wp.Mesh.refit
-    monkeypatch.setattr(wp.Mesh, "refit", lambda mesh: (refits.append(1), refit(mesh))[1])
+    refits = _count_refits(monkeypatch)
     results = []
     for always in (False, True):
-        scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "frames": 3, "preroll": 0.0, "stats": False},
-                                       "head": {"sphere_leaves": 128},
-                                       "hair": {"count": 60, "vertices": 10, "style": "wavy"},
-                                       "solver": {"substeps": 4, "collision": "sphere_tree"}}))
-        if always:
-            pose = scene.collider.apply_pose
-            scene.collider.apply_pose = lambda k, refit=True, listed=None, pose=pose: pose(k, True)
-        refits.clear()
-        for _ in range(3):
-            scene.advance(1.0 / scene.config.timing.fps)
+        scene = _three_hair_frames("sphere_tree", always, refits, {"sphere_leaves": 128})
         results.append((scene.state.x.numpy(), scene.collider.points.numpy(), len(refits)))
         if not always:
             listed = scene._hair_root_vertices().numpy()
@@ -334,6 +350,35 @@ def test_sphere_tree_hair_frames_leave_the_bvh_to_the_first_query_and_step_the_s
     np.testing.assert_array_equal(lean, full)
     np.testing.assert_array_equal(lean_body, full_body)
     assert (lean_refits, full_refits) == (0, 15)  # none against one per pose (the frame's first and 4 substeps)
+
+
+def test_mesh_hair_refits_the_bvh_beside_its_motion_measure_and_steps_the_same_hair(monkeypatch):
+    """Hair colliding with the mesh refits the collider's BVH itself, in a branch beside the launches
+    that measure the body's motion (which do not read it), instead of the pose refitting it before:
+    on the CPU the refit then has a core of its own. The strands are bit-identical to posing and
+    refitting first, with one refit per substep all the same, and after the frames the BVH is fresh:
+    a host query answers without refitting it again."""
+    refits = _count_refits(monkeypatch)
+    results = []
+    for first in (False, True):
+        scene = _three_hair_frames("mesh", first, refits)
+        assert not scene.collider.bvh_stale
+        results.append((scene.state.x.numpy(), len(refits)))
+        if not first:
+            steps = [step for graph, _ in scene.graphs._graphs.values() for step in graph.steps]
+            beside = [step for step in steps if isinstance(step, tuple) and any(callable(s) for s in step[0].steps)]
+            assert len(beside) > 0 and len(beside) % 4 == 0  # each captured frame's 4 substeps
+            assert all(len(step) == 2 for step in beside)  # the refit, and the motion's launches
+            points = scene.collider.points.numpy()[::97] + 0.003
+            got, _, _ = scene.collider.closest_points(points)
+            assert len(refits) == 12
+            scene.collider.mesh.refit()
+            np.testing.assert_array_equal(got, scene.collider.closest_points(points)[0])
+    (beside_x, beside_refits), (first_x, first_refits) = results
+    np.testing.assert_array_equal(beside_x, first_x)
+    assert np.abs(first_x - Scene(scene.config).state.x.numpy()).max() > 0.01  # the hair moved
+    # one per substep; posing first also refits each frame's first pose
+    assert (beside_refits, first_refits) == (12, 15)
 
 
 def test_frames_side_by_side_share_the_cores_without_more_threads_than_cores(monkeypatch):
@@ -356,13 +401,16 @@ def test_frames_side_by_side_share_the_cores_without_more_threads_than_cores(mon
         if graph == "bad":
             raise RuntimeError("bad branch")
 
-    monkeypatch.setattr(graphs.wp, "capture_launch", replay)
+    class Branch:  # a recorded branch whose replay only notes itself
+        def __init__(self, name):
+            self.launch = lambda: replay(name)
+
     threads = {}
 
     def hair():
         threads["hair"] = threading.get_ident()
         for step in range(3):
-            graphs._sharing.run_branches(tuple(f"{step}.{k}" for k in range(4)))
+            graphs._sharing.run_branches(tuple(Branch(f"{step}.{k}") for k in range(4)))
 
     def cloth():
         threads["cloth"] = threading.get_ident()
@@ -376,7 +424,8 @@ def test_frames_side_by_side_share_the_cores_without_more_threads_than_cores(mon
 
     ran.clear()
     with pytest.raises(RuntimeError, match="bad branch"):
-        graphs.run_side_by_side([lambda: graphs._sharing.run_branches(("ok", "bad", "ok2")), lambda: None])
+        graphs.run_side_by_side([lambda: graphs._sharing.run_branches(tuple(map(Branch, ("ok", "bad", "ok2")))),
+                                 lambda: None])
     assert sorted(g for g, _ in ran) == ["bad", "ok", "ok2"]
 
 
