@@ -606,8 +606,10 @@ class Scene:
         vertices the solver reads; every pose but the frame's last, which the host may read, moves
         only those. sweep (with bvh=False): the solver queries the triangle boxes only, bounded once
         over all the frame's poses (Collider.sweep); refit_last: the mesh BVH is refitted at the
-        frame's last pose all the same (for the detail surface's lift after it). end_pose: another
-        collider the frame poses once, at its end (the body beside a cloth's collision proxy).
+        frame's last pose all the same (for the detail surface's lift after it), beside the last
+        substep. end_pose: another collider the frame poses once, beside the substeps (the body
+        beside a cloth's collision proxy). On the CPU, work beside other work runs on another core
+        (sim.graphs.run_parallel).
         refit_in_step (with bvh): the step refits the BVH itself, beside work that does not read it
         (HairSolver.step), so the poses leave it stale.
         around: (begin, end) called before the first substep and after the last (the hair's
@@ -619,6 +621,17 @@ class Scene:
         if end_pose is not None:
             self._pose(end_pose, poses[-1:])
 
+        def steps():
+            refit = bvh and not refit_in_step
+            for k in range(1, substeps + 1):
+                last = k == substeps
+                collider.apply_pose(k, refit=refit, listed=None if last else listed)
+                if last and refit_last and not refit:
+                    # a BVH for after the frame, refitted beside the last substep, which does not read it
+                    run_parallel([functools.partial(step, dt, float(times[k])), collider.refit_mesh])
+                else:
+                    step(dt, float(times[k]))
+
         def frame():
             # start from the frame's first pose: the collider was left at the last frame's end, or
             # at another time by a reset, and surface velocities (cloth friction) come from
@@ -629,15 +642,12 @@ class Scene:
             collider.reset_motion()
             if around is not None:
                 around[0]()
-            for k in range(1, substeps + 1):
-                last = k == substeps
-                collider.apply_pose(k, refit=(bvh and not refit_in_step) or (refit_last and last),
-                                    listed=None if last else listed)
-                step(dt, float(times[k]))
+            if end_pose is None:
+                steps()
+            else:  # the other collider, which the substeps never read, is posed beside them (another core)
+                run_parallel([steps, functools.partial(end_pose.apply_pose, 0)])
             if around is not None:
                 around[1]()
-            if end_pose is not None:
-                end_pose.apply_pose(0)
 
         def run():
             self.graphs.run(key, frame, refs)

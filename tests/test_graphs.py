@@ -97,6 +97,35 @@ def test_hair_and_cloth_frames_side_by_side_equal_one_after_the_other(monkeypatc
     assert np.abs(results[0][2][-1] - results[0][2][0]).max() > 1e-3  # the body walked the dress along
 
 
+@pytest.mark.parametrize("proxy", [0.0, 0.04])
+def test_a_cloth_frame_refits_the_detail_surfaces_body_beside_its_substeps(proxy):
+    """The detail surface's lift queries the body's mesh after the cloth's frame: a CPU frame refits
+    its BVH beside the last substep (the cloth collides with the body's swept triangle boxes, not the
+    mesh), or, colliding with a proxy, poses the body beside all the substeps, on another core. The
+    garment and its detail surface are the eager frames' bit for bit, and the body's BVH is fresh
+    after each frame."""
+    config = demo_scene({"scene": {"device": "cpu", "fps": 30.0, "frames": 1, "preroll": 0.0, "stats": False},
+                         "hair": {"enabled": False}, "face": {"enabled": False}, "cloth.detail": {"level": 2},
+                         "cloth.solver": {"body_proxy": proxy}})
+    results = []
+    for graphs in (True, False):
+        scene = Scene(config)
+        scene.graphs.enabled = graphs
+        for _ in range(4):
+            scene.advance(1.0 / 30.0, detail=True)
+            assert not scene.cloth_body.bvh_stale
+        results.append((scene.cloth_state.x.numpy(), scene.detail_surface()[0].numpy()))
+        if graphs:
+            cloth = [graph for key, (graph, _) in scene.graphs._graphs.items() if key[0] == "cloth"]
+            for graph in cloth:
+                beside = [step for step in graph.steps if isinstance(step, tuple)
+                          and any(callable(s) for branch in step for s in branch.steps)]
+                assert len(beside) == 1 and len(beside[0]) == 2  # the substeps (or the last), and the body's pose
+            assert cloth
+    for with_graphs, eager in zip(*results):
+        np.testing.assert_array_equal(with_graphs, eager)
+
+
 def test_one_motion_evaluation_poses_every_solver_at_its_own_substep_times(monkeypatch):
     """A frame evaluates the body's motion once, at the union of the solvers' substep times (hair
     at 4 and cloth at 12 substeps share the hair's 5 times); each solver gets the poses of its own
@@ -170,6 +199,17 @@ def test_hair_in_strand_ranges_side_by_side_equals_one_range():
     assert np.abs(results[0] - Scene(_hair_config("cpu", True)).state.x.numpy()).max() > 0.01  # the hair moved
 
 
+def _parallel_steps(recorded):
+    """The parallel steps (tuples of branches) of recorded CPU frames, those inside branches too."""
+    found = []
+    for frame in recorded:
+        for step in frame.steps:
+            if isinstance(step, tuple):
+                found.append(step)
+                found += _parallel_steps(step)
+    return found
+
+
 def test_cloth_in_particle_ranges_with_a_split_sweep_equals_one_range(monkeypatch):
     """A CPU frame of the cloth alone sweeps the body's poses in ranges of its points and collides
     its particles in ranges, each a branch replayed on threads at once: three ranges of each give the
@@ -186,11 +226,12 @@ def test_cloth_in_particle_ranges_with_a_split_sweep_equals_one_range(monkeypatc
         scene.cloth_detail.split_levels(1)  # the detail's lift in one range: only the cloth's branches are counted
         for _ in range(6):
             scene.advance(1.0 / scene.config.timing.fps, detail=True)
-        steps = [step for graph, _ in scene.graphs._graphs.values() for step in graph.steps]
-        branched = [len(step) for step in steps if isinstance(step, tuple)]
+        steps = _parallel_steps(graph for graph, _ in scene.graphs._graphs.values())
+        # besides the ranges, the last substep runs beside the refit of the body's BVH for the detail
+        branched = [len(step) for step in steps if not any(callable(s) for branch in step for s in branch.steps)]
         # per frame one sweep and a collision per cloth substep (with strain limiting, two)
         assert len(branched) >= scene.cloth_substeps + 1 if parts > 1 else branched == []
-        assert set(branched) <= {parts}
+        assert set(branched) <= {parts} and len(steps) > len(branched)
         results.append((scene.cloth_state.x.numpy(), scene.detail_surface()[0].numpy(),
                         scene.cloth_solver.fallback_count(), scene.cloth_collider.moved.numpy()))
     for one, split in zip(*results):
