@@ -503,23 +503,25 @@ class HairSolver:
         refit=False)), its refit beside the measure, which does not read it: on the CPU's cores at
         once (sim.graphs.run_parallel), where the refit alone would leave all but one idle."""
         mode = COLLISION[self.params.collision] if c is not None else 0
-        if mode == COLLISION["mesh"] and c.bvh_stale:
+        refit = mode == COLLISION["mesh"] and c.bvh_stale
+        measure = mode != 0 and self.contact_bounds
+        if refit and measure:
             run_parallel([c.refit_mesh, partial(self._launch_motion, c, mode)])
-        else:
+        elif refit:
+            c.refit_mesh()
+        elif measure:
             self._launch_motion(c, mode)
 
     def _launch_motion(self, c, mode):
         m, p, dev = self.model, self.params, self.model.device
-        motion = self._motion
-        if mode != 0 and self.contact_bounds:
-            adjacency = c.adjacency()
-            wp.launch(strands.anchor_frame, strands.MOTION_GRID ** 3,
-                      [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
-            mesh = mode == COLLISION["mesh"]  # the sphere tree's strands see only its leaves
-            wp.launch(strands.contact_motion, (len(c.points) if mesh else 0) + len(c.sphere_centers),
-                      [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
-                       c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
-                       self.reach, p.collision_search, motion], device=dev)
+        motion, adjacency = self._motion, c.adjacency()
+        wp.launch(strands.anchor_frame, strands.MOTION_GRID ** 3,
+                  [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
+        mesh = mode == COLLISION["mesh"]  # the sphere tree's strands see only its leaves
+        wp.launch(strands.contact_motion, (len(c.points) if mesh else 0) + len(c.sphere_centers),
+                  [c.prev_points, c.points, c.prev_sphere_centers, c.sphere_centers, c.sphere_radii,
+                   c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj, int(m.anchor_face >= 0), int(mesh),
+                   self.reach, p.collision_search, motion], device=dev)
 
     def _comb(self, state_in, state_out, contact, dt, offset, order, r):
         if self.comb is not None:  # held strands, blending the comb's move across the frame's substeps

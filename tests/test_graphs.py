@@ -348,13 +348,14 @@ def _count_refits(monkeypatch):
     return refits
 
 
-def _three_hair_frames(collision, refit_every_pose, refits, head=None):
+def _three_hair_frames(collision, refit_every_pose, refits, head=None, contact_bounds=True):
     """A small groom's scene after three frames (eager, captured, replayed) of 4 substeps colliding by
     `collision`, `refits` cleared after the scene is built; refit_every_pose: every pose refits the
     BVH first, as Collider.apply_pose's default does."""
     scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "frames": 3, "preroll": 0.0, "stats": False},
                                    "head": head or {}, "hair": {"count": 60, "vertices": 10, "style": "wavy"},
                                    "solver": {"substeps": 4, "collision": collision}}))
+    scene.solver.contact_bounds = contact_bounds
     if refit_every_pose:
         pose = scene.collider.apply_pose
         scene.collider.apply_pose = lambda k, refit=True, listed=None, pose=pose: pose(k, True)
@@ -396,30 +397,32 @@ def test_sphere_tree_hair_frames_leave_the_bvh_to_the_first_query_and_step_the_s
 def test_mesh_hair_refits_the_bvh_beside_its_motion_measure_and_steps_the_same_hair(monkeypatch):
     """Hair colliding with the mesh refits the collider's BVH itself, in a branch beside the launches
     that measure the body's motion (which do not read it), instead of the pose refitting it before:
-    on the CPU the refit then has a core of its own. The strands are bit-identical to posing and
-    refitting first, with one refit per substep all the same, and after the frames the BVH is fresh:
-    a host query answers without refitting it again."""
+    on the CPU the refit then has a core of its own; without contact bounds (no measure) it refits
+    alone. The strands are bit-identical to posing and refitting first, with one refit per substep
+    all the same, and after the frames the BVH is fresh: a host query answers without refitting it
+    again."""
     refits = _count_refits(monkeypatch)
     results = []
-    for first in (False, True):
-        scene = _three_hair_frames("mesh", first, refits)
+    for first, bounds in ((True, True), (False, True), (False, False)):
+        scene = _three_hair_frames("mesh", first, refits, contact_bounds=bounds)
         assert not scene.collider.bvh_stale
         results.append((scene.state.x.numpy(), len(refits)))
         if not first:
             steps = [step for graph, _ in scene.graphs._graphs.values() for step in graph.steps]
             beside = [step for step in steps if isinstance(step, tuple) and any(callable(s) for s in step[0].steps)]
-            assert len(beside) > 0 and len(beside) % 4 == 0  # each captured frame's 4 substeps
-            assert all(len(step) == 2 for step in beside)  # the refit, and the motion's launches
+            # each captured frame's 4 substeps: the refit, and the motion's launches
+            assert len(beside) % 4 == 0 and (len(beside) > 0) == bounds and all(len(step) == 2 for step in beside)
             points = scene.collider.points.numpy()[::97] + 0.003
             got, _, _ = scene.collider.closest_points(points)
             assert len(refits) == 12
             scene.collider.mesh.refit()
             np.testing.assert_array_equal(got, scene.collider.closest_points(points)[0])
-    (beside_x, beside_refits), (first_x, first_refits) = results
-    np.testing.assert_array_equal(beside_x, first_x)
+    (first_x, first_refits), *beside = results
+    for x, refit_count in beside:
+        np.testing.assert_array_equal(x, first_x)
+        assert refit_count == 12  # one per substep
+    assert first_refits == 15  # posing first also refits each frame's first pose
     assert np.abs(first_x - Scene(scene.config).state.x.numpy()).max() > 0.01  # the hair moved
-    # one per substep; posing first also refits each frame's first pose
-    assert (beside_refits, first_refits) == (12, 15)
 
 
 def test_frames_side_by_side_share_the_cores_without_more_threads_than_cores(monkeypatch):
