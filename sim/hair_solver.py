@@ -506,7 +506,8 @@ class HairSolver:
         refit = mode == COLLISION["mesh"] and c.bvh_stale
         measure = mode != 0 and self.contact_bounds
         if refit and measure:
-            run_parallel([c.refit_mesh, partial(self._launch_motion, c, mode)])
+            # the longer branch first: this thread takes it while a helper wakes for the other
+            run_parallel([partial(self._launch_motion, c, mode), c.refit_mesh])
         elif refit:
             c.refit_mesh()
         elif measure:

@@ -409,8 +409,8 @@ def test_mesh_hair_refits_the_bvh_beside_its_motion_measure_and_steps_the_same_h
         results.append((scene.state.x.numpy(), len(refits)))
         if not first:
             steps = [step for graph, _ in scene.graphs._graphs.values() for step in graph.steps]
-            beside = [step for step in steps if isinstance(step, tuple) and any(callable(s) for s in step[0].steps)]
-            # each captured frame's 4 substeps: the refit, and the motion's launches
+            beside = [step for step in steps if isinstance(step, tuple) and any(callable(s) for s in step[1].steps)]
+            # each captured frame's 4 substeps: the motion's launches, and the refit
             assert len(beside) % 4 == 0 and (len(beside) > 0) == bounds and all(len(step) == 2 for step in beside)
             points = scene.collider.points.numpy()[::97] + 0.003
             got, _, _ = scene.collider.closest_points(points)
@@ -423,6 +423,39 @@ def test_mesh_hair_refits_the_bvh_beside_its_motion_measure_and_steps_the_same_h
         assert refit_count == 12  # one per substep
     assert first_refits == 15  # posing first also refits each frame's first pose
     assert np.abs(first_x - Scene(scene.config).state.x.numpy()).max() > 0.01  # the hair moved
+
+
+def test_calls_on_the_cores_run_once_each_nest_and_raise_their_errors(monkeypatch):
+    """run_on_cores runs every call exactly once on at most one thread per core, returns only once
+    the calls other threads took are done, runs a step inside one of its calls (a branch's own
+    parallel step) without waiting on itself, and raises an error from any call."""
+    import time as clock
+
+    import sim.graphs as graphs
+
+    monkeypatch.setattr(graphs, "cpu_cores", lambda: 2)
+    ran, lock = [], threading.Lock()
+
+    def call(name, seconds=0.0, inner=()):
+        def run():
+            clock.sleep(seconds)
+            if inner:
+                graphs.run_on_cores([call(f"{name}.{k}", seconds) for k in inner])
+            with lock:
+                ran.append((name, threading.get_ident()))
+        return run
+
+    graphs.run_on_cores([call(k, 0.01) for k in "abcd"] + [call("e", 0.01, inner=(0, 1, 2))])
+    assert sorted(name for name, _ in ran) == ["a", "b", "c", "d", "e", "e.0", "e.1", "e.2"]
+    assert len({thread for _, thread in ran}) <= 3  # this thread and the pool's, two at a time
+
+    def fail():
+        clock.sleep(0.02)  # taken by whichever thread is free: a helper's error reaches the caller too
+        raise RuntimeError("bad call")
+
+    for order in ([fail, call("x")], [call("y", 0.01), fail]):
+        with pytest.raises(RuntimeError, match="bad call"):
+            graphs.run_on_cores(order)
 
 
 def test_frames_side_by_side_share_the_cores_without_more_threads_than_cores(monkeypatch):
