@@ -10,12 +10,15 @@ median and fastest frame and the median and quartiles of the pair ratios.
 
 Each frame starts after the other side's, with this side's cores idle meanwhile: that is the case
 of a paced real-time loop, not of frames run back to back. Work split among the cores (graphs
-run_parallel) pays a hand-over to a woken core per split step, so a change that adds split steps can
-show nothing here and gain in benchmarks/realtime.py (BENCHMARKS.md, session 31): time both.
+run_parallel) pays a hand-over to a woken core per split step (about 50 us on a two-core VM), so a
+change that adds split steps can show nothing here and gain in benchmarks/realtime.py (BENCHMARKS.md,
+sessions 31 and 37). `--run N` times runs of N frames back to back instead, each side's run in its
+turn, the ratio then taken per pair of runs: frames back to back with the drift still cancelled.
 
     python benchmarks/turns.py BEFORE_DIR AFTER_DIR --scene examples/scenes/walk_dress.toml
     python benchmarks/turns.py BEFORE_DIR AFTER_DIR --hair full+mesh --strands 1000 --frames 40
     python benchmarks/turns.py BEFORE_DIR AFTER_DIR --realtime simplified1+spheres "proxy 2.5 cm"
+    python benchmarks/turns.py BEFORE_DIR AFTER_DIR --realtime none "proxy 2.5 cm" --frames 300 --run 10
 
 A checkout to compare with is made by `git worktree add /tmp/before <commit>`; each side runs with
 its own directory as the working directory and on PYTHONPATH, with this interpreter.
@@ -78,16 +81,17 @@ def build(args):
 
 
 def worker(args):
-    """One side: build the case, then time a frame each time the token arrives, and pass it on."""
+    """One side: build the case, then time a run of frames each time the token arrives, and pass it on."""
     step, synchronize = build(args)
     synchronize()
     mine, theirs = os.fdopen(args.read_fd, "rb", buffering=0), os.fdopen(args.write_fd, "wb", buffering=0)
-    spans = []  # each frame's start and end on the system's monotonic clock, which both sides share
-    for _ in range(args.frames):
+    spans = []  # each run's start and end on the system's monotonic clock, which both sides share
+    for _ in range(turns(args)):
         if not mine.read(1):
             break
         start = time.perf_counter()
-        step()
+        for _ in range(args.run):
+            step()
         synchronize()
         spans.append((start, time.perf_counter()))
         try:
@@ -101,10 +105,16 @@ def side(checkout, read_fd, write_fd, args):
     case = (["--scene", args.scene] if args.scene else ["--realtime", *args.realtime] if args.realtime
             else ["--hair", args.hair, "--strands", str(args.strands)])
     command = [sys.executable, os.path.abspath(__file__), "--worker", str(read_fd), str(write_fd), *case,
-               "--frames", str(args.frames), "--warmup", str(args.warmup), "--substeps", str(args.substeps)]
+               "--frames", str(args.frames), "--run", str(args.run), "--warmup", str(args.warmup),
+               "--substeps", str(args.substeps)]
     env = dict(os.environ, PYTHONPATH=os.path.abspath(checkout))
     return subprocess.Popen(command, cwd=checkout, env=env, stdout=subprocess.PIPE, text=True,
                             pass_fds=(read_fd, write_fd))
+
+
+def turns(args):
+    """How many runs of args.run frames each side times."""
+    return max(1, args.frames // args.run)
 
 
 def spans_of(output, name):
@@ -115,8 +125,8 @@ def spans_of(output, name):
 
 
 def race(checkout_a, checkout_b, args):
-    """Time args' case in both checkouts in turns: ((frames, 2) start and end times [s] of A's frames,
-    the same of B's), A's k-th frame run before B's k-th, B's before A's next."""
+    """Time args' case in both checkouts in turns: ((runs, 2) start and end times [s] of A's runs of
+    args.run frames, the same of B's), A's k-th run before B's k-th, B's before A's next."""
     to_a, from_b = os.pipe()  # B's tokens go to A
     to_b, from_a = os.pipe()
     a = side(checkout_a, to_a, from_a, args)
@@ -141,6 +151,8 @@ def case_arguments(parser):
     parser.add_argument("--strands", type=int, default=1000)
     parser.add_argument("--substeps", type=int, default=10)
     parser.add_argument("--frames", type=int, default=30, help="timed frames per side")
+    parser.add_argument("--run", type=int, default=1,
+                        help="frames back to back in each turn (1: every frame starts with the cores idle)")
     parser.add_argument("--warmup", type=int, default=3, help="frames run before timing")
     return parser
 
@@ -163,15 +175,17 @@ def main():
     if len(args.checkouts) != 2:
         parser.error("give two checkouts, A and B")
     spans_a, spans_b = race(*args.checkouts, args)
-    ta, tb = 1e3 * np.diff(spans_a, axis=1)[:, 0], 1e3 * np.diff(spans_b, axis=1)[:, 0]
+    # ms per frame of each run
+    ta, tb = (1e3 / args.run * np.diff(spans, axis=1)[:, 0] for spans in (spans_a, spans_b))
     pairs = min(len(ta), len(tb))
     ratio = tb[:pairs] / ta[:pairs]
     case = (args.scene or (f"real time: hair {args.realtime[0]}, dress {args.realtime[1]}" if args.realtime else
                            f"hair {args.hair}, {args.strands} strands, {args.substeps} substeps"))
     print("| side | checkout | frames | median ms/frame | fastest ms/frame |\n| --- | --- | --- | --- | --- |")
     for name, checkout, t in (("A", args.checkouts[0], ta), ("B", args.checkouts[1], tb)):
-        print(f"| {name} | {checkout} | {len(t)} | {np.median(t):.1f} | {t.min():.1f} |")
-    print(f"\n{case}: B/A per pair of frames, median {np.median(ratio):.3f} "
+        print(f"| {name} | {checkout} | {len(t) * args.run} | {np.median(t):.1f} | {t.min():.1f} |")
+    unit = "frames" if args.run == 1 else f"runs of {args.run} frames back to back"
+    print(f"\n{case}: B/A per pair of {unit}, median {np.median(ratio):.3f} "
           f"(quartiles {np.percentile(ratio, 25):.3f} to {np.percentile(ratio, 75):.3f}, {pairs} pairs)")
 
 

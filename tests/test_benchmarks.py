@@ -166,16 +166,18 @@ def test_each_frame_is_timed_after_the_warm_up_frames():
     assert max(times) == times[1] and times[1] >= 20.0 and sum(t > 20.0 for t in times) == 1
 
 
-def test_two_checkouts_take_turns_frame_by_frame():
+@pytest.mark.parametrize("run", [1, 2])
+def test_two_checkouts_take_turns_frame_by_frame(run):
     """benchmarks/turns.py: the two sides build the same case in processes of their own and step in
-    alternation, never at once: A's k-th frame ends before B's k-th starts, and B's before A's next."""
+    alternation, never at once: A's k-th frame (or run of frames back to back) ends before B's k-th
+    starts, and B's before A's next."""
     import turns
 
     root = str(BENCH.parent)
     args = turns.arguments().parse_args([root, root, "--hair", "simplified1", "--strands", "20", "--frames", "4",
-                                         "--warmup", "1", "--substeps", "2"])
+                                         "--run", str(run), "--warmup", "1", "--substeps", "2"])
     spans_a, spans_b = turns.race(root, root, args)
-    assert spans_a.shape == spans_b.shape == (4, 2)
+    assert spans_a.shape == spans_b.shape == (4 // run, 2)
     order = np.stack([spans_a, spans_b], axis=1).reshape(-1)  # A0 start, A0 end, B0 start, B0 end, A1 ...
     assert np.all(np.diff(order) > 0.0)
     assert np.all(spans_a[:, 1] > spans_a[:, 0])
