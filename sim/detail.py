@@ -250,7 +250,8 @@ class DetailParams:
 
     level: int = 6  # tessellation level: n x n detail triangles per coarse triangle (the paper: 6); 0 = none
     margin: float = 0.003  # m, detail vertices kept this far outside the body
-    # tests look at least band beyond the margin: a sample found no nearer spares its finer neighbours within band of it
+    # tests of samples with finer ones look at least band beyond the margin: one found no nearer spares
+    # its finer neighbours within band of it
     band: float = 0.01  # m (§4.2)
     # eq. 3 carries dh from the last frame; carrying all of it would keep a lift forever after the
     # contact ends (only wrinkles and the dh >= 0 clamp ever lower it), so a share is carried
@@ -402,7 +403,7 @@ class ClothDetail:
         if body is not None:
             adj, walk = body.adjacency(), cloth_model.params
             for parts, spread in zip(self.level_parts, self.level_spread, strict=True):
-                reach = p.margin + max(p.band, 1.25 * spread)
+                reach = self._reach(spread)
                 run_parallel([partial(wp.launch, kernels.lift_out_of_body, len(part),
                                       [base, pn_normals, part, self.coarser, body.mesh.id,
                                        body.points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face,
@@ -416,6 +417,13 @@ class ClothDetail:
                   [self.positions, self.detail_tris, self.vf_start, self.vf_face, pn_normals, self.height, p.h_normal,
                    self.normals], device=dev)
         return self.positions, self.normals
+
+    def _reach(self, spread):
+        """The smallest query radius of a level's lift tests (kernels.lift_out_of_body): far enough
+        that a sample found no nearer spares its finer samples (spread: the farthest of them, 0 for
+        none), at least band beyond the margin; on the finest level the margin alone decides."""
+        p = self.params
+        return p.margin + (max(p.band, 1.25 * spread) if spread > 0.0 else 0.0)
 
     def _outward_side(self, base, normals, body):
         """Which way the PN normals face relative to the body: the garment may be wound either way."""

@@ -348,9 +348,10 @@ def lift_out_of_body(
     (no start, a jump farther than teleport since the last test, a walk out of steps, a concave
     vertex, a vertex farther than trust_distance) a BVH closest-point query decides instead and
     restarts the walk. Its radius is
-    reach, widened to the parent's clearance plus the offset, the most a sample can lie inside, so
-    a sample pushed deep inside between frames is still found. A walk costs a fraction of a query
-    on a body of tens of thousands of triangles.
+    reach, widened to the margin less the best coarser bound (the bound limits how deep inside the
+    sample can be), so a sample pushed deep inside between frames is still found, while one whose
+    coarser samples lie well outside searches no farther than reach. A walk costs a fraction of a
+    query on a body of tens of thousands of triangles.
 
     Launch: one thread per detail vertex of this level (dim = len(vertices)).
     Inputs:
@@ -373,7 +374,8 @@ def lift_out_of_body(
       side (float): +1 or -1, whichever makes side * direction point away from the body
       margin (float, m): distance kept outside the body
       reach (float, m): the smallest query radius; a sample found no nearer spares the finer
-          samples within reach - margin of it (sized to the level's largest parent-child offset)
+          samples within reach - margin of it (sized to the level's largest parent-child offset;
+          the margin alone on the finest level, which has no finer samples to spare)
     In/out:
       height (float, per detail vertex, m): heights along the control direction, raised where inside
       clearance (float, per detail vertex, m): written for this level's vertices, read for their parents
@@ -389,18 +391,16 @@ def lift_out_of_body(
     pa = bounds[0]
     if pa >= 0:
         bound = float(-1.0e30)
-        offset = float(0.0)  # from the parent
         for s in range(4):
             j = bounds[s]
             if j >= 0:
-                apart = wp.length(p - (base[j] + height[j] * side * direction[j]))
-                if s == 0:
-                    offset = apart
-                bound = wp.max(bound, clearance[j] - apart)
+                bound = wp.max(bound, clearance[j] - wp.length(p - (base[j] + height[j] * side * direction[j])))
         if bound > margin:
             clearance[i] = bound
             return
-        reach = wp.max(reach, wp.abs(clearance[pa]) + offset)
+        # the sample is at most -bound inside; the margin covers a coarser clearance that a lift
+        # overstated (measured from a face plane, not the body)
+        reach = wp.max(reach, margin - bound)
     wp.atomic_add(queries, 0, 1)
     vtx = body_vertex[i]
     if vtx >= 0:
