@@ -323,15 +323,13 @@ class ClothDetail:
         rest = cloth_model.rest_positions_np.astype(np.float64)
         rest_base = self.surface.update(wp.array(rest.astype(np.float32), dtype=wp.vec3, device=device))[0].numpy()
         self._rest_edge_np = self._polyline_lengths(rest_base.astype(np.float64), grid, edge_face, edge_side, n)
-        # the farthest a finer sample lies from its parent of each level, at rest: a level's tests look
-        # this far (with slack for stretch), so a sample found farther from the body spares its children
-        level_of = np.zeros(nv, np.int64)
-        for k in range(len(top.level_steps)):
-            level_of[top.level_order[top.level_start[k]:top.level_start[k + 1]]] = k
+        # the farthest each sample's children lie from it at rest: its tests look this far (with slack
+        # for stretch), so a sample found farther from the body spares its children
         child = np.flatnonzero(top.parent >= 0)
-        offset = np.linalg.norm(rest_base[child] - rest_base[top.parent[child]], axis=1)
-        self.level_spread = np.zeros(len(top.level_steps))
-        np.maximum.at(self.level_spread, level_of[top.parent[child]], offset)
+        self.spread = np.zeros(nv)
+        np.maximum.at(self.spread, top.parent[child], np.linalg.norm(rest_base[child] - rest_base[top.parent[child]],
+                                                                      axis=1))
+        self.reach = arr(self.query_radius(self.spread).astype(np.float32), float)
         self.edge_face, self.edge_side = arr(edge_face.astype(np.int32), wp.int32), arr(edge_side.astype(np.int32), wp.int32)
         self.face_edges = arr(face_edges.reshape(-1).astype(np.int32), wp.int32)
         ve = np.concatenate([edges[:, 0], edges[:, 1]])
@@ -402,13 +400,12 @@ class ClothDetail:
             self._side_known = True
         if body is not None:
             adj, walk = body.adjacency(), cloth_model.params
-            for parts, spread in zip(self.level_parts, self.level_spread, strict=True):
-                reach = self._reach(spread)
+            for parts in self.level_parts:
                 run_parallel([partial(wp.launch, kernels.lift_out_of_body, len(part),
                                       [base, pn_normals, part, self.coarser, body.mesh.id,
                                        body.points, body.indices, adj.vv_start, adj.vv_adj, adj.vf_start, adj.vf_face,
                                        adj.concave, walk.walk_steps, walk.teleport, walk.walk_trust_distance,
-                                       self.side, p.margin, reach, self.height, self.clearance, self.body_vertex,
+                                       self.side, p.margin, self.reach, self.height, self.clearance, self.body_vertex,
                                        self.probe_point, queries], device=dev)
                               for part, queries in zip(parts, self._part_queries)])
         wp.launch(kernels.displace_along_directions, nv, [base, pn_normals, self.side, self.height, self.positions],
@@ -418,12 +415,13 @@ class ClothDetail:
                    self.normals], device=dev)
         return self.positions, self.normals
 
-    def _reach(self, spread):
-        """The smallest query radius of a level's lift tests (kernels.lift_out_of_body): far enough
-        that a sample found no nearer spares its finer samples (spread: the farthest of them, 0 for
-        none), at least band beyond the margin; on the finest level the margin alone decides."""
+    def query_radius(self, spread):
+        """The smallest query radius of a sample's lift test (kernels.lift_out_of_body), given how far
+        its children lie from it (spread, m; 0 for none): far enough that a sample found no nearer
+        spares them, at least band beyond the margin; for a sample without children the margin alone
+        decides."""
         p = self.params
-        return p.margin + (max(p.band, 1.25 * spread) if spread > 0.0 else 0.0)
+        return np.where(spread > 0.0, p.margin + np.maximum(p.band, 1.25 * spread), p.margin)
 
     def _outward_side(self, base, normals, body):
         """Which way the PN normals face relative to the body: the garment may be wound either way."""

@@ -119,14 +119,12 @@ def test_lifting_walks_over_the_body_and_leaves_lifted_samples_at_the_margin():
             assert tested == np.count_nonzero(gate)
         # the first update has no vertex to start the corners' walks from and asks the BVH; finer
         # samples start from their parents', later updates from their own (the ball has no concave
-        # vertex), except samples the BVH found nothing for: farther from the ball than their level's
-        # radius (margin + band, more on coarse levels, the margin alone on the finest)
+        # vertex), except samples the BVH found nothing for: farther from the ball than their radius
+        # (margin + band or more for samples with children, the margin alone for the rest)
         unseeded = gate & (detail.body_vertex.numpy() < 0)
         assert 0 < bvh < 0.25 * tested if update == 0 else bvh == np.count_nonzero(unseeded)
-        radius = np.zeros(len(sd))
-        for level, spread in zip(detail.levels, detail.level_spread, strict=True):
-            radius[level.numpy()] = detail._reach(spread)
-        assert radius.min() == params.margin and radius.max() >= params.margin + params.band
+        radius = detail.reach.numpy()
+        assert radius.min() == np.float32(params.margin) and radius.max() >= params.margin + params.band
         assert np.count_nonzero(unseeded) > (0 if update == 0 else -1)
         assert np.all(sd[unseeded] > radius[unseeded])
         lifted = detail.height.numpy() > before + 1e-6

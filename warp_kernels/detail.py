@@ -321,7 +321,7 @@ def lift_out_of_body(
     trust_distance: float,
     side: float,
     margin: float,
-    reach: float,
+    reach: wp.array(dtype=float),
     height: wp.array(dtype=float),
     clearance: wp.array(dtype=float),
     body_vertex: wp.array(dtype=wp.int32),
@@ -347,11 +347,11 @@ def lift_out_of_body(
     gives the signed distance and the direction to lift along. Where the walk is not to be trusted
     (no start, a jump farther than teleport since the last test, a walk out of steps, a concave
     vertex, a vertex farther than trust_distance) a BVH closest-point query decides instead and
-    restarts the walk. Its radius is
-    reach, widened to the margin less the best coarser bound (the bound limits how deep inside the
-    sample can be), so a sample pushed deep inside between frames is still found, while one whose
-    coarser samples lie well outside searches no farther than reach. A walk costs a fraction of a
-    query on a body of tens of thousands of triangles.
+    restarts the walk. Its radius is the sample's reach, widened to the margin less the best coarser
+    bound (the bound limits how deep inside the sample can be), so a sample pushed deep inside
+    between frames is still found, while one whose coarser samples lie well outside searches no
+    farther than its reach. A walk costs a fraction of a query on a body of tens of thousands of
+    triangles.
 
     Launch: one thread per detail vertex of this level (dim = len(vertices)).
     Inputs:
@@ -373,9 +373,9 @@ def lift_out_of_body(
       trust_distance (float, m): a walk that stops farther from its vertex leaves it to the BVH
       side (float): +1 or -1, whichever makes side * direction point away from the body
       margin (float, m): distance kept outside the body
-      reach (float, m): the smallest query radius; a sample found no nearer spares the finer
-          samples within reach - margin of it (sized to the level's largest parent-child offset;
-          the margin alone on the finest level, which has no finer samples to spare)
+      reach (float, per detail vertex, m): the smallest query radius; a sample found no nearer
+          spares the finer samples within reach - margin of it (sized to the farthest of its
+          children; the margin alone for a sample without children, which has none to spare)
     In/out:
       height (float, per detail vertex, m): heights along the control direction, raised where inside
       clearance (float, per detail vertex, m): written for this level's vertices, read for their parents
@@ -388,6 +388,7 @@ def lift_out_of_body(
     n = direction[i] * side
     p = base[i] + height[i] * n
     bounds = coarser[i]
+    radius = reach[i]
     pa = bounds[0]
     if pa >= 0:
         bound = float(-1.0e30)
@@ -400,7 +401,7 @@ def lift_out_of_body(
             return
         # the sample is at most -bound inside; the margin covers a coarser clearance that a lift
         # overstated (measured from a face plane, not the body)
-        reach = wp.max(reach, margin - bound)
+        radius = wp.max(radius, margin - bound)
     wp.atomic_add(queries, 0, 1)
     vtx = body_vertex[i]
     if vtx >= 0:
@@ -418,7 +419,7 @@ def lift_out_of_body(
             vtx = -1 - vtx
         elif concave[vtx] != 0 or wp.length(p - points[vtx]) > trust_distance:
             trusted = False
-    sd = reach  # a query that finds nothing shows the sample at least its radius outside
+    sd = radius  # a query that finds nothing shows the sample at least its radius outside
     nb = wp.vec3(0.0, 0.0, 0.0)
     if trusted:
         sd, nb = least_inside_plane(p, vtx, points, indices, vf_start, vf_face)
@@ -426,7 +427,7 @@ def lift_out_of_body(
         wp.atomic_add(queries, 1, 1)
         if vtx >= 0:
             # the surface is no farther than the vertex the walk reached (a query's cost grows with its radius)
-            sd = wp.min(reach, wp.length(p - points[vtx]) * 1.001 + 1.0e-6)
+            sd = wp.min(radius, wp.length(p - points[vtx]) * 1.001 + 1.0e-6)
         q = wp.mesh_query_point_sign_normal(mesh, p, sd)
         if q.result:
             cp = wp.mesh_eval_position(mesh, q.face, q.u, q.v)
