@@ -8,7 +8,8 @@ row times the scene's own frames (sim.Scene.advance, replayed graphs, no quality
 the detail surface is updated every frame where it is on. The dress collides with the body itself
 or with a 2.5 cm collision proxy of it (cloth.solver.body_proxy). A row meets the goal at 16.7 ms
 or less on average; each frame is timed on its own as well (the device synchronised after it), and
-the slowest of them and the count over 16.7 ms ("late frames") show whether every frame makes it.
+the time 90% of the frames stay within, the slowest of them and the count over 16.7 ms ("late
+frames") show whether every frame makes it.
 
     python benchmarks/realtime.py                 # on cpu (and cuda if present)
     python benchmarks/realtime.py --device cpu --frames 20
@@ -17,6 +18,7 @@ the slowest of them and the count over 16.7 ms ("late frames") show whether ever
 import argparse
 import sys
 
+import numpy as np
 import warp as wp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
@@ -37,7 +39,7 @@ CLOTH = {  # the [cloth.solver] tables of the cloth variants timed
     "proxy 2.5 cm": {"body_proxy": 0.025},  # colliding with the body remeshed at 2.5 cm
 }
 HEADER = ["case", "hair strands", "cloth particles", "detail vertices", "device", "substeps hair / cloth",
-          "ms/frame", "frames/s", "slowest frame ms", "late frames", "60 frames/s"]
+          "ms/frame", "frames/s", "90% of frames within ms", "slowest frame ms", "late frames", "60 frames/s"]
 
 
 def build(device, hair=None, cloth=CLOTH["body"], detail=True):
@@ -93,7 +95,8 @@ def main():
                          scene.cloth_model.num_particles if scene.cloth_model is not None else 0,
                          scene.cloth_detail.surface.topology.num_vertices if scene.cloth_detail is not None else 0, device,
                          f"{HAIR_SUBSTEPS if hair is not None else '-'} / {cloth_steps}", f"{ms:.1f}",
-                         f"{1e3 / ms:.0f}", f"{max(each):.1f}", f"{late} of {len(each)}",
+                         f"{1e3 / ms:.0f}", f"{np.percentile(each, 90):.1f}", f"{max(each):.1f}",
+                         f"{late} of {len(each)}",
                          "met" if ms <= 1e3 / FPS else "not met"])
             print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
     print()
