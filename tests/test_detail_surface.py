@@ -98,6 +98,39 @@ def test_a_level_split_over_the_cores_lifts_the_same_surface_as_one_launch():
     np.testing.assert_array_equal(h1, h3)
 
 
+def test_a_sample_found_clear_spares_its_children_with_a_radius_sized_to_them():
+    """Each sample's query looks as far as its own children lie from it (plus the margin and slack),
+    so on a sheet held clear of the ball no child of a sample whose query found nothing is tested:
+    the corners are, and a few grandchildren whose bound, handed down a level, ran out."""
+    body = sphere_body()
+    pts, tris, edges, shear, bend = grid(16, 0.9, 0.4)  # 10 cm above the ball
+    model = ClothModel(pts, tris, edges, shear, bend, [], ClothParams())
+    state = model.state()
+    params = DetailParams(wrinkles=False)
+    detail = ClothDetail(model, params, "cpu")
+    corners = int(np.count_nonzero(detail.surface.topology.coarse_vertex >= 0))
+    assert corners == len(pts)
+    has_children = detail.spread > 0.0
+    reach = detail.reach.numpy()
+    np.testing.assert_allclose(reach[~has_children], params.margin)
+    np.testing.assert_allclose(reach[has_children],
+                               params.margin + np.maximum(params.band, 1.25 * detail.spread[has_children]), rtol=1e-6)
+    assert reach.max() < 0.1  # no query reaches the ball
+    top = detail.surface.topology
+    for _ in range(2):
+        positions, _ = detail.update(model, state, body, 1.0 / 24.0)
+        tested = np.any(detail.probe_point.numpy() != 0.0, axis=1)  # the sheet stays where it was
+        assert np.all(tested[top.coarse_vertex >= 0])
+        child = top.parent >= 0
+        assert not np.any(tested[child] & tested[top.parent[child]])
+        count = int(np.count_nonzero(tested))
+        assert detail.query_counts() == (count, count) and count < 1.05 * corners  # each query found nothing
+        clearance = detail.clearance.numpy()
+        assert np.all(clearance >= params.margin - 1e-7)  # the margin itself where a query looked no farther
+        # every clearance is a lower bound of the distance from the ball
+        assert np.all(np.linalg.norm(positions.numpy(), axis=1) - 0.3 >= clearance - 1e-5)
+
+
 def test_lifting_walks_over_the_body_and_leaves_lifted_samples_at_the_margin():
     # every walk trusted however far it ends, so only a missing start sends a test to the BVH
     body, model, state = _draped_over_ball(walk_trust_distance=1.0)
