@@ -125,23 +125,43 @@ def register_caps(ptx):
     return caps
 
 
+def warp_modules(module):
+    """The names of the Warp modules of an imported warp_kernels module: its own and those its kernels
+    only some runs launch are kept in (warp_kernels._options.deferred_module)."""
+    from warp_kernels._options import DEFERRED
+
+    return [module.__name__] + [name for name in DEFERRED if name.startswith(module.__name__ + ".")]
+
+
 def module_resources(module, arch, ptxas, isa, workdir):
-    """(KernelResources list, note) for one imported Warp module compiled for sm_<arch>."""
+    """(KernelResources list, note) for one imported warp_kernels module compiled for sm_<arch>: the
+    kernels of each of its Warp modules (warp_modules)."""
+    found, notes = [], []
+    for name in warp_modules(module):
+        kernels, note = warp_module_resources(name, arch, ptxas, isa, workdir)
+        found += kernels
+        if note and note not in notes:
+            notes.append(note)
+    return found, "; ".join(notes)
+
+
+def warp_module_resources(name, arch, ptxas, isa, workdir):
+    """(KernelResources list, note) for the Warp module `name` compiled for sm_<arch>."""
     import warp as wp
 
-    [ptx_path] = wp.compile_aot_module(module, arch=arch, module_dir=workdir, use_ptx=True)
+    [ptx_path] = wp.compile_aot_module(wp.get_module(name), arch=arch, module_dir=workdir, use_ptx=True)
     ptx = Path(ptx_path).read_text(errors="replace").replace("\0", "")
     note = ""
     version = re.search(r"^\.version ([0-9.]+)", ptx, re.M)
     if isa and version and tuple(map(int, version.group(1).split("."))) > tuple(map(int, isa.split("."))):
         ptx = ptx.replace(version.group(0), f".version {isa}", 1)
         note = f"PTX {version.group(1)} assembled as {isa}"
-    source = Path(workdir) / f"{module.__name__}.sm{arch}.ptx"
+    source = Path(workdir) / f"{name}.sm{arch}.ptx"
     source.write_text(ptx)
     out = subprocess.run([ptxas, f"-arch=sm_{arch}", "-v", str(source), "-o", str(source.with_suffix(".cubin"))],
                          capture_output=True, text=True)
     if out.returncode != 0:
-        raise RuntimeError(f"ptxas failed on {module.__name__}: {(out.stderr or out.stdout).strip()[:300]}")
+        raise RuntimeError(f"ptxas failed on {name}: {(out.stderr or out.stdout).strip()[:300]}")
     return parse_ptxas(out.stderr + out.stdout, register_caps(ptx)), note
 
 

@@ -3,7 +3,9 @@
 Table 1, per scene: `Scene(config)` in a fresh process with the asset cache off (every body,
 garment, groom and sphere tree built) and with a warm cache (sim.asset_cache), the kernel modules
 already loaded in both. Table 2 (--kernels): the six kernel modules compiled on an empty Warp kernel
-cache one after another, as first launches compile them, and side by side (warp_kernels.load).
+cache one after another, as first launches compile them, and side by side (warp_kernels.load); then
+the same with the modules of kernels only some runs launch (the GPU's ways, variants for one case:
+warp_kernels._options.deferred_module), which a CUDA device loads up front and a CPU at first launch.
 
     python benchmarks/startup.py [--scenes walk_dress wavy_turn] [--repeats 3] [--kernels]
 """
@@ -39,12 +41,14 @@ import warp as wp
 wp.config.quiet = True
 wp.init()
 import warp_kernels
+from warp_kernels._options import DEFERRED
+deferred = sys.argv[3] == "deferred"
 start = time.perf_counter()
 if sys.argv[1] == "side_by_side":
-    warp_kernels.load(sys.argv[2])
+    warp_kernels.load(sys.argv[2], deferred=deferred)
 else:
-    for module in warp_kernels._MODULES:
-        wp.load_module(module, device=sys.argv[2])
+    for name in [m.__name__ for m in warp_kernels._MODULES] + (DEFERRED if deferred else []):
+        wp.load_module(wp.get_module(name), device=sys.argv[2])
 print(json.dumps(time.perf_counter() - start))
 """
 
@@ -68,12 +72,15 @@ def setup_times(scene, device, repeats, cache_dir):
     return statistics.median(built), statistics.median(cached)
 
 
-def kernel_times(device):
-    """(seconds one module after another, seconds side by side), each on an empty kernel cache."""
+def kernel_times(device, deferred):
+    """(seconds one module after another, seconds side by side), each on an empty kernel cache: the
+    six modules, and with `deferred` also those of the kernels only some runs launch
+    (warp_kernels._options.deferred_module)."""
     times = []
     for order in ("one_after_another", "side_by_side"):
         with tempfile.TemporaryDirectory() as kernels:
-            times.append(_child(KERNELS, [order, device], {"WARP_CACHE_PATH": kernels}))
+            times.append(_child(KERNELS, [order, device, "deferred" if deferred else "six"],
+                                {"WARP_CACHE_PATH": kernels}))
     return tuple(times)
 
 
@@ -104,10 +111,12 @@ def main(argv=None):
     print(table(["scene", "device", "set-up built s", "set-up from the asset cache s", "speed-up"], rows))
     if args.kernels:
         print()
-        serial, parallel = kernel_times(args.device)
-        print(table(["kernel modules", "device", "one after another s", "side by side s", "speed-up"],
-                    [["all six, empty kernel cache", name, f"{serial:.1f}", f"{parallel:.1f}",
-                      f"{serial / parallel:.2f}x"]]))
+        rows = []
+        for deferred, what in ((False, "the six, empty kernel cache"),
+                               (True, "the six and the deferred ones, empty kernel cache")):
+            serial, parallel = kernel_times(args.device, deferred)
+            rows.append([what, name, f"{serial:.1f}", f"{parallel:.1f}", f"{serial / parallel:.2f}x"])
+        print(table(["kernel modules", "device", "one after another s", "side by side s", "speed-up"], rows))
 
 
 if __name__ == "__main__":

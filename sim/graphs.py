@@ -269,10 +269,13 @@ class _CpuFrame:
     def __init__(self, device):
         self.device, self.steps = device, []
 
-    def capture(self, frame, load_modules=True):
+    def capture(self, frame):
         global _cpu_frame
         outer = _cpu_frame  # a branch of a parallel step is captured inside its frame's capture
-        wp.capture_begin(device=self.device, force_module_load=load_modules)
+        # the frame ran eagerly before, loading what it launches; a CPU capture may load a module too,
+        # and loading every module here would compile those of kernels the run never launches
+        # (warp_kernels._options.deferred_module)
+        wp.capture_begin(device=self.device, force_module_load=False)
         _cpu_frame = self
         try:
             frame()
@@ -295,7 +298,7 @@ class _CpuFrame:
         try:
             for branch in branches:
                 recorded.append(_CpuFrame(self.device))
-                recorded[-1].capture(branch, load_modules=False)
+                recorded[-1].capture(branch)
         finally:
             wp.capture_begin(device=self.device, force_module_load=False)  # capture() ends this one
         self.steps.append(tuple(recorded))

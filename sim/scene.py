@@ -754,7 +754,7 @@ def load_kernels(device, announce=False):
     def notice():
         if not done.wait(KERNELS_NOTICE_S):
             print(f"cfx: compiling the Warp kernels for {device}, once per machine and Warp version "
-                  f"(on a two-core CPU about 15 s)", file=sys.stderr, flush=True)
+                  f"(on a two-core CPU about 7 s)", file=sys.stderr, flush=True)
 
     teller = threading.Thread(target=notice, daemon=True)
     teller.start()

@@ -18,7 +18,9 @@ from sim.scene import quiet_warp  # noqa: E402
 
 quiet_warp()
 wp.init()
-warp_kernels.load("cpu")  # a cold kernel cache (CI) compiles side by side once, not module by module in tests
+# a cold kernel cache (CI) compiles side by side once, not module by module in tests; with the modules of
+# kernels only some runs launch (the GPU's ways, which the tests run on the CPU too)
+warp_kernels.load("cpu", deferred=True)
 
 
 @pytest.fixture(scope="session")

@@ -58,6 +58,96 @@ def test_loaded_modules_are_compiled_once_and_launches_use_them(tmp_path):
     assert json.loads(launching.split("RESULT", 1)[1]) == [20.0, 30.0, 40.0]
 
 
+# a kernel of tiny_add's kept in a module of its own, as warp_kernels keeps its GPU ways
+TINY_RARE = """
+    import warp as wp
+
+    from warp_kernels._options import deferred_module
+
+    @wp.kernel(module=deferred_module("tiny_add.rarely"))
+    def halve(x: wp.array(dtype=float)):
+        i = wp.tid()
+        x[i] = x[i] * 0.5
+"""
+
+DEFERRED_SCRIPT = """
+import warp as wp
+wp.init()
+import tiny_add, tiny_scale, tiny_rare
+import warp_kernels
+from warp_kernels._options import DEFERRED
+assert DEFERRED[-1] == "tiny_add.rarely"
+print("RUN", flush=True)
+warp_kernels.load("cpu", threads=2, modules=(tiny_add, tiny_scale))
+print("ALL", flush=True)
+warp_kernels.load("cpu", threads=2, modules=(tiny_add, tiny_scale), deferred=True)
+print("LAUNCH", flush=True)
+x = wp.array([2.0], dtype=float)
+wp.launch(tiny_rare.halve, 1, [x])
+print("RESULT", x.numpy()[0], flush=True)
+"""
+
+
+def test_a_deferred_module_compiles_only_when_asked_for(tmp_path):
+    """Kernels only some runs launch (warp_kernels._options.deferred_module) are left out of a run's
+    load, so a first run on a cold cache does not wait for them; load(deferred=True) compiles them
+    too, side by side."""
+    for name, source in {**TINY, "tiny_rare": TINY_RARE}.items():
+        (tmp_path / f"{name}.py").write_text(textwrap.dedent(source))
+    env = dict(os.environ, WARP_CACHE_PATH=str(tmp_path / "kernels"),
+               PYTHONPATH=os.pathsep.join([str(tmp_path), os.getcwd(), os.environ.get("PYTHONPATH", "")]))
+    out = subprocess.run([sys.executable, "-c", DEFERRED_SCRIPT], env=env, capture_output=True, text=True,
+                         check=True, timeout=300).stdout
+    run, rest = out.split("RUN", 1)[1].split("ALL", 1)
+    everything, launching = rest.split("LAUNCH", 1)
+
+    def compiled(log):
+        return sorted(line.split()[1] for line in log.splitlines() if "(compiled)" in line)
+
+    assert compiled(run) == ["tiny_add", "tiny_scale"]
+    assert compiled(everything) == ["tiny_add.rarely"]
+    assert "load on device" not in launching
+    assert float(launching.split("RESULT", 1)[1]) == 1.0
+
+
+def test_the_deferred_modules_take_the_package_options():
+    import warp as wp
+
+    from warp_kernels._options import DEFERRED, MODULE_OPTIONS
+
+    assert {"warp_kernels.strands.apart", "warp_kernels.cloth.step_in_block"} <= set(DEFERRED)
+    for name in DEFERRED:
+        options = wp.get_module(name).options
+        assert {key: options[key] for key in MODULE_OPTIONS} == MODULE_OPTIONS, name
+
+
+def test_a_cpu_run_of_the_built_in_scene_launches_nothing_deferred(monkeypatch):
+    """The CPU's default ways (the hair's fused substep on the mesh, the cloth's box queries, the detail
+    surface, the face) launch only kernels of the six modules warp_kernels.load compiles for a run, so a
+    first run on a cold kernel cache waits for those alone."""
+    import warp as wp
+
+    from sim.scene import Scene, demo_scene
+    from warp_kernels._options import DEFERRED
+
+    launched = set()
+    launch = wp.launch
+
+    def recording(kernel, *args, **kwargs):
+        launched.add(kernel.module.name)
+        return launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", recording)
+    scene = Scene(demo_scene({"scene": {"device": "cpu", "frames": 1, "preroll": 0.0, "stats": False},
+                              "hair": {"count": 40, "vertices": 8}}))
+    scene.graphs.enabled = False
+    scene.advance(2.0 / scene.config.timing.fps, detail=True)
+    own = {m.__name__ for m in warp_kernels._MODULES}
+    assert {"warp_kernels.strands", "warp_kernels.cloth", "warp_kernels.detail"} <= launched
+    assert not launched & set(DEFERRED)
+    assert {name for name in launched if name.startswith("warp_kernels")} <= own
+
+
 def test_the_engine_loads_every_kernel_module():
     names = {m.__name__.rsplit(".", 1)[1] for m in warp_kernels._MODULES}
     assert names == set(warp_kernels.__all__) - {"load"}

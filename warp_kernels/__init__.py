@@ -8,11 +8,12 @@ from . import body_motion, cloth, collision, detail, skinning, strands
 
 __all__ = ["body_motion", "cloth", "collision", "detail", "load", "skinning", "strands"]
 
-# the longest to compile first (on a CPU: strands ~14 s, collision, cloth and detail ~3 s each)
-_MODULES = (strands, collision, cloth, detail, body_motion, skinning)
+# the longest to compile first (on a CPU: strands ~5 s, cloth and collision ~2 s each, detail 1.4 s), the
+# kernels only some runs launch kept apart (_options.deferred_module)
+_MODULES = (strands, cloth, collision, detail, body_motion, skinning)
 
 
-def load(device="cpu", threads=None, modules=_MODULES):
+def load(device="cpu", threads=None, modules=_MODULES, deferred=None):
     """Compile every kernel module (of `modules`) for `device`, or read it from Warp's kernel cache,
     side by side.
 
@@ -21,10 +22,23 @@ def load(device="cpu", threads=None, modules=_MODULES):
     (default: one per core), longest first, so a first run on a cold kernel cache waits about as long
     as the longest module takes. With a warm cache it takes milliseconds. A host application calls
     it once at start-up.
+
+    deferred: also the Warp modules of kernels only some runs launch (_options.deferred_module: a
+    GPU's hair substep in launches apart, the sphere tree's and no collider's fused variants, a small
+    cloth's step in one block), those of `modules`. By default on a CUDA device, where its compiler is
+    quick and a module must not load during a graph capture; a CPU compiles each at its first launch,
+    if any, and a run that never launches them does not wait for them.
     """
     import os
 
     import warp as wp
 
-    workers = max(1, min(len(modules), threads or os.cpu_count() or 1))
-    wp.force_load(device=device, modules=[wp.get_module(m.__name__) for m in modules], max_workers=workers)
+    from ._options import DEFERRED
+
+    if deferred is None:
+        deferred = wp.get_device(device).is_cuda
+    names = [m.__name__ for m in modules]
+    if deferred:
+        names += [d for d in DEFERRED if any(d.startswith(n + ".") for n in names)]
+    workers = max(1, min(len(names), threads or os.cpu_count() or 1))
+    wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=workers)

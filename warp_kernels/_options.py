@@ -1,7 +1,28 @@
-"""Module options shared by every kernel module of warp_kernels."""
+"""Module options shared by every kernel module of warp_kernels, and the modules compiled apart."""
+
+import warp as wp
 
 # no gradients are taken through these kernels: skipping the backward passes halves compile time;
 # the lean launch path (no grid-stride loop) lowers per-thread overhead; -O3 on the CPU too (Warp's
 # CPU default is -O2, CUDA's -O3): it unrolls the short fixed loops of shape matching, which halves
 # that kernel's time on the CPU, and compiles in the same time
 MODULE_OPTIONS = {"enable_backward": False, "default_grid_stride": False, "optimization_level": 3}
+
+# names of the Warp modules made by deferred_module, in the order they were made
+DEFERRED = []
+
+
+def deferred_module(name):
+    """The name of a Warp module of its own, with MODULE_OPTIONS, for kernels only some runs launch
+    (a GPU's way of stepping, a variant for one collision path): pass it as @wp.kernel(module=...).
+
+    Warp compiles a module whole, at the first launch of any of its kernels. A kernel kept in the
+    module of the ones every run launches costs every run its compile time on a cold kernel cache;
+    kept apart, it costs only the runs that launch it (the hair's module on two CPU cores: 13.4 s
+    with its GPU ways and variants, 5.4 s without). warp_kernels.load compiles these modules too
+    where asked (on CUDA devices by default).
+    """
+    wp.set_module_options(MODULE_OPTIONS, module=name)
+    if name not in DEFERRED:
+        DEFERRED.append(name)
+    return name

@@ -18,7 +18,7 @@ Step order (composed by sim.cloth.ClothSolver), the body posed for the end of th
 
 import warp as wp
 
-from ._options import MODULE_OPTIONS
+from ._options import MODULE_OPTIONS, deferred_module
 from .collision import closest_on_triangle, pseudo_normal_weight
 
 wp.set_module_options(MODULE_OPTIONS)
@@ -1049,7 +1049,9 @@ def _body_collide(boxes):
     """body_collide compiled with the box queries (boxes) or for a mesh always given (mesh != 0)."""
     collide_body = _body_collide_for(boxes)
 
-    @wp.kernel(name="body_collide" + ("" if boxes else "_mesh"))
+    # the mesh's variant is a GPU's (ClothSolver.mesh_queries): a module of its own, compiled where launched
+    @wp.kernel(module=None if boxes else deferred_module(__name__ + ".body_collide_mesh"),
+               name="body_collide" + ("" if boxes else "_mesh"))
     def body_collide(
         x: wp.array(dtype=wp.vec3),
         x_prev: wp.array(dtype=wp.vec3),
@@ -1347,7 +1349,9 @@ def _step_in_block(boxes):
     """step_in_block compiled with the box queries (boxes) or for a mesh always given (mesh != 0)."""
     collide_body = _body_collide_for(boxes)
 
-    @wp.kernel(launch_bounds=BLOCK_STEP_LANES, name="step_in_block" + ("" if boxes else "_mesh"))
+    # a GPU's way for a small cloth (ClothSolver.block_step): a module of its own, compiled where launched
+    @wp.kernel(module=deferred_module(__name__ + ".step_in_block"), launch_bounds=BLOCK_STEP_LANES,
+               name="step_in_block" + ("" if boxes else "_mesh"))
     def step_in_block(
         n: int,
         x0: wp.array(dtype=wp.vec3),

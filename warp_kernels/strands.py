@@ -30,9 +30,13 @@ because on a GPU the bytes moved, not the arithmetic, set the cost.
 
 import warp as wp
 
-from ._options import MODULE_OPTIONS
+from ._options import MODULE_OPTIONS, deferred_module
 
 wp.set_module_options(MODULE_OPTIONS)
+# the substep in launches apart (a GPU's way, HairSolver.fused off) with the lanes' copies, the walks
+# queued ahead and the length pass's variants: a CPU run steps fused and never launches them, so they
+# compile in a module of their own, only for the runs that do
+APART = deferred_module(__name__ + ".apart")
 
 from .collision import (COLLIDE_MESH, COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded,
                         collide_point_listed, collide_point_listed_mesh, list_deep_point, pseudo_normal_distance,
@@ -180,7 +184,7 @@ def predicted_position(
     return p, vel
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def predict_positions(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
@@ -255,7 +259,7 @@ def predict_positions(
     v_out[i] = vel
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def root_frames(
     skin: SkinBinding,
     root_binding: wp.array(dtype=wp.int32),
@@ -547,7 +551,7 @@ def full_shaped_position(p: wp.vec3, k: int, count: int, window_size: int, stiff
     return p + stiffness * (goal / float(farthest - nearest + 1) - p)
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def shape_match_rotations(
     x: wp.array(dtype=wp.vec3),
     window_first: wp.array(dtype=wp.int32),
@@ -644,7 +648,7 @@ def simplified_goal(x: wp.array(dtype=wp.vec3), first: int, size: int, k: int, o
     return window_centroid(x, first, 1, size) + offsets[w * size + k] * u
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def shape_match_step(
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
@@ -1000,7 +1004,7 @@ def contact_motion(
                     wp.atomic_max(motion.cells, cell, units)
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def to_lanes(
     x: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
@@ -1033,7 +1037,7 @@ def to_lanes(
         lane_prev[t] = x_prev[start + k]
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def from_lanes(
     lane_x: wp.array(dtype=wp.vec3),
     lane_v: wp.array(dtype=wp.vec3),
@@ -1072,7 +1076,7 @@ def from_lanes(
         v[start + k] = lane_v[slot]
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def find_short_lists(
     x: wp.array(dtype=wp.vec3),
     x_prev: wp.array(dtype=wp.vec3),
@@ -1149,7 +1153,7 @@ def find_short_lists(
         queue[first + wp.atomic_add(short_count, 0, 1)] = i
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def list_leaves_ahead(
     x_prev: wp.array(dtype=wp.vec3),
     contact: StrandContact,
@@ -1372,7 +1376,8 @@ def _follow_the_leader(paths, ahead=False):
     # 178 registers uncapped (CUDA, H100): one 256-thread block per SM, 8 warps to hide the serial loop's
     # latency; capped at 128, two blocks fit and the pass ran 30% faster (100k strands: 10.3 -> 7.3 ms
     # per frame) despite 352 bytes of spills. The CPU ignores the cap.
-    @wp.kernel(cuda_max_registers=128, name="follow_the_leader" + PATH_NAMES[paths] + ("_ahead" if ahead else ""))
+    @wp.kernel(module=APART, cuda_max_registers=128,
+               name="follow_the_leader" + PATH_NAMES[paths] + ("_ahead" if ahead else ""))
     def follow_the_leader(
         x: wp.array(dtype=wp.vec3),
         x_prev: wp.array(dtype=wp.vec3),
@@ -1885,8 +1890,11 @@ def _step_strands(paths, simplified=False):
     """step_strands compiled with the collision paths `paths` (PATHS_*) of its length pass, and with
     `simplified` for simplified shape matching only (variant is then read as SHAPE_SIMPLIFIED)."""
     follow = follow_leader if paths == PATHS_ALL else _follow_leader(paths)
+    name = "step_strands" + PATH_NAMES[paths] + ("_simplified" if simplified else "")
+    # every path, the CPU's default, in this module; a variant only where its case launches it
+    module = None if paths == PATHS_ALL and not simplified else deferred_module(f"{__name__}.{name}")
 
-    @wp.kernel(cuda_max_registers=128, name="step_strands" + PATH_NAMES[paths] + ("_simplified" if simplified else ""))
+    @wp.kernel(module=module, cuda_max_registers=128, name=name)
     def step_strands(
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
@@ -2111,8 +2119,9 @@ def hold_in_comb(
     ending on the comb. A last sweep from the root keeps the hair out of the collider and the lengths
     right: from the first particle it pushes out, or the first segment more than 1% off its rest
     length, the rest follow at rest length, so where the comb would pull hair into the head (or a
-    one-segment chain cannot take up its slack) the held particle stops short of the comb. The hair beyond follows the gripped particle. Runs after follow_the_leader; strands
-    with grip < 0 are left untouched.
+    one-segment chain cannot take up its slack) the held particle stops short of the comb. The hair
+    beyond follows the gripped particle. Runs after follow_the_leader; strands with grip < 0 are left
+    untouched.
 
     Launch: one thread per strand of a range of strands (dim = strands in the range).
     Inputs:
@@ -2323,7 +2332,7 @@ def strand_quality(
     wp.atomic_max(worst, part, 0, float(stretch))
 
 
-@wp.kernel
+@wp.kernel(module=APART)
 def follow_guides(
     x: wp.array(dtype=wp.vec3),
     inv_mass: wp.array(dtype=float),
