@@ -22,7 +22,8 @@ class HairstyleParams:
     density: float = 0.0  # strands per cm^2 of scalp (0: use count)
     length: float = 0.22  # m, length of the strand's centre line (curls add to the natural length)
     length_jitter: float = 0.15  # relative random variation of length per strand
-    vertices: int = 24  # particles per strand
+    # particles per strand; curls read round from about 8 a turn, (vertices - 1) * curl_pitch / length
+    vertices: int = 24
     bend_length: float = 0.02  # m, how soon a strand turns from the scalp normal to the fall direction
     wave_amplitude: float = 0.006  # m
     wavelength: float = 0.09  # m
