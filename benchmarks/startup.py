@@ -6,8 +6,9 @@ already loaded in both. Table 2 (--kernels): the six kernel modules compiled on 
 cache one after another, as first launches compile them, and side by side (warp_kernels.load); then
 the same with the modules of kernels only some runs launch (the GPU's ways, variants for one case:
 warp_kernels._options.deferred_module), which a CUDA device loads up front and a CPU at first launch.
+Table 3 (--first-run FRAMES): `cfx run` of each scene on an empty kernel cache, end to end.
 
-    python benchmarks/startup.py [--scenes walk_dress wavy_turn] [--repeats 3] [--kernels]
+    python benchmarks/startup.py [--scenes walk_dress wavy_turn] [--repeats 3] [--kernels] [--first-run 2]
 """
 
 import argparse
@@ -84,6 +85,25 @@ def kernel_times(device, deferred):
     return tuple(times)
 
 
+def first_run_time(scene, device, frames, cache_dir):
+    """Wall-clock seconds of `cfx run SCENE --frames FRAMES -q` in a fresh process on an empty Warp
+    kernel cache, with the asset cache `cache_dir` (filled by the set-up table): what a first run on
+    a machine waits for, compiling the kernels it launches included."""
+    import time
+
+    with tempfile.TemporaryDirectory() as work:
+        env = {**os.environ, "WARP_CACHE_PATH": str(Path(work) / "kernels"), "CFX_CACHE_DIR": cache_dir,
+               "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+        command = [sys.executable, "-m", "sim.cli", "run", str(ROOT / "examples" / "scenes" / f"{scene}.toml"),
+                   "-o", str(Path(work) / "out.usdc"), "--frames", str(frames), "-q", "--device", device]
+        start = time.perf_counter()
+        out = subprocess.run(command, capture_output=True, text=True, cwd=ROOT, env=env)
+        seconds = time.perf_counter() - start
+    if out.returncode != 0:
+        raise RuntimeError(f"cfx run {scene} failed:\n{out.stderr[-3000:]}")
+    return seconds
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", nargs="+", default=["walk_dress", "curly_wind", "skirt_arm_raise", "wavy_turn"],
@@ -91,6 +111,8 @@ def main(argv=None):
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--kernels", action="store_true", help="also time the kernel modules' compilation")
+    parser.add_argument("--first-run", type=int, default=0, metavar="FRAMES",
+                        help="also time `cfx run` of each scene for FRAMES frames on an empty kernel cache")
     args = parser.parse_args(argv)
 
     from common import commit, device_name, table
@@ -108,7 +130,14 @@ def main(argv=None):
         for scene in args.scenes:
             built, cached = setup_times(scene, args.device, args.repeats, cache_dir)
             rows.append([scene, name, f"{built:.2f}", f"{cached:.2f}", f"{built / cached:.1f}x"])
-    print(table(["scene", "device", "set-up built s", "set-up from the asset cache s", "speed-up"], rows))
+        print(table(["scene", "device", "set-up built s", "set-up from the asset cache s", "speed-up"], rows))
+        if args.first_run:
+            print()
+            rows = []
+            for scene in args.scenes:
+                seconds = first_run_time(scene, args.device, args.first_run, cache_dir)
+                rows.append([scene, name, args.first_run, f"{seconds:.1f}"])
+            print(table(["scene", "device", "frames", "cfx run on an empty kernel cache s"], rows))
     if args.kernels:
         print()
         rows = []
