@@ -50,7 +50,7 @@ def _overrides(args):
     return {"scene": scene}
 
 
-def _report(result):
+def _report(result, config=None):
     s = result.stats
     parts = []
     if result.strands:
@@ -64,6 +64,7 @@ def _report(result):
     if "max_stretch" in s:
         print(f"  hair: max segment stretch {100 * s['max_stretch']:.3f}%, roots within 5 mm of the surface "
               f"{100 * s['root_within_5mm']:.2f}%, points >1 mm inside {100 * s['inside_1mm']:.3f}%", file=sys.stderr)
+        _sampling_hint(config)
     if result.face_vertices:
         print(f"  face: {result.face_vertices} vertices, largest move from rest {1e3 * s.get('face_max_offset', 0.0):.1f} mm",
               file=sys.stderr)
@@ -82,6 +83,23 @@ def _report(result):
               file=sys.stderr)
 
 
+def _sampling_hint(config):
+    """A line when the groom's curls or waves turn too far between vertices to draw as curves."""
+    import numpy as np
+
+    from .hairstyle import SMOOTH_TURN
+
+    hair = getattr(config, "hair", None)
+    if hair is None or not hair.enabled or hair.guides:
+        return
+    turn = hair.segment_turn
+    if turn is not None and turn > SMOOTH_TURN:
+        what = "curls" if hair.style == "curly" else "waves"
+        print(f"  hair: the {what} turn up to {np.degrees(turn):.0f} degrees between vertices and draw as zigzags; "
+              f"{np.degrees(SMOOTH_TURN):.0f} or less reads as a curve ([hair] vertices = "
+              f"{hair.vertices_for_smooth_curves()})", file=sys.stderr)
+
+
 def cmd_run(args, config=None):
     import sim
 
@@ -95,7 +113,7 @@ def cmd_run(args, config=None):
         else:
             config = sim.load_scene(args.scene, _overrides(args))
     result = sim.run_scene(config, args.output, progress=not args.quiet, stage=stage)
-    _report(result)
+    _report(result, config)
     if args.preview:
         _preview(result.path, args.preview, frames=None, quiet=args.quiet)
     return 0
@@ -132,7 +150,7 @@ def cmd_lipsync(args):
         data["scene"]["device"] = args.device
     config = _build_config("<lipsync>", data, None)
     result = sim.run_scene(config, args.output, progress=not args.quiet)
-    _report(result)
+    _report(result, config)
     if args.preview:
         _preview(result.path, args.preview, frames=None, quiet=args.quiet, focus="face")
     return 0

@@ -12,6 +12,9 @@ import numpy as np
 import trimesh
 
 STYLES = ("straight", "wavy", "curly")
+# rad: a strand whose segments turn by more than this draws its curls or waves as zigzags (the curly example
+# at 32 vertices a strand turned 61 degrees a segment and drew as one; at 64, 30 degrees, its curls read round)
+SMOOTH_TURN = np.radians(40.0)
 
 
 @dataclass(frozen=True)
@@ -22,8 +25,7 @@ class HairstyleParams:
     density: float = 0.0  # strands per cm^2 of scalp (0: use count)
     length: float = 0.22  # m, length of the strand's centre line (curls add to the natural length)
     length_jitter: float = 0.15  # relative random variation of length per strand
-    # particles per strand; curls read round from about 8 a turn, (vertices - 1) * curl_pitch / length
-    vertices: int = 24
+    vertices: int = 24  # particles per strand (curls and waves draw as curves up to SMOOTH_TURN a segment)
     bend_length: float = 0.02  # m, how soon a strand turns from the scalp normal to the fall direction
     wave_amplitude: float = 0.006  # m
     wavelength: float = 0.09  # m
@@ -45,6 +47,35 @@ class HairstyleParams:
             raise ValueError("length must be positive")
         if self.count < 1 and self.density <= 0.0:
             raise ValueError("count must be at least 1")
+
+    def _bending(self):
+        """(largest curvature of the styled centre line [1/m], its natural length [m]) for the nominal
+        length: a helix of curl_radius and curl_pitch, or a sine of wave_amplitude and wavelength;
+        None for straight hair. The root's ramp into the style is left out (it only lowers both)."""
+        if self.style == "curly":
+            c = self.curl_pitch / (2.0 * np.pi)
+            turn = np.hypot(self.curl_pitch, 2.0 * np.pi * self.curl_radius)
+            return self.curl_radius / (self.curl_radius ** 2 + c ** 2), self.length * turn / self.curl_pitch
+        if self.style == "wavy":
+            k = 2.0 * np.pi / self.wavelength
+            return self.wave_amplitude * k * k, self.length
+        return None
+
+    @property
+    def segment_turn(self):
+        """Largest angle [rad] between consecutive segments of a strand, from the style's curvature
+        and the evenly spaced vertices (None for straight hair). Above about SMOOTH_TURN the curls or
+        waves draw as zigzags."""
+        bending = self._bending()
+        if bending is None:
+            return None
+        curvature, natural = bending
+        return curvature * natural / (self.vertices - 1)
+
+    def vertices_for_smooth_curves(self):
+        """The fewest vertices per strand whose segments turn by SMOOTH_TURN or less."""
+        curvature, natural = self._bending()
+        return int(np.ceil(curvature * natural / SMOOTH_TURN)) + 1
 
 
 def sample_scalp(vertices, faces, face_mask, count, seed=1):

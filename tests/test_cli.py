@@ -245,3 +245,20 @@ def test_follow_camera_keeps_a_moving_subject_centred(tmp_path):
             centres.append(np.argwhere(mask)[:, 1].mean())
         spread[follow] = abs(centres[0] - centres[1])
     assert spread[True] < 5.0 < spread[False]
+
+
+def test_a_run_says_when_the_curls_are_too_coarse_to_draw_as_curves(tmp_path, capsys):
+    """Curls whose segments turn more than SMOOTH_TURN draw as zigzags: the report says so with the
+    vertices that would do; a groom sampled finely enough gets no such line."""
+    coarse = SMALL.replace('style = "straight"', 'style = "curly"\ncurl_radius = 0.009\ncurl_pitch = 0.03')
+    assert main(["run", write(tmp_path, coarse), "-o", str(tmp_path / "coarse.usdc"), "-q"]) == 0
+    err = capsys.readouterr().err
+    assert "hair: the curls turn up to" in err and "draw as zigzags" in err
+    from sim.hairstyle import HairstyleParams
+
+    needed = HairstyleParams(style="curly", vertices=8, length=0.12, curl_radius=0.009,
+                             curl_pitch=0.03).vertices_for_smooth_curves()
+    assert f"[hair] vertices = {needed})" in err
+    fine = coarse.replace("vertices = 8", f"vertices = {needed}")
+    assert main(["run", write(tmp_path, fine, "fine.toml"), "-o", str(tmp_path / "fine.usdc"), "-q"]) == 0
+    assert "zigzags" not in capsys.readouterr().err

@@ -182,3 +182,36 @@ def test_a_strand_needs_a_bound_root_and_a_free_particle():
     with pytest.raises(ValueError, match="more than 4 vertices"):
         builder.finalize("cpu", pinned_per_strand=4)
     assert builder.finalize("cpu", pinned_per_strand=1).pinned_per_strand == 1
+
+
+@pytest.mark.parametrize("style, vertices, settings", [
+    ("curly", 32, {"curl_radius": 0.009, "curl_pitch": 0.03, "length": 0.18}),
+    ("curly", 64, {"curl_radius": 0.009, "curl_pitch": 0.03, "length": 0.18}),
+    ("wavy", 24, {"wavelength": 0.07, "length": 0.22}),
+])
+def test_the_segment_turn_a_style_predicts_is_what_the_grown_strands_turn(style, vertices, settings):
+    """HairstyleParams.segment_turn (the style's curvature times the vertex spacing) against the angles
+    between consecutive segments of strands grown on a sphere, past the root's ramp into the style: the
+    largest of each strand within 12% of it (the prediction is the arc's turn, the polyline's chords
+    turn a little less)."""
+    from sim.hairstyle import HairstyleParams, grow_hairstyle
+
+    rng = np.random.default_rng(0)
+    normals = rng.normal(size=(60, 3))
+    normals[:, 1] = np.abs(normals[:, 1])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    params = HairstyleParams(style=style, vertices=vertices, length_jitter=0.0, **settings)
+    points, counts, _ = grow_hairstyle(params, 0.1 * normals, normals, lambda p, margin: p)
+    segments = np.diff(points.reshape(len(normals), vertices, 3), axis=1)
+    segments /= np.linalg.norm(segments, axis=2, keepdims=True)
+    turns = np.arccos(np.clip(np.sum(segments[:, 1:] * segments[:, :-1], axis=2), -1.0, 1.0))
+    largest = turns[:, vertices // 4:].max(axis=1)
+    assert np.all(np.abs(largest / params.segment_turn - 1.0) < 0.12)
+    assert HairstyleParams(style="straight").segment_turn is None
+    # the vertices it asks for bring the turn to SMOOTH_TURN or just below
+    from sim.hairstyle import SMOOTH_TURN
+
+    enough = params.vertices_for_smooth_curves()
+    again = HairstyleParams(style=style, vertices=enough, length_jitter=0.0, **settings)
+    fewer = HairstyleParams(style=style, vertices=enough - 1, **settings)
+    assert again.segment_turn <= SMOOTH_TURN < fewer.segment_turn
