@@ -13,7 +13,11 @@ order, with warps of 32 consecutive lanes:
 - slowest warp: the largest one warp's work, per substep. A launch that fits at once (1k, 10k
   strands) takes about this.
 
-    python benchmarks/hair_warps.py --strands 1000 10000
+With --loose each count is made twice, the second time with walks where the loose pass walks
+(HairSolver.loose_lists: only where a particle may be inside a leaf its list does not hold), the
+rows marked "loose".
+
+    python benchmarks/hair_warps.py --strands 1000 10000 [--loose]
 """
 
 import argparse
@@ -45,10 +49,12 @@ def edited(src, edits):
     return src
 
 
-def counting_follow_the_leader():
+def counting_follow_the_leader(loose=False):
     """follow_the_leader with one more argument, a float array per lane slot that each particle step
     adds its work to; compiled from the source of the kernel and of its per-particle function
-    (follow_leader), so the counting copies cannot drift apart from them."""
+    (follow_leader), so the counting copies cannot drift apart from them. loose: a walk counted only
+    where the list's bound at the particle is at or below zero, as the loose pass walks
+    (HairSolver.loose_lists, collision.collide_point_listed_loose), not below the margin."""
     from warp_kernels import strands
 
     def source(function, name):
@@ -69,19 +75,20 @@ def counting_follow_the_leader():
     func_edits = [
         (r"    held_beyond: float,\n\):",
          "    held_beyond: float,\n    work: wp.array(dtype=float),\n):"),
-        (r"\n( +)elif listed:\n( +)pushed, bound, leaves, origin, unlisted = ",
+        (r"\n( +)elif listed:\n( +)if wp\.static\(loose\):\n",
          "\n\\1elif listed:\n"
-         "\\2if unlisted - wp.length(p - origin) > contact.margin + 1.0e-5:\n"
+         "\\2if unlisted - wp.length(p - origin) > " + ("0.0" if loose else "contact.margin + 1.0e-5") + ":\n"
          f"\\2    work[i] += {LISTED}\n"
          "\\2else:\n"
          f"\\2    work[i] += {WALK}\n"
-         "\\2pushed, bound, leaves, origin, unlisted = "),
+         "\\2if wp.static(loose):\n"),
     ]
     kernel, func = edited(kernel, kernel_edits), edited(func, func_edits)
     header = ("import warp as wp\nfrom warp_kernels._options import MODULE_OPTIONS\nwp.set_module_options(MODULE_OPTIONS)\n"
               "from warp_kernels.strands import *  # noqa\nfrom warp_kernels.strands import NO_BOUND, bound_lowering\n"
               "paths = PATHS_ALL  # the variant with every collision path, reading each particle in its turn\n"
               "ahead = False\n"
+              "loose = False  # the walks are counted as either pass makes them; the copy computes the exact one\n"
               "from warp_kernels.collision import *  # noqa\n\n")
     path = Path(tempfile.mkdtemp(prefix="cfx_warps_")) / "counted_ftl.py"
     path.write_text(header + "@wp.func(inline=True)\n" + func + "\n\n@wp.kernel\n" + kernel)
@@ -138,29 +145,33 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--strands", type=int, nargs="*", default=[1000, 10000])
     parser.add_argument("--frames", type=int, default=2, help="1/24 s frames of 10 substeps counted")
+    parser.add_argument("--loose", action="store_true", help="also count the walks as the loose pass makes them")
     args = parser.parse_args()
     from sim.hair_solver import lanes_by_root
     from sim.scene import quiet_warp
 
     quiet_warp()
     wp.init()
-    counted = counting_follow_the_leader()
+    passes = [("", counting_follow_the_leader())]
+    if args.loose:
+        passes.append((" loose", counting_follow_the_leader(loose=True)))
     print(f"# the length pass's warps modelled from CPU counts, commit {commit()}: step {STEP:g}, "
           f"listed leaves +{LISTED:g}, tree walk +{WALK:g}")
     header = ["strands", "lanes", "warp work/substep", "vs grown", "slowest warp/substep", "vs grown",
               "steps querying", "steps walking"]
     rows = []
     for strands in args.strands:
-        work, model = count_work(strands, args.frames, counted)
-        steps = work[work > 0]
-        queried = np.mean(steps >= STEP + LISTED) * 100.0
-        walked = np.mean(steps >= STEP + WALK) * 100.0
-        grown = warp_costs(work, np.arange(model.num_strands))
-        for name, order in (("grown", np.arange(model.num_strands)), ("by root", lanes_by_root(model))):
-            total, slowest = warp_costs(work, order)
-            rows.append([strands, name, f"{total:.0f}", f"{total / grown[0]:.2f}x", f"{slowest:.0f}",
-                         f"{slowest / grown[1]:.2f}x", f"{queried:.1f}%", f"{walked:.2f}%"])
-            print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
+        for mark, counted in passes:
+            work, model = count_work(strands, args.frames, counted)
+            steps = work[work > 0]
+            queried = np.mean(steps >= STEP + LISTED) * 100.0
+            walked = np.mean(steps >= STEP + WALK) * 100.0
+            grown = warp_costs(work, np.arange(model.num_strands))
+            for name, order in (("grown", np.arange(model.num_strands)), ("by root", lanes_by_root(model))):
+                total, slowest = warp_costs(work, order)
+                rows.append([strands, name + mark, f"{total:.0f}", f"{total / grown[0]:.2f}x", f"{slowest:.0f}",
+                             f"{slowest / grown[1]:.2f}x", f"{queried:.1f}%", f"{walked:.2f}%"])
+                print("| " + " | ".join(str(c) for c in rows[-1]) + " |", flush=True)
     print()
     print(table(header, rows))
 

@@ -10,7 +10,8 @@
 #                                       # against their launches: the paper's dress and the walking dress, profiled
 #   bash benchmarks/run_gpu.sh pending  # what session 35 left unmeasured, in one call: the hair without a collider
 #                                       # (simplified1) and on the sphere tree, each also with the length pass
-#                                       # reading ahead, fused, and fused with the frame kept in lanes, profiled;
+#                                       # reading ahead, fused, fused with the frame kept in lanes, and with
+#                                       # loose lists (walks only where a leaf may hold a particle), profiled;
 #                                       # then cloth-block
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh startup  # benchmarks/startup.py on cuda: set-up from the asset cache, and the
@@ -47,7 +48,8 @@ for part in "$@"; do
     cloth-block) timeout 400 python3 benchmarks/cloth.py --device cuda --peers --grids --detail-sizes 322 322:60 \
         --block both --profile 2>&1 | tee "$out/cloth-block.log" ;;
     pending) timeout 400 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 100000 \
-          --cases simplified1 simplified1+spheres --try read_ahead=on fused=on fused=on,frame_lanes=on --profile 2>&1 |
+          --cases simplified1 simplified1+spheres --try read_ahead=on fused=on fused=on,frame_lanes=on loose_lists=on \
+          --profile 2>&1 |
           tee "$out/pending-hair.log"
         timeout 180 python3 benchmarks/cloth.py --device cuda --peers --grids --detail-sizes 322 322:60 --block both \
           2>&1 | tee "$out/pending-cloth.log" ;;

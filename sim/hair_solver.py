@@ -211,6 +211,14 @@ class HairSolver:
         # same strands, the loop's chain no longer waiting on memory at each step, but more live
         # registers. Off until a GPU has timed it (benchmarks/hair.py --try read_ahead=on)
         self.read_ahead = False
+        # the length pass walks the sphere tree only where a particle may be inside a leaf its list does
+        # not hold, not wherever one may be within the margin (with leaves_ahead, the launches apart):
+        # the margin to such leaves is restored a substep later, by the lists made ahead in parallel
+        # (strands.FOLLOW_THE_LEADER_LOOSE). A walk in the serial loop keeps a warp's other strands
+        # waiting (100k strands on an H100: the pass 8.9 ms a frame with its walks, 5.3 without them,
+        # third lease); a CPU model of the warps (benchmarks/hair_warps.py) puts 1k strands' pass work
+        # at 0.59x. Off until a GPU has timed it (benchmarks/hair.py --try loose_lists=on)
+        self.loose_lists = False
         # a frame's substeps keep the state in lane order (begin_frame, end_frame): the fused substep
         # then reads and writes each strand's state with its warp's strands side by side, where per
         # particle they lie a strand apart, and the copies into and out of the lanes are made once a
@@ -442,7 +450,13 @@ class HairSolver:
         paths = self._length_paths(mode)
         length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths != strands.PATHS_ALL else (
             strands.FOLLOW_THE_LEADER)
-        wp.launch(length_passes[paths], r.strands,
+        length_pass = length_passes[paths]
+        if self.loose_lists and paths == strands.PATHS_SPHERE_LISTS:
+            if not self.leaves_ahead or self.read_ahead:
+                raise ValueError("loose_lists restores the margin through the lists made ahead (leaves_ahead on) "
+                                 "and is compiled reading in turn (read_ahead off)")
+            length_pass = strands.FOLLOW_THE_LEADER_LOOSE[paths]
+        wp.launch(length_pass, r.strands,
                   [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, contact,
                    p.ftl_damping, dt, v, order, r.first_strand], device=dev)
         if lanes:
@@ -561,6 +575,8 @@ class HairSolver:
     def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r, guides):
         """step() as one launch per range (strands.step_strands), after the collider's motion."""
         m, p, dev = self.model, self.params, self.model.device
+        if self.loose_lists:
+            raise ValueError("loose_lists is a way of the launches apart: set fused off")
         mode = COLLISION[p.collision] if c is not None else 0
         bound = m.bind_particle is not None and c is not None
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0

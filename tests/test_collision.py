@@ -1,5 +1,7 @@
 """Head collisions: the sphere tree is inside the head, and settled hair ends outside the head."""
 
+import functools
+
 import numpy as np
 import pytest
 import trimesh
@@ -392,6 +394,55 @@ def test_lane_order_gives_the_same_strands_and_velocities(head, shape_matching, 
     assert np.abs(x - pts).max() > 0.01 and np.abs(v).max() > 0.1  # the hair swung
 
 
+def test_the_loose_length_pass_keeps_the_strands_outside_the_head_within_the_margin_of_the_exact_one(head,
+                                                                                                   monkeypatch):
+    """HairSolver.loose_lists, a GPU's way run on the CPU (the launches apart, lane order, the lists
+    made ahead): the loose pass (strands.FOLLOW_THE_LEADER_LOOSE) is the one launched; after every
+    substep on the turning head no free particle is inside a leaf sphere, and every particle lies
+    within the margin of where the exact pass puts it. The fused substep and a pass without the lists
+    made ahead refuse it."""
+    import warp as wp
+
+    substeps, dt = 30, 1.0 / 240.0
+    moving, model, pts = _hair_on_a_turning_head(head, 256, substeps, dt, 60, 7)
+    params = HairParams(collision="sphere_tree", shape_matching="simplified", shape_iterations=1)
+    free = model.inv_mass.numpy() > 0.0
+    launched, launch = [], wp.launch
+
+    def spy(kernel, *args, **kwargs):
+        launched.append(kernel)
+        return launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", spy)
+    runs = []
+    for loose in (False, True):
+        solver = HairSolver(model, params, parts=1)
+        solver.fused, solver.leaves_ahead, solver.lanes, solver.loose_lists = False, True, True, loose
+        s0, s1 = model.state(), model.state()
+        moving.apply_pose(0)
+        launched.clear()
+        frames = []
+        for k in range(1, substeps + 1):
+            moving.apply_pose(k)
+            solver.step(s0, s1, moving, dt)
+            s0, s1 = s1, s0
+            x = s0.x.numpy().copy()
+            frames.append(x)
+            if loose:
+                assert moving.sphere_tree_depth(x[free]).max() < 1e-6
+        assert (strand_kernels.FOLLOW_THE_LEADER_LOOSE[strand_kernels.PATHS_SPHERE_LISTS] in launched) == loose
+        runs.append(np.array(frames))
+    exact, loose = runs
+    assert np.abs(loose - exact).max() <= params.collision_margin
+    assert np.abs(exact[-1] - pts).max() > 0.01  # the hair swung
+    solver.fused = True
+    with pytest.raises(ValueError, match="launches apart"):
+        solver.step(s0, s1, moving, dt)
+    solver.fused, solver.leaves_ahead = False, False
+    with pytest.raises(ValueError, match="lists made ahead"):
+        solver.step(s0, s1, moving, dt)
+
+
 @pytest.mark.parametrize("lanes,fused", [(False, False), (True, False), (False, True), (True, True)])
 def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch, lanes, fused):
     """find_short_lists and list_leaves_ahead, caught around their launches on a turning head: a particle whose bounds,
@@ -479,8 +530,10 @@ def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_s
     assert 0 < listed_total < 0.5 * substeps * np.count_nonzero(free)
 
 
+@functools.cache
 def _listed_queries():
-    """Kernels around collision.sphere_tree_nearest and collide_point_listed, for the test below."""
+    """Kernels around collision.sphere_tree_nearest, collide_point_listed and collide_point_listed_loose,
+    for the tests below (made once)."""
     import warp as wp
 
     from warp_kernels import collision
@@ -505,7 +558,37 @@ def _listed_queries():
         tree[i] = collision.collide_point(points[i], collision.COLLIDE_SPHERE_TREE, shape, margin, search)
         kept[i] = int(origin == origins[i])
 
-    return nearest, listed
+    @wp.kernel
+    def loose(points: wp.array(dtype=wp.vec3), origins: wp.array(dtype=wp.vec3), leaves: wp.array(dtype=wp.vec4i),
+              beyond: wp.array(dtype=float), shape: collision.ColliderShape, margin: float, search: float,
+              out: wp.array(dtype=wp.vec3), distance: wp.array(dtype=float), exact: wp.array(dtype=wp.vec3),
+              kept: wp.array(dtype=int)):
+        i = wp.tid()
+        pushed, d, _leaves, origin, _beyond = collision.collide_point_listed_loose(points[i], shape, margin, search,
+                                                                                  leaves[i], origins[i], beyond[i])
+        out[i] = pushed
+        distance[i] = d
+        kept[i] = int(origin == origins[i])
+        q, _d2, _leaves2, _origin2, _beyond2 = collision.collide_point_listed(points[i], shape, margin, search,
+                                                                             leaves[i], origins[i], beyond[i])
+        exact[i] = q
+
+    return nearest, listed, loose
+
+
+def _lists_near(head, collider, count, seed, rng, search):
+    """Points about 4 mm from the head's surface (float32) and the leaf lists made there
+    (sphere_tree_nearest): (points, lists, nearest distance, fifth distance), the last three as Warp arrays."""
+    import warp as wp
+
+    nearest = _listed_queries()[0]
+    surface, _ = trimesh.sample.sample_surface(trimesh.Trimesh(head.vertices, head.faces, process=False), count,
+                                               seed=seed)
+    origins = (surface + rng.normal(0.0, 0.004, surface.shape)).astype(np.float32)
+    n = len(origins)
+    leaves, first, fifth = wp.zeros(n, dtype=wp.vec4i), wp.zeros(n, dtype=float), wp.zeros(n, dtype=float)
+    wp.launch(nearest, n, [wp.array(origins, dtype=wp.vec3), collider.shape, search, leaves, first, fifth])
+    return origins, leaves, first, fifth
 
 
 def test_listed_leaves_are_the_nearest_and_resolve_points_as_the_tree_does(head, head_collider):
@@ -514,15 +597,12 @@ def test_listed_leaves_are_the_nearest_and_resolve_points_as_the_tree_does(head,
     the list, lands exactly where the tree's own sweeps put it, and the list is kept for most points."""
     import warp as wp
 
-    nearest, listed = _listed_queries()
+    _nearest, listed, _loose = _listed_queries()
     c = head_collider
     rng = np.random.default_rng(8)
-    surface, _ = trimesh.sample.sample_surface(trimesh.Trimesh(head.vertices, head.faces, process=False), 500, seed=4)
-    origins = (surface + rng.normal(0.0, 0.004, surface.shape)).astype(np.float32)
     search, margin = 0.02, 0.0015
+    origins, leaves, first, fifth = _lists_near(head, c, 500, 4, rng, search)
     n = len(origins)
-    leaves, first, fifth = wp.zeros(n, dtype=wp.vec4i), wp.zeros(n, dtype=float), wp.zeros(n, dtype=float)
-    wp.launch(nearest, n, [wp.array(origins, dtype=wp.vec3), c.shape, search, leaves, first, fifth])
     centers, radii = c.sphere_centers.numpy().astype(np.float64), c.sphere_radii.numpy().astype(np.float64)
     leaf = np.flatnonzero(c.tree.is_leaf == 1)
     dist = np.linalg.norm(origins[:, None].astype(np.float64) - centers[leaf][None], axis=2) - radii[leaf][None]
@@ -545,6 +625,45 @@ def test_listed_leaves_are_the_nearest_and_resolve_points_as_the_tree_does(head,
     np.testing.assert_array_equal(out.numpy(), tree.numpy())
     assert np.mean(np.any(tree.numpy() != moved, axis=1)) > 0.3  # many points were pushed
     assert 0.55 < kept.numpy().mean() < 1.0  # most lists served; the others were refilled from the tree
+
+
+def test_a_loose_list_walks_only_where_the_point_may_be_inside_a_leaf_it_does_not_hold(head, head_collider):
+    """collide_point_listed_loose (the length pass of HairSolver.loose_lists): lists made at points near
+    the head and asked 1.5 mm away. Where the list's bound at the point is at or below zero (an
+    unlisted leaf may contain it) or a push leaves the list's zone, it walks and answers as
+    collide_point_listed, bit for bit; where the bound lies between zero and the margin it keeps its
+    list, pushes with the listed leaves only, and leaves the point outside every leaf (a float64
+    reference over all leaves), within the margin of the exact answer, with a distance at most the
+    margin, so that the next list is made afresh."""
+    import warp as wp
+
+    _nearest, _listed, loose = _listed_queries()
+    c = head_collider
+    rng = np.random.default_rng(9)
+    search, margin = 0.02, 0.0015
+    origins, leaves, _first, fifth = _lists_near(head, c, 2000, 5, rng, search)
+    n = len(origins)
+    step = rng.normal(size=origins.shape)
+    moved = (origins + 0.0015 * step / np.linalg.norm(step, axis=1, keepdims=True)).astype(np.float32)
+    out, exact = wp.zeros(n, dtype=wp.vec3), wp.zeros(n, dtype=wp.vec3)
+    distance, kept = wp.zeros(n, dtype=float), wp.zeros(n, dtype=int)
+    wp.launch(loose, n, [wp.array(moved, dtype=wp.vec3), wp.array(origins, dtype=wp.vec3), leaves, fifth, c.shape,
+                         margin, search, out, distance, exact, kept])
+    out, exact, distance, kept = out.numpy(), exact.numpy(), distance.numpy(), kept.numpy().astype(bool)
+    bound = fifth.numpy().astype(np.float64) - np.linalg.norm((moved - origins).astype(np.float64), axis=1)
+    walked = ~kept
+    np.testing.assert_array_equal(out[walked], exact[walked])
+    assert np.all(walked[bound <= 0.0])  # an unlisted leaf may contain the point: it walks
+    spared = kept & (bound <= margin)  # short lists the exact pass walks for and the loose one keeps
+    assert spared.sum() > 20
+    centers, radii = c.sphere_centers.numpy().astype(np.float64), c.sphere_radii.numpy().astype(np.float64)
+    leaf = np.flatnonzero(c.tree.is_leaf == 1)
+    inside = radii[leaf][None] - np.linalg.norm(out[spared][:, None].astype(np.float64) - centers[leaf][None], axis=2)
+    assert inside.max() < 1e-6  # outside every leaf, listed or not
+    assert np.abs(out[spared] - exact[spared]).max() <= margin + 1e-6
+    assert np.all(distance[spared] <= margin + 1e-6)
+    true = np.linalg.norm(moved[kept][:, None].astype(np.float64) - centers[leaf][None], axis=2) - radii[leaf][None]
+    assert np.all(distance[kept] <= true.min(axis=1) + 1e-6)  # a lower bound before the push
 
 
 def test_visibility_from_an_eye_matches_the_sphere_it_sees():

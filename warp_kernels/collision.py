@@ -564,12 +564,14 @@ def sphere_tree_nearest(p: wp.vec3, shape: ColliderShape, search: float):
 
 @wp.func
 def listed_spheres_push_out(p: wp.vec3, shape: ColliderShape, margin: float, leaves: wp.vec4i, origin: wp.vec3,
-                            beyond: float):
+                            beyond: float, zone: float):
     """collide_point for the sphere tree (two sweeps) over the listed leaves only.
 
     Unlisted leaves are at least beyond - |q - origin| from any point q; while that stays above
     margin at every point the sweeps pass, the tree's sweeps would push out of the same leaves in
-    the same (ascending) order, so the result is theirs bit for bit.
+    the same (ascending) order, so the result is theirs bit for bit. With zone below margin the
+    sweeps go on while it stays above zone (above zero: no unlisted leaf contains the point, the
+    loose lists' test, collide_point_listed_loose).
 
     Inputs:
       p (vec3, m): the point
@@ -578,10 +580,12 @@ def listed_spheres_push_out(p: wp.vec3, shape: ColliderShape, margin: float, lea
       leaves (vec4i): leaf node indices in ascending order, -1 for none (sphere_tree_nearest)
       origin (vec3, m): where beyond holds
       beyond (float, m): lower bound of the distance from origin to every unlisted leaf
+      zone (float, m): the sweeps stop where a point they pass comes within this of an unlisted
+          leaf: margin + 1e-5 for the tree's answer
     Returns:
       vec3 (m): the pushed point
-      bool: false when a point the sweeps passed came within margin of an unlisted leaf (the
-          result is then not the tree's)
+      bool: false when a point the sweeps passed came within zone of an unlisted leaf (with zone
+          above margin the result is then not the tree's)
     """
     for _sweep in range(2):
         for k in range(4):
@@ -597,7 +601,7 @@ def listed_spheres_push_out(p: wp.vec3, shape: ColliderShape, margin: float, lea
                         p = c + d * (r / dist)
                     else:
                         p = c + wp.vec3(0.0, r, 0.0)
-                    if beyond - wp.length(p - origin) <= margin + 1.0e-5:
+                    if beyond - wp.length(p - origin) <= zone:
                         return p, False
     return p, True
 
@@ -637,17 +641,65 @@ def collide_point_listed(p: wp.vec3, shape: ColliderShape, margin: float, search
                 distance = wp.min(distance, wp.length(p - sphere_center(s)) - s[3])
         if distance > margin + 1.0e-6:
             return p, distance, leaves, origin, beyond
-        pushed, kept = listed_spheres_push_out(p, shape, margin, leaves, origin, beyond)
+        pushed, kept = listed_spheres_push_out(p, shape, margin, leaves, origin, beyond, margin + 1.0e-5)
         if kept:
             return pushed, distance, leaves, origin, beyond
     listed, nearest, fifth = sphere_tree_nearest(p, shape, search)
     if nearest > margin + 1.0e-6:
         return p, nearest, listed, p, fifth
     # the fresh list usually serves the push too, without the tree's two sweeps
-    pushed, kept = listed_spheres_push_out(p, shape, margin, listed, p, fifth)
+    pushed, kept = listed_spheres_push_out(p, shape, margin, listed, p, fifth, margin + 1.0e-5)
     if kept:
         return pushed, nearest, listed, p, fifth
     return collide_point(p, COLLIDE_SPHERE_TREE, shape, margin, search), nearest, listed, p, fifth
+
+
+@wp.func
+def collide_point_listed_loose(p: wp.vec3, shape: ColliderShape, margin: float, search: float, leaves: wp.vec4i,
+                               origin: wp.vec3, beyond: float):
+    """collide_point_listed that walks the tree only where p may be inside a leaf its list does not
+    hold, not wherever one may be within margin of it: the margin to unlisted leaves is left for later.
+
+    For a length pass on a GPU, where a walk down the tree keeps the other 31 strands of a warp
+    waiting. While beyond - |p - origin| stays above zero no unlisted leaf contains p, so the listed
+    leaves push it (a push whose sweeps pass a point an unlisted leaf may contain walks, as in
+    collide_point_listed); the distance returned is then at most that bound, below margin, so the
+    caller's next lists, made ahead of its pass in parallel (strands.find_short_lists,
+    list_leaves_ahead), list p afresh and the next pass restores the margin.
+
+    Inputs:
+      p (vec3, m): the point
+      shape (ColliderShape): the collider; only its sphere tree is read
+      margin (float, m): distance kept outside the leaf spheres
+      search (float, m): cap of the distances of a tree query
+      leaves (vec4i): the list (sphere_tree_nearest), ascending, -1 for none
+      origin (vec3, m): where beyond holds
+      beyond (float, m): lower bound of the distance from origin to every unlisted leaf
+    Returns:
+      vec3 (m): the resolved point
+      float (m): lower bound of p's distance from the collider (before a push by the listed leaves)
+      vec4i: the list after the call (refilled only by a walk)
+      vec3 (m): where the returned beyond holds
+      float (m): the returned list's beyond
+    """
+    distance = beyond - wp.length(p - origin)
+    walk = distance <= 0.0
+    pushed = p
+    if not walk:
+        # collide_point_listed's loop, not a shared function: one spilled more registers in step_strands
+        # (sm_90: 964/1056 -> 1004/1064 bytes)
+        for k in range(4):
+            i = leaves[k]
+            if i >= 0:
+                s = shape.spheres[i]
+                distance = wp.min(distance, wp.length(p - sphere_center(s)) - s[3])
+        if distance > margin + 1.0e-6:
+            return p, distance, leaves, origin, beyond
+        pushed, kept = listed_spheres_push_out(p, shape, margin, leaves, origin, beyond, 0.0)
+        walk = not kept
+    if walk:  # one call site: the walk's code compiled in once
+        return collide_point_listed(p, shape, margin, search, leaves, origin, beyond)
+    return pushed, distance, leaves, origin, beyond
 
 
 @wp.func

@@ -39,8 +39,8 @@ wp.set_module_options(MODULE_OPTIONS)
 APART = deferred_module(__name__ + ".apart")
 
 from .collision import (COLLIDE_MESH, COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded,
-                        collide_point_listed, collide_point_listed_mesh, list_deep_point, pseudo_normal_distance,
-                        sphere_tree_nearest)
+                        collide_point_listed, collide_point_listed_loose, collide_point_listed_mesh, list_deep_point,
+                        pseudo_normal_distance, sphere_tree_nearest)
 from .skinning import SkinBinding, bound_position, face_frame, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
@@ -1238,11 +1238,14 @@ def held_bounds(i: int, lists: int, contact: StrandContact):
     return held, held_leaves, held_beyond
 
 
-def _follow_leader(paths, ahead=False):
+def _follow_leader(paths, ahead=False, loose=False):
     """follow_leader compiled with the collision paths `paths` (PATHS_*); with `ahead` it takes the
-    bounds held at the start as values (held, held_leaves, held_beyond) instead of reading them."""
+    bounds held at the start as values (held, held_leaves, held_beyond) instead of reading them.
+    loose (PATHS_SPHERE_LISTS only): a leaf list that runs short is refilled by a walk down the tree
+    only where the particle may be inside a leaf it does not hold (collision.collide_point_listed_loose)."""
 
-    @wp.func(inline=True, name="follow_leader" + PATH_NAMES[paths] + ("_ahead" if ahead else ""))
+    @wp.func(inline=True, name="follow_leader" + PATH_NAMES[paths] + ("_ahead" if ahead else "") +
+             ("_loose" if loose else ""))
     def follow_leader(
         parent: wp.vec3,
         before: wp.vec3,
@@ -1338,8 +1341,12 @@ def _follow_leader(paths, ahead=False):
                         pushed, bound, leaves, origin, unlisted = collide_point_listed_mesh(
                             p, contact.shape.mesh, contact.margin, reach, contact.search, leaves, origin, unlisted)
                     elif listed:
-                        pushed, bound, leaves, origin, unlisted = collide_point_listed(
-                            p, contact.shape, contact.margin, reach, leaves, origin, unlisted)
+                        if wp.static(loose):
+                            pushed, bound, leaves, origin, unlisted = collide_point_listed_loose(
+                                p, contact.shape, contact.margin, reach, leaves, origin, unlisted)
+                        else:
+                            pushed, bound, leaves, origin, unlisted = collide_point_listed(
+                                p, contact.shape, contact.margin, reach, leaves, origin, unlisted)
                     else:
                         mode = contact.mode
                         if wp.static(paths == PATHS_SPHERE_LISTS):
@@ -1368,16 +1375,18 @@ def _follow_leader(paths, ahead=False):
 follow_leader = _follow_leader(PATHS_ALL)
 
 
-def _follow_the_leader(paths, ahead=False):
+def _follow_the_leader(paths, ahead=False, loose=False):
     """follow_the_leader compiled with the collision paths `paths` (PATHS_*), reading each particle's
-    inputs in its turn or, with `ahead`, while the particle before it is placed."""
-    follow = follow_leader if paths == PATHS_ALL and not ahead else _follow_leader(paths, ahead)
+    inputs in its turn or, with `ahead`, while the particle before it is placed; `loose` walks the
+    sphere tree only where a particle may be inside an unlisted leaf (_follow_leader)."""
+    follow = follow_leader if paths == PATHS_ALL and not ahead else _follow_leader(paths, ahead, loose)
 
     # 178 registers uncapped (CUDA, H100): one 256-thread block per SM, 8 warps to hide the serial loop's
     # latency; capped at 128, two blocks fit and the pass ran 30% faster (100k strands: 10.3 -> 7.3 ms
     # per frame) despite 352 bytes of spills. The CPU ignores the cap.
     @wp.kernel(module=APART, cuda_max_registers=128,
-               name="follow_the_leader" + PATH_NAMES[paths] + ("_ahead" if ahead else ""))
+               name="follow_the_leader" + PATH_NAMES[paths] + ("_ahead" if ahead else "") +
+               ("_loose" if loose else ""))
     def follow_the_leader(
         x: wp.array(dtype=wp.vec3),
         x_prev: wp.array(dtype=wp.vec3),
@@ -1523,6 +1532,9 @@ FOLLOW_THE_LEADER = {paths: _follow_the_leader(paths) for paths in PATH_NAMES}
 # (sm_90 spills: bounded queries none either way, sphere lists 88 -> 220 bytes), less of the loop waiting on memory
 FOLLOW_THE_LEADER_AHEAD = {paths: _follow_the_leader(paths, ahead=True) for paths in (PATHS_QUERIES,
                                                                                        PATHS_SPHERE_LISTS)}
+# the sphere tree's pass walking only where a particle may be inside an unlisted leaf (HairSolver.loose_lists,
+# a GPU experiment): the margin to such leaves is restored a substep later, through the lists made ahead
+FOLLOW_THE_LEADER_LOOSE = {PATHS_SPHERE_LISTS: _follow_the_leader(PATHS_SPHERE_LISTS, loose=True)}
 follow_the_leader = FOLLOW_THE_LEADER[PATHS_ALL]
 
 @wp.func
