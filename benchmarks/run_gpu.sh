@@ -10,9 +10,10 @@
 #                                       # against their launches: the paper's dress and the walking dress, profiled
 #   bash benchmarks/run_gpu.sh pending  # what session 35 left unmeasured, in one call: the hair without a collider
 #                                       # (simplified1) and on the sphere tree, each also with the length pass
-#                                       # reading ahead, fused, fused with the frame kept in lanes, and with
-#                                       # loose lists (walks only where a leaf may hold a particle), profiled;
+#                                       # reading ahead, fused, and fused with the frame kept in lanes, profiled;
 #                                       # then cloth-block
+#   bash benchmarks/run_gpu.sh loose    # the sphere tree's length pass with loose lists (HairSolver.loose_lists:
+#                                       # walks only where a leaf may hold a particle), apart and fused in lanes
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh startup  # benchmarks/startup.py on cuda: set-up from the asset cache, and the
 #                                       # CUDA modules compiled one after another and side by side (NVRTC)
@@ -48,11 +49,14 @@ for part in "$@"; do
     cloth-block) timeout 400 python3 benchmarks/cloth.py --device cuda --peers --grids --detail-sizes 322 322:60 \
         --block both --profile 2>&1 | tee "$out/cloth-block.log" ;;
     pending) timeout 400 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 100000 \
-          --cases simplified1 simplified1+spheres --try read_ahead=on fused=on fused=on,frame_lanes=on loose_lists=on \
-          --profile 2>&1 |
+          --cases simplified1 simplified1+spheres --try read_ahead=on fused=on fused=on,frame_lanes=on --profile 2>&1 |
           tee "$out/pending-hair.log"
         timeout 180 python3 benchmarks/cloth.py --device cuda --peers --grids --detail-sizes 322 322:60 --block both \
           2>&1 | tee "$out/pending-cloth.log" ;;
+    loose) timeout 540 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 100000 \
+          --cases simplified1+spheres \
+          --try loose_lists=on fused=on,frame_lanes=on fused=on,frame_lanes=on,loose_lists=on \
+          --profile 2>&1 | tee "$out/loose-hair.log" ;;
     realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;
     hair-ab) ab benchmarks/hair.py 250 --device cuda --no-peer ${HAIR_AB_ARGS:---strands 1000 100000 --cases simplified1+spheres full+mesh} 2>&1 |
         tee "$out/hair-ab.log" ;;

@@ -212,12 +212,13 @@ class HairSolver:
         # registers. Off until a GPU has timed it (benchmarks/hair.py --try read_ahead=on)
         self.read_ahead = False
         # the length pass walks the sphere tree only where a particle may be inside a leaf its list does
-        # not hold, not wherever one may be within the margin (with leaves_ahead, the launches apart):
-        # the margin to such leaves is restored a substep later, by the lists made ahead in parallel
-        # (strands.FOLLOW_THE_LEADER_LOOSE). A walk in the serial loop keeps a warp's other strands
-        # waiting (100k strands on an H100: the pass 8.9 ms a frame with its walks, 5.3 without them,
-        # third lease); a CPU model of the warps (benchmarks/hair_warps.py) puts 1k strands' pass work
-        # at 0.59x. Off until a GPU has timed it (benchmarks/hair.py --try loose_lists=on)
+        # not hold, not wherever one may be within the margin (with leaves_ahead; fused, with simplified
+        # shape matching): the margin to such leaves is restored a substep later, by the lists made ahead
+        # in parallel (strands.FOLLOW_THE_LEADER_LOOSE, STEP_STRANDS_LOOSE). A walk in the serial loop
+        # keeps a warp's other strands waiting (100k strands on an H100: the pass 8.9 ms a frame with its
+        # walks, 5.3 without them, third lease); a CPU model of the warps (benchmarks/hair_warps.py) puts
+        # 1k strands' pass work at 0.59x. Off until a GPU has timed it (benchmarks/hair.py --try
+        # loose_lists=on)
         self.loose_lists = False
         # a frame's substeps keep the state in lane order (begin_frame, end_frame): the fused substep
         # then reads and writes each strand's state with its warp's strands side by side, where per
@@ -575,8 +576,6 @@ class HairSolver:
     def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r, guides):
         """step() as one launch per range (strands.step_strands), after the collider's motion."""
         m, p, dev = self.model, self.params, self.model.device
-        if self.loose_lists:
-            raise ValueError("loose_lists is a way of the launches apart: set fused off")
         mode = COLLISION[p.collision] if c is not None else 0
         bound = m.bind_particle is not None and c is not None
         hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
@@ -609,7 +608,13 @@ class HairSolver:
         fit = (self._length_paths(mode), variant != SHAPE_MATCHING["full"])
         if fit not in strands.STEP_STRANDS:
             fit = (strands.PATHS_ALL, False)
-        wp.launch(strands.STEP_STRANDS[fit], r.strands,
+        step = strands.STEP_STRANDS[fit]
+        if self.loose_lists and mode == COLLISION["sphere_tree"]:
+            if fit not in strands.STEP_STRANDS_LOOSE or not self.leaves_ahead:
+                raise ValueError("loose_lists in the fused substep takes simplified shape matching against the "
+                                 "sphere tree, with the lists made ahead (leaves_ahead on)")
+            step = strands.STEP_STRANDS_LOOSE[fit]
+        wp.launch(step, r.strands,
                   [x_in, v_in, m.strand_start, m.pinned_per_strand, self._forces(), self.clock,
                    offset, dt, int(bound), c.skin_binding(m) if bound else skinning.SkinBinding(),
                    m.particle_binding if bound else None, m.root_binding if bound else None, hold if bound else 0.0,

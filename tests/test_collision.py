@@ -394,13 +394,15 @@ def test_lane_order_gives_the_same_strands_and_velocities(head, shape_matching, 
     assert np.abs(x - pts).max() > 0.01 and np.abs(v).max() > 0.1  # the hair swung
 
 
+@pytest.mark.parametrize("fused", [False, True])
 def test_the_loose_length_pass_keeps_the_strands_outside_the_head_within_the_margin_of_the_exact_one(head,
-                                                                                                   monkeypatch):
-    """HairSolver.loose_lists, a GPU's way run on the CPU (the launches apart, lane order, the lists
-    made ahead): the loose pass (strands.FOLLOW_THE_LEADER_LOOSE) is the one launched; after every
-    substep on the turning head no free particle is inside a leaf sphere, and every particle lies
-    within the margin of where the exact pass puts it. The fused substep and a pass without the lists
-    made ahead refuse it."""
+                                                                                                   monkeypatch,
+                                                                                                   fused):
+    """HairSolver.loose_lists, a GPU's way run on the CPU with the lists made ahead, in the launches
+    apart (lane order) or fused: the loose pass (strands.FOLLOW_THE_LEADER_LOOSE, STEP_STRANDS_LOOSE)
+    is the one launched; after every substep on the turning head no free particle is inside a leaf
+    sphere, and every particle lies within the margin of where the exact pass puts it. Without the
+    lists made ahead, or fused with full shape matching, it is refused."""
     import warp as wp
 
     substeps, dt = 30, 1.0 / 240.0
@@ -417,7 +419,7 @@ def test_the_loose_length_pass_keeps_the_strands_outside_the_head_within_the_mar
     runs = []
     for loose in (False, True):
         solver = HairSolver(model, params, parts=1)
-        solver.fused, solver.leaves_ahead, solver.lanes, solver.loose_lists = False, True, True, loose
+        solver.fused, solver.leaves_ahead, solver.lanes, solver.loose_lists = fused, True, not fused, loose
         s0, s1 = model.state(), model.state()
         moving.apply_pose(0)
         launched.clear()
@@ -430,17 +432,22 @@ def test_the_loose_length_pass_keeps_the_strands_outside_the_head_within_the_mar
             frames.append(x)
             if loose:
                 assert moving.sphere_tree_depth(x[free]).max() < 1e-6
-        assert (strand_kernels.FOLLOW_THE_LEADER_LOOSE[strand_kernels.PATHS_SPHERE_LISTS] in launched) == loose
+        lists = strand_kernels.PATHS_SPHERE_LISTS
+        kernel = (strand_kernels.STEP_STRANDS_LOOSE[(lists, True)] if fused
+                  else strand_kernels.FOLLOW_THE_LEADER_LOOSE[lists])
+        assert (kernel in launched) == loose
         runs.append(np.array(frames))
     exact, loose = runs
     assert np.abs(loose - exact).max() <= params.collision_margin
     assert np.abs(exact[-1] - pts).max() > 0.01  # the hair swung
-    solver.fused = True
-    with pytest.raises(ValueError, match="launches apart"):
-        solver.step(s0, s1, moving, dt)
-    solver.fused, solver.leaves_ahead = False, False
+    solver.leaves_ahead = False
     with pytest.raises(ValueError, match="lists made ahead"):
         solver.step(s0, s1, moving, dt)
+    if fused:
+        full = HairSolver(model, HairParams(collision="sphere_tree", shape_matching="full"), parts=1)
+        full.leaves_ahead, full.loose_lists = True, True
+        with pytest.raises(ValueError, match="simplified shape matching"):
+            full.step(s0, s1, moving, dt)
 
 
 @pytest.mark.parametrize("lanes,fused", [(False, False), (True, False), (False, True), (True, True)])

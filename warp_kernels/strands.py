@@ -1898,11 +1898,12 @@ def predict_strand(
         x_out[slot] = p
 
 
-def _step_strands(paths, simplified=False):
+def _step_strands(paths, simplified=False, loose=False):
     """step_strands compiled with the collision paths `paths` (PATHS_*) of its length pass, and with
-    `simplified` for simplified shape matching only (variant is then read as SHAPE_SIMPLIFIED)."""
-    follow = follow_leader if paths == PATHS_ALL else _follow_leader(paths)
-    name = "step_strands" + PATH_NAMES[paths] + ("_simplified" if simplified else "")
+    `simplified` for simplified shape matching only (variant is then read as SHAPE_SIMPLIFIED);
+    `loose` walks the sphere tree only where a particle may be inside an unlisted leaf (_follow_leader)."""
+    follow = follow_leader if paths == PATHS_ALL else _follow_leader(paths, loose=loose)
+    name = "step_strands" + PATH_NAMES[paths] + ("_simplified" if simplified else "") + ("_loose" if loose else "")
     # every path, the CPU's default, in this module; a variant only where its case launches it
     module = None if paths == PATHS_ALL and not simplified else deferred_module(f"{__name__}.{name}")
 
@@ -2091,6 +2092,8 @@ STEP_STRANDS = {(PATHS_ALL, False): _step_strands(PATHS_ALL),
                 (PATHS_SPHERE_LISTS, True): _step_strands(PATHS_SPHERE_LISTS, simplified=True),
                 (PATHS_QUERIES, False): _step_strands(PATHS_QUERIES),
                 (PATHS_QUERIES, True): _step_strands(PATHS_QUERIES, simplified=True)}
+# the sphere tree's fused substep with loose lists (HairSolver.loose_lists with fused, a GPU experiment)
+STEP_STRANDS_LOOSE = {(PATHS_SPHERE_LISTS, True): _step_strands(PATHS_SPHERE_LISTS, simplified=True, loose=True)}
 step_strands = STEP_STRANDS[(PATHS_ALL, False)]
 
 
