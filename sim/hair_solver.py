@@ -57,6 +57,40 @@ def split_strands(model, windows, count):
     return ranges
 
 
+def length_paths(mode, contact_bounds, mesh_lists):
+    """The collision paths (strands.PATHS_*) the length pass takes against collision mode `mode` (with
+    HairSolver.contact_bounds and mesh_lists): the pass is compiled with only those, for fewer spilled
+    registers."""
+    if mode == COLLISION["mesh"] and mesh_lists:
+        return strands.PATHS_ALL  # a mesh query goes through a list even without the bounds
+    if mode == COLLISION["sphere_tree"] and contact_bounds:
+        return strands.PATHS_SPHERE_LISTS
+    return strands.PATHS_QUERIES
+
+
+def fused_fit(mode, variant, contact_bounds, mesh_lists):
+    """The key of strands.STEP_STRANDS the fused substep launches against collision mode `mode` with
+    shape-matching variant `variant`: the pass compiled with only the collision paths it takes and, where
+    it allows, simplified shape matching alone (the same strands, fewer registers spilled on a GPU)."""
+    fit = (length_paths(mode, contact_bounds, mesh_lists), variant != SHAPE_MATCHING["full"])
+    return fit if fit in strands.STEP_STRANDS else (strands.PATHS_ALL, False)
+
+
+def deferred_step_modules(params, device):
+    """The deferred Warp modules (warp_kernels._options.deferred_module) of the substep a HairSolver with
+    `params` steps by default on `device` against a collider, for a first run to compile beside the
+    others (warp_kernels.load) rather than at its first frame: the fused substep's variant on a CPU
+    (the sphere tree with simplified shape matching, or no collider); none on a CUDA device, whose load
+    takes every module."""
+    from warp_kernels._options import DEFERRED
+
+    if wp.get_device(device).is_cuda:
+        return []
+    fit = fused_fit(COLLISION[params.collision], SHAPE_MATCHING[params.shape_matching], True, True)
+    name = strands.STEP_STRANDS[fit].module.name
+    return [name] if name in DEFERRED else []
+
+
 def _contact_motion(device):
     motion = strands.ContactMotion()
     motion.moved = wp.zeros(1, dtype=wp.int32, device=device)
@@ -484,13 +518,7 @@ class HairSolver:
         return contact
 
     def _length_paths(self, mode):
-        """The collision paths (strands.PATHS_*) the length pass takes against collision mode `mode`: the
-        pass is compiled with only those, for fewer spilled registers."""
-        if mode == COLLISION["mesh"] and self.mesh_lists:
-            return strands.PATHS_ALL  # a mesh query goes through a list even without the bounds
-        if mode == COLLISION["sphere_tree"] and self.contact_bounds:
-            return strands.PATHS_SPHERE_LISTS
-        return strands.PATHS_QUERIES
+        return length_paths(mode, self.contact_bounds, self.mesh_lists)
 
     def _forces(self):
         """The parameters' forces as the kernels take them (strands.StrandForces)."""
@@ -603,11 +631,7 @@ class HairSolver:
                        order, by_particle, first, count, self._short], device=dev)
             wp.launch(strands.list_leaves_ahead, dim,
                       [x_in, contact, count, self._short, first, m.strand_start, order, by_particle], device=dev)
-        # the pass compiled with only the collision paths it takes and, where it allows, simplified shape
-        # matching alone (strands.STEP_STRANDS): the same strands, fewer registers spilled on a GPU
-        fit = (self._length_paths(mode), variant != SHAPE_MATCHING["full"])
-        if fit not in strands.STEP_STRANDS:
-            fit = (strands.PATHS_ALL, False)
+        fit = fused_fit(mode, variant, self.contact_bounds, self.mesh_lists)
         step = strands.STEP_STRANDS[fit]
         if self.loose_lists and mode == COLLISION["sphere_tree"]:
             if fit not in strands.STEP_STRANDS_LOOSE or not self.leaves_ahead:

@@ -28,7 +28,7 @@ from .errors import InputError
 from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
-from .hair_solver import HairParams, HairSolver
+from .hair_solver import HairParams, HairSolver, deferred_step_modules
 from .comb import before_frame as comb_before_frame
 from .haircut import parse_timeline, run_events
 from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp, scalp_area
@@ -341,7 +341,8 @@ class Scene:
         except (ValueError, RuntimeError):
             raise InputError(config.source, "scene.device", f"device '{device}' is not available") from None
         self.device = device
-        load_kernels(device, announce)
+        # the hair's fused variant, where its case takes one, compiled beside the six modules
+        load_kernels(device, announce, deferred_step_modules(config.solver, device) if config.hair.enabled else None)
         self.time = 0.0
         self._root_vertices = None  # (hair model, its root triangles' collider vertices)
         self.graphs = FrameGraphs(device, config.timing.graphs)
@@ -741,13 +742,14 @@ class Scene:
 KERNELS_NOTICE_S = 1.0  # a load slower than this is compiling: say why the run has not started
 
 
-def load_kernels(device, announce=False):
+def load_kernels(device, announce=False, deferred=None):
     """Every kernel module for `device`, compiled (or read from Warp's kernel cache) side by side
     before the first launch (warp_kernels.load): a first run on a cold kernel cache waits for the
-    longest module, not for all of them in turn. announce: when that takes longer than
-    KERNELS_NOTICE_S, one line on stderr says what the wait is."""
+    longest module, not for all of them in turn. deferred: the deferred modules the run will launch
+    too (warp_kernels.load). announce: when that takes longer than KERNELS_NOTICE_S, one line on
+    stderr says what the wait is."""
     if not announce:
-        warp_kernels.load(device, cpu_cores())
+        warp_kernels.load(device, cpu_cores(), deferred=deferred)
         return
     done = threading.Event()
 
@@ -759,7 +761,7 @@ def load_kernels(device, announce=False):
     teller = threading.Thread(target=notice, daemon=True)
     teller.start()
     try:
-        warp_kernels.load(device, cpu_cores())
+        warp_kernels.load(device, cpu_cores(), deferred=deferred)
     finally:
         done.set()
         teller.join()

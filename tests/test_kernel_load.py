@@ -6,6 +6,8 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
 import warp_kernels
 
 TINY = {
@@ -148,6 +150,38 @@ def test_a_cpu_run_of_the_built_in_scene_launches_nothing_deferred(monkeypatch):
     assert {name for name in launched if name.startswith("warp_kernels")} <= own
 
 
+@pytest.mark.parametrize("collision,shape_matching,module", [
+    ("mesh", "full", None), ("sphere_tree", "full", None),
+    ("sphere_tree", "simplified", "warp_kernels.strands.step_strands_sphere_lists_simplified"),
+    ("none", "full", "warp_kernels.strands.step_strands_queries")])
+def test_a_scene_loads_the_fused_variant_its_hair_launches(monkeypatch, collision, shape_matching, module):
+    """A CPU scene asks warp_kernels.load for the deferred module of the fused substep its hair will
+    launch (sim.hair_solver.deferred_step_modules), so a first run compiles it beside the six modules
+    rather than at its first frame; the kernel its frames launch is that module's (or a core one)."""
+    import warp as wp
+
+    from sim.scene import Scene, hair_demo_scene
+
+    asked, load = [], warp_kernels.load
+    monkeypatch.setattr(warp_kernels, "load", lambda device, threads, deferred: asked.append(deferred) or
+                        load(device, threads, deferred=deferred))
+    launched, launch = set(), wp.launch
+
+    def recording(kernel, *args, **kwargs):
+        if kernel.key.startswith("step_strands"):
+            launched.add(kernel.module.name)
+        return launch(kernel, *args, **kwargs)
+
+    monkeypatch.setattr(wp, "launch", recording)
+    scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "frames": 1, "preroll": 0.0, "stats": False},
+                                   "head": {"sphere_leaves": 48}, "hair": {"count": 20, "vertices": 6},
+                                   "solver": {"collision": collision, "shape_matching": shape_matching}}))
+    assert asked == [[module] if module else []]
+    scene.graphs.enabled = False
+    scene.advance(1.0 / scene.config.timing.fps)
+    assert launched == {module or "warp_kernels.strands"}
+
+
 def test_the_engine_loads_every_kernel_module():
     names = {m.__name__.rsplit(".", 1)[1] for m in warp_kernels._MODULES}
     assert names == set(warp_kernels.__all__) - {"load"}
@@ -160,10 +194,10 @@ def test_a_slow_load_says_what_the_run_waits_for(monkeypatch, capsys):
 
     calls = []
     monkeypatch.setattr(scene, "KERNELS_NOTICE_S", 0.05)
-    monkeypatch.setattr(warp_kernels, "load", lambda device, threads: calls.append(device) or time.sleep(0.3))
+    monkeypatch.setattr(warp_kernels, "load", lambda device, threads, deferred: calls.append(device) or time.sleep(0.3))
     scene.load_kernels("cpu", announce=True)
     assert "compiling the Warp kernels for cpu" in capsys.readouterr().err
     scene.load_kernels("cpu", announce=False)  # quiet runs (cfx -q, the Python API) say nothing
-    monkeypatch.setattr(warp_kernels, "load", lambda device, threads: calls.append(device))
+    monkeypatch.setattr(warp_kernels, "load", lambda device, threads, deferred: calls.append(device))
     scene.load_kernels("cpu", announce=True)  # a warm kernel cache: nothing to say
     assert capsys.readouterr().err == "" and calls == ["cpu"] * 3

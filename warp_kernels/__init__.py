@@ -25,9 +25,10 @@ def load(device="cpu", threads=None, modules=_MODULES, deferred=None):
 
     deferred: also the Warp modules of kernels only some runs launch (_options.deferred_module: a
     GPU's hair substep in launches apart, the sphere tree's and no collider's fused variants, a small
-    cloth's step in one block), those of `modules`. By default on a CUDA device, where its compiler is
-    quick and a module must not load during a graph capture; a CPU compiles each at its first launch,
-    if any, and a run that never launches them does not wait for them.
+    cloth's step in one block), those of `modules`; or a list of those a run will launch
+    (sim.hair_solver.deferred_step_modules). All of them by default on a CUDA device, where its
+    compiler is quick and a module must not load during a graph capture; none on a CPU, which compiles
+    each at its first launch, if any, so a run that never launches them does not wait for them.
     """
     import os
 
@@ -38,7 +39,12 @@ def load(device="cpu", threads=None, modules=_MODULES, deferred=None):
     if deferred is None:
         deferred = wp.get_device(device).is_cuda
     names = [m.__name__ for m in modules]
-    if deferred:
+    if deferred is True:
         names += [d for d in DEFERRED if any(d.startswith(n + ".") for n in names)]
+    elif deferred:
+        unknown = sorted(set(deferred) - set(DEFERRED))
+        if unknown:
+            raise ValueError(f"not deferred kernel modules: {unknown}")
+        names += list(deferred)
     workers = max(1, min(len(names), threads or os.cpu_count() or 1))
     wp.force_load(device=device, modules=[wp.get_module(n) for n in names], max_workers=workers)
