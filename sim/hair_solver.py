@@ -80,12 +80,12 @@ def deferred_step_modules(params, device):
     """The deferred Warp modules (warp_kernels._options.deferred_module) of the substep a HairSolver with
     `params` steps by default on `device` against a collider, for a first run to compile beside the
     others (warp_kernels.load) rather than at its first frame: the fused substep's variant on a CPU
-    (the sphere tree with simplified shape matching, or no collider); none on a CUDA device, whose load
-    takes every module."""
+    (the sphere tree with simplified shape matching, or no collider), a list; None on a CUDA device,
+    whose load takes every module by default."""
     from warp_kernels._options import DEFERRED
 
     if wp.get_device(device).is_cuda:
-        return []
+        return None
     fit = fused_fit(COLLISION[params.collision], SHAPE_MATCHING[params.shape_matching], True, True)
     name = strands.STEP_STRANDS[fit].module.name
     return [name] if name in DEFERRED else []
