@@ -38,6 +38,18 @@ EXTENSIONS = (".png", ".mp4", ".gif")
 # are mostly thin hair triangles. The same four samples per pixel, each shaded: the demo's preview
 # frame 830 -> 270 ms, a close-up of its hair 1280 -> 800 ms, a capture image 390 -> 280 ms.
 SUPERSAMPLE = 2
+# Named views, (camera yaw about +Y from the front (+Z), pitch above the horizon) in degrees. The
+# character faces +Z, so "left" looks at its left side (+X). A pitch of 90 would leave look_at's up
+# vector undefined; "top" looks down steeply enough to show the crown and the parting.
+VIEWS = {
+    "three-quarter": (25.0, 10.0),
+    "front": (0.0, 0.0),
+    "left": (90.0, 0.0),
+    "right": (-90.0, 0.0),
+    "back": (180.0, 0.0),
+    "top": (0.0, 75.0),
+}
+TURNAROUND = ("front", "left", "back", "right")
 
 
 def _pyrender():
@@ -479,23 +491,23 @@ class FrameRenderer:
         """(camera.height, camera.width, 3) uint8 image of `frame`."""
         return self._draw(camera, build_scene(self.builder, frame, camera, self.background))
 
-    def render_sequence(self, frames, camera_of):
-        """The images of `frames` in order, each seen by camera_of(frame). The next frame's scene is
-        built on a second thread while the GL draws this one: its NumPy work and the wait for the
-        GL both release the GIL."""
+    def render_sequence(self, shots, camera_of):
+        """The images of `shots`, (frame, view) pairs, in order, each seen by camera_of(frame, view).
+        The next shot's scene is built on a second thread while the GL draws this one: its NumPy work
+        and the wait for the GL both release the GIL."""
         from concurrent.futures import ThreadPoolExecutor
 
-        frames = list(frames)
+        shots = list(shots)
 
-        def build(frame):
-            camera = camera_of(frame)
-            return camera, build_scene(self.builder, frame, camera, self.background)
+        def build(shot):
+            camera = camera_of(*shot)
+            return camera, build_scene(self.builder, shot[0], camera, self.background)
 
         with ThreadPoolExecutor(1) as pool:
-            pending = [pool.submit(build, f) for f in frames[:1]]
-            for k in range(len(frames)):
+            pending = [pool.submit(build, s) for s in shots[:1]]
+            for k in range(len(shots)):
                 camera, scene = pending.pop().result()
-                pending += [pool.submit(build, f) for f in frames[k + 1:k + 2]]
+                pending += [pool.submit(build, s) for s in shots[k + 1:k + 2]]
                 yield self._draw(camera, scene)
 
     def _draw(self, camera, scene):
@@ -638,15 +650,37 @@ def write_images(images, labels, tmp, ext, fps, columns):
                        duration=max(20, int(round(1000.0 / fps))), disposal=1)
 
 
+def resolve_views(views):
+    """[(label, yaw, pitch)] for `views`: names from VIEWS, "turnaround" (front, left, back, right),
+    or (yaw, pitch) pairs in degrees. None or empty is the three-quarter view."""
+    resolved = []
+    for view in views or ("three-quarter",):
+        if isinstance(view, str):
+            if view == "turnaround":
+                resolved += [(name, *VIEWS[name]) for name in TURNAROUND]
+            elif view in VIEWS:
+                resolved.append((view, *VIEWS[view]))
+            else:
+                raise ValueError(f"unknown view {view!r}: use {', '.join(VIEWS)}, turnaround or YAW,PITCH in degrees")
+        else:
+            yaw, pitch = (float(a) for a in view)
+            if not (math.isfinite(yaw) and math.isfinite(pitch) and -89.0 <= pitch <= 89.0):
+                raise ValueError(f"view yaw {yaw:g}, pitch {pitch:g}: the pitch must be within -89 to 89 degrees")
+            resolved.append((f"yaw {yaw:g}, pitch {pitch:g}", yaw, pitch))
+    return resolved
+
+
 def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720, columns=None, camera=None,
-            shadows=True, follow=False, focus=None, progress=True):
+            shadows=True, follow=False, focus=None, progress=True, views=None):
     """Render a cache to an image or a movie and return out_path.
 
     The extension picks the output: .png is one frame (default the last) or, when `frames` lists
     several, a contact sheet of width x height tiles labelled with their frame numbers; .mp4 and .gif
     play `frames` (default all) at the cache's fps. A given camera sets the image size and view;
-    otherwise one frames the whole scene, or with follow=True each frame on its own (a camera that
-    tracks a walking character); focus (a prim name or role, e.g. "face") frames just those prims.
+    otherwise one frames the whole scene from each of `views` (see resolve_views; default the
+    three-quarter view), or with follow=True each frame on its own (a camera that tracks a walking
+    character); focus (a prim name or role, e.g. "face") frames just those prims. Several views put
+    their tiles side by side, labelled: one row of a .png's sheet per frame, one movie frame of them.
     shadows=False saves about 40% of the render time on software GL; progress=False hides the progress
     bar. The file appears only once fully written.
     """
@@ -654,6 +688,12 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     ext = os.path.splitext(out_path)[1].lower()
     if ext not in EXTENSIONS:
         raise ValueError(f"{out_path}: unknown output type {ext or '(none)'!r}; use .png, .mp4 or .gif")
+    if camera is not None and views:
+        raise ValueError(f"{out_path}: pass a camera or views, not both")
+    try:
+        angles = [(None, None, None)] if camera is not None else resolve_views(views)
+    except ValueError as err:
+        raise ValueError(f"{out_path}: {err}") from None
     if not os.path.isfile(cache_path):
         raise FileNotFoundError(f"{cache_path}: no such cache file")
     reader = CacheReader(cache_path)
@@ -664,9 +704,13 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     if camera is None:
         if width <= 0 or height <= 0:
             raise ValueError(f"{out_path}: image size must be positive, got {width}x{height}")
-        camera = auto_camera(reader, int(width), int(height), chosen, names)
-    if ext == ".mp4" and (camera.width % 2 or camera.height % 2):
-        raise ValueError(f"{out_path}: MP4 needs an even width and height, got {camera.width}x{camera.height}")
+        width, height = int(width), int(height)
+        fixed = [auto_camera(reader, width, height, chosen, names, yaw_degrees=yaw, pitch_degrees=pitch)
+                 for _, yaw, pitch in angles]
+    else:
+        width, height, fixed = camera.width, camera.height, [camera]
+    if ext == ".mp4" and (width % 2 or height % 2):
+        raise ValueError(f"{out_path}: MP4 needs an even width and height, got {width}x{height}")
 
     from tqdm import tqdm
 
@@ -675,17 +719,37 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     tmp = os.path.join(folder, f".{os.path.basename(out_path)}.partial-{os.getpid()}{ext}")
     bar = tqdm(total=len(chosen), desc=f"preview {os.path.basename(out_path)}", unit="frame", file=sys.stderr,
                disable=not progress or len(chosen) < 2, leave=False)
+    view_labels = [label for label, _, _ in angles]
+    several = len(angles) > 1
+    if not several:
+        labels = [f"frame {f}" for f in chosen]
+    elif len(chosen) == 1:
+        labels = view_labels
+    else:
+        labels = [f"frame {f}, {label}" for f in chosen for label in view_labels]
     try:
-        with FrameRenderer(reader, camera.width, camera.height, shadows=shadows) as renderer:
-            def view(f):
-                return auto_camera(reader, camera.width, camera.height, [f], names) if follow else camera
+        with FrameRenderer(reader, width, height, shadows=shadows) as renderer:
+            def camera_of(f, k):
+                if not follow:
+                    return fixed[k]
+                _, yaw, pitch = angles[k]
+                return auto_camera(reader, width, height, [f], names, yaw_degrees=yaw, pitch_degrees=pitch)
 
             def images():
-                for image in renderer.render_sequence(chosen, view):
+                shots = [(f, k) for f in chosen for k in range(len(angles))]
+                row = []
+                for image in renderer.render_sequence(shots, camera_of):
+                    row.append(image)
+                    if len(row) < len(angles):
+                        continue
                     bar.update(1)
-                    yield image
+                    if several and ext != ".png":  # a movie frame holds every view
+                        yield np.asarray(contact_sheet(row, view_labels, columns=len(row)))
+                    else:
+                        yield from row
+                    row = []
 
-            write_images(images(), [f"frame {f}" for f in chosen], tmp, ext, reader.fps or 24.0, columns)
+            write_images(images(), labels, tmp, ext, reader.fps or 24.0, len(angles) if several else columns)
         os.replace(tmp, out_path)
     finally:
         bar.close()

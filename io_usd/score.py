@@ -33,6 +33,7 @@ from .preview import (
     BACKGROUND,
     Camera,
     SceneBuilder,
+    VIEWS as PREVIEW_VIEWS,
     SupersampledOffscreen,
     _font,
     _pyrender,
@@ -40,7 +41,8 @@ from .preview import (
     contact_sheet,
 )
 
-VIEWS = (("front", 0.0), ("left", 90.0), ("right", -90.0), ("back", 180.0))  # camera yaw about +Y, from +Z
+# the four level views' camera yaws about +Y, from +Z, as the preview names them
+VIEWS = tuple((name, PREVIEW_VIEWS[name][0]) for name in ("front", "left", "right", "back"))
 ROOT_TOLERANCE = 0.002  # m, how far a result root may be from a target root and still be the same strand
 HEAD_REACH = 0.08  # m, collider/face points this close to the hair roots' box are the head, framed with the hair
 CONTEXT_ROLES = ("collider", "face")  # drawn as occluders and for context; cloth and hair cards are left out

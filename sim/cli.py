@@ -41,6 +41,23 @@ def _size(text, example="960x720"):
     return w, h
 
 
+def _views(texts):
+    """--view values: names pass through, 'YAW,PITCH' become (yaw, pitch) in degrees; the preview
+    names an unknown view."""
+    views = []
+    for text in texts or ():
+        if "," in text:
+            try:
+                yaw, pitch = (float(v) for v in text.split(","))
+            except ValueError:
+                raise ValueError(f"--view: expected a view name or YAW,PITCH in degrees, e.g. 30,15, got {text!r}") \
+                    from None
+            views.append((yaw, pitch))
+        else:
+            views.append(text)
+    return views
+
+
 def _overrides(args):
     scene = {}
     if getattr(args, "frames", None) is not None:
@@ -156,18 +173,19 @@ def cmd_lipsync(args):
     return 0
 
 
-def _preview(cache, out, frames, quiet, size=(960, 720), follow=False, focus=None):
+def _preview(cache, out, frames, quiet, size=(960, 720), follow=False, focus=None, views=None):
     from io_usd.preview import preview
 
     preview(cache, out, frames=frames, width=size[0], height=size[1], follow=follow, focus=focus,
-            progress=not quiet)
+            progress=not quiet, views=views)
     if not quiet:
         print(f"wrote {out}", file=sys.stderr)
 
 
 def cmd_preview(args):
     frames = _frames(args.frames) if args.frames else None
-    _preview(args.cache, args.output, frames, args.quiet, _size(args.size), args.follow, args.focus)
+    _preview(args.cache, args.output, frames, args.quiet, _size(args.size), args.follow, args.focus,
+             _views(args.view))
     return 0
 
 
@@ -342,6 +360,9 @@ def build_parser():
     p.add_argument("--size", default="960x720", help="WIDTHxHEIGHT in pixels")
     p.add_argument("--follow", action="store_true", help="frame every frame on its own (a tracking camera)")
     p.add_argument("--focus", help="frame only this prim or role, e.g. face")
+    p.add_argument("--view", action="append", metavar="VIEW",
+                   help="three-quarter (the default), front, left, right, back, top, turnaround (front, left, "
+                        "back, right) or YAW,PITCH in degrees; repeat it for several views side by side")
     p.add_argument("-q", "--quiet", action="store_true")
     p.set_defaults(func=cmd_preview)
 

@@ -64,6 +64,10 @@ def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path, capsys):
     assert Image.open(still).size == (160, 120)
     assert main(["preview", out, "-o", str(sheet), "--frames", "1:3", "--size", "160x120", "-q"]) == 0
     assert Image.open(sheet).size == (320, 240)  # 3 frames in a 2 x 2 grid
+    views = tmp_path / "views.png"
+    assert main(["preview", out, "-o", str(views), "--view", "turnaround", "--view", "20,35", "--size", "160x120",
+                 "-q"]) == 0
+    assert Image.open(views).size == (5 * 160, 120)
     assert capsys.readouterr().err == ""  # -q: no progress bar either
     assert main(["preview", out, "-o", str(tmp_path / "x.png"), "--frames", "9", "-q"]) == 2
     # a malformed size and one beyond what the GL draws: one line each, exit 2, nothing written
@@ -72,7 +76,9 @@ def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path, capsys):
                                 ("--size", "100000x120", "image size 100000x120: larger than this GL draws"),
                                 ("--frames", "abc", "--frames: expected a frame (12), a list"),
                                 ("--frames", "1:3:0", "with a positive step (1:72:12), got '1:3:0'"),
-                                ("--frames", "3:1", "--frames: expected")):
+                                ("--frames", "3:1", "--frames: expected"),
+                                ("--view", "side", "y.png: unknown view 'side'"),
+                                ("--view", "10,x", "--view: expected a view name or YAW,PITCH")):
         assert main(["preview", out, "-o", str(tmp_path / "y.png"), flag, value, "-q"]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and reason in err, err

@@ -11,7 +11,7 @@ from PIL import Image
 
 from io_usd.cache import CacheReader, CacheWriter
 from io_usd.preview import (BACKGROUND, Camera, SceneBuilder, auto_camera, contact_sheet,
-                            hair_ribbons, preview, render_frame, strand_tangents)
+                            hair_ribbons, preview, render_frame, resolve_views, strand_tangents)
 from sim.head import procedural_head
 
 W, H = 160, 120
@@ -167,7 +167,7 @@ def test_a_sequence_renders_each_frame_as_render_does_while_building_the_next(ca
     cameras = {f: auto_camera(reader, W, H, [f]) for f in (1, 2, 3)}
     with FrameRenderer(reader, W, H) as renderer:
         one_by_one = [renderer.render(f, cameras[f]) for f in (3, 1, 2)]
-        sequence = list(renderer.render_sequence([3, 1, 2], cameras.__getitem__))
+        sequence = list(renderer.render_sequence([(3, "a"), (1, "b"), (2, "c")], lambda f, view: cameras[f]))
     assert len(sequence) == 3
     for a, b in zip(one_by_one, sequence):
         assert np.mean(np.abs(a.astype(int) - b).max(axis=2) > 0) < 0.002
@@ -280,6 +280,36 @@ def test_contact_sheet_grid(cache, tmp_path):
     sheet = np.asarray(Image.open(out).convert("RGB"))
     assert sheet.shape == (H, 3 * W, 3)
     assert not np.array_equal(sheet[:, :W], sheet[:, W:2 * W])  # different frames
+
+
+def test_views_side_by_side_are_the_single_views(cache, tmp_path):
+    """Several views: a tile each, side by side, each the image that view alone gives (its label
+    aside); a .png row per frame, a movie frame holding them all."""
+    front = np.asarray(Image.open(preview(cache, str(tmp_path / "front.png"), width=W, height=H, views=["front"])))
+    back = np.asarray(Image.open(preview(cache, str(tmp_path / "back.png"), width=W, height=H, views=[(180, 0)])))
+    both = np.asarray(Image.open(preview(cache, str(tmp_path / "both.png"), width=W, height=H,
+                                         views=["front", "back"])))
+    assert both.shape == (H, 2 * W, 3)
+    below_label = slice(H // 4, H - 1)
+    for tile, alone in ((both[:, :W], front), (both[:, W:], back)):
+        assert np.mean(np.abs(tile[below_label, 1:-1].astype(int) - alone[below_label, 1:-1]).max(axis=2) > 0) < 0.002
+    # the head hides the face's side of the hair from behind: the two views do differ
+    assert np.abs(front[below_label].astype(int) - back[below_label]).max() > 40
+    sheet = Image.open(preview(cache, str(tmp_path / "sheet.png"), frames=[1, 3], width=W, height=H,
+                               views=["turnaround"]))
+    assert sheet.size == (4 * W, 2 * H)  # front, left, back, right in a row per frame
+    with Image.open(preview(cache, str(tmp_path / "both.gif"), width=W, height=H, views=["left", "right"])) as gif:
+        assert gif.n_frames == 3 and gif.size == (2 * W, H)
+
+
+def test_unknown_views_are_named():
+    assert resolve_views(None) == [("three-quarter", 25.0, 10.0)]
+    assert [v[0] for v in resolve_views(["turnaround", "top", (30, -20)])] == [
+        "front", "left", "back", "right", "top", "yaw 30, pitch -20"]
+    with pytest.raises(ValueError, match="unknown view 'side': use three-quarter, front"):
+        resolve_views(["side"])
+    with pytest.raises(ValueError, match="pitch must be within -89 to 89"):
+        resolve_views([(0, 90)])
 
 
 def test_contact_sheet_helper_labels_tiles():
