@@ -38,7 +38,7 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from common import (HAIR_HEADER, commit, copy_bandwidth, counting_launch_bytes, device_name, fmt,
+from common import (HAIR_HEADER, ROOT_LIFT, commit, copy_bandwidth, counting_launch_bytes, device_name, fmt,
                     kernel_profile, table, time_frames)  # noqa: E402
 
 from sim.hair_solver import HairParams, HairSolver  # noqa: E402
@@ -61,7 +61,8 @@ def build_scene(strands, device, substeps):
     config = hair_demo_scene({
         "scene": {"device": device, "fps": FPS, "frames": 1, "preroll": 0.0, "stats": False},
         "head": {"animation": "turn_nod"},
-        "hair": {"count": strands, "style": "straight", "vertices": VERTICES, "length": 0.25},
+        "hair": {"count": strands, "style": "straight", "vertices": VERTICES, "length": 0.25,
+                 "root_lift": ROOT_LIFT},
         "solver": {"substeps": substeps, "collision": "sphere_tree"},  # builds the sphere tree too
     })
     return Scene(config)

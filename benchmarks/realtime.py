@@ -22,7 +22,7 @@ import numpy as np
 import warp as wp
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from common import commit, device_name, table, time_each_frame  # noqa: E402
+from common import ROOT_LIFT, commit, device_name, table, time_each_frame  # noqa: E402
 
 from sim.scene import Scene, demo_scene, quiet_warp  # noqa: E402
 
@@ -48,7 +48,7 @@ def build(device, hair=None, cloth=CLOTH["body"], detail=True):
     overrides = {
         "scene": {"device": device, "fps": FPS, "frames": 1, "preroll": 0.0, "stats": False},
         "face": {"enabled": False},
-        "hair": {"enabled": hair is not None, "count": STRANDS, "vertices": VERTICES},
+        "hair": {"enabled": hair is not None, "count": STRANDS, "vertices": VERTICES, "root_lift": ROOT_LIFT},
         "solver": {"substeps": HAIR_SUBSTEPS, **(hair or {})},
         "cloth": {"enabled": cloth is not None},
         "cloth.solver": cloth or {},

@@ -1,7 +1,8 @@
 """Hairstyle generators: roots sampled on a scalp, strands grown out of it as straight, wavy or curly.
 
-A strand leaves the scalp along the surface normal and bends toward a fall direction (down and
-away from the head's vertical axis, the fringe swept back) while being pushed out of the head;
+A strand leaves the scalp at a low angle (root_lift above the surface, leaning the way it falls) and
+bends toward a fall direction (down and away from the head's vertical axis, the fringe swept back)
+while being pushed out of the head;
 waves or curls are then added around that centre line and the polyline is resampled to evenly spaced
 vertices. Generation runs once per scene: Python loops here walk along the strand, never per frame.
 """
@@ -26,7 +27,11 @@ class HairstyleParams:
     length: float = 0.22  # m, length of the strand's centre line (curls add to the natural length)
     length_jitter: float = 0.15  # relative random variation of length per strand
     vertices: int = 24  # particles per strand (curls and waves draw as curves up to SMOOTH_TURN a segment)
-    bend_length: float = 0.02  # m, how soon a strand turns from the scalp normal to the fall direction
+    bend_length: float = 0.02  # m, how soon a strand turns from its root direction to the fall direction
+    # degrees between the scalp and a strand's first segment (90: straight out along the normal). The
+    # root's first segment is pinned to the head, so a steep one stands up for the whole shot, and a
+    # crown of them reads as bristles over bare scalp; hair leaves the scalp at a shallow angle.
+    root_lift: float = 30.0
     wave_amplitude: float = 0.006  # m
     wavelength: float = 0.09  # m
     curl_radius: float = 0.008  # m
@@ -47,6 +52,8 @@ class HairstyleParams:
             raise ValueError("length must be positive")
         if self.count < 1 and self.density <= 0.0:
             raise ValueError("count must be at least 1")
+        if not 0.0 < self.root_lift <= 90.0:
+            raise ValueError("root_lift must be more than 0 and at most 90 degrees")
 
     def _bending(self):
         """(largest curvature of the styled centre line [1/m], its natural length [m]) for the nominal
@@ -120,17 +127,23 @@ def grow_hairstyle(params, roots, normals, push_out, axis_point=(0.0, 0.0, 0.0))
     fall = _fall_direction(roots, np.asarray(axis_point, np.float64))
     centre = np.empty((n_strands, fine, 3))
     centre[:, 0] = roots
-    d = normals.copy()
+    d = _root_direction(normals, fall, p.root_lift)
+    # the clearance is reached as a strand leaving at root_lift would reach it over a flat scalp: the
+    # full clearance at once would stand every root up along its normal for the first 3 mm
+    margins = np.minimum(p.clearance, np.sin(np.radians(p.root_lift)) * step.min() * np.arange(fine))
     for k in range(1, fine):
         turn = 1.0 - np.exp(-step / p.bend_length)
         d = _normalize(d + turn[:, None] * (fall - d))
         prev = centre[:, k - 1]
-        q = push_out(prev + d * step[:, None], p.clearance)
+        q = push_out(prev + d * step[:, None], margins[k])
         d = _normalize(q - prev)
         centre[:, k] = prev + d * step[:, None]
 
     shaped = centre + _style_offsets(p, centre, rng)
-    shaped[:, 1:] = push_out(shaped[:, 1:].reshape(-1, 3), p.clearance).reshape(n_strands, fine - 1, 3)
+    ramp = int(np.count_nonzero(margins < p.clearance))
+    for k in range(1, ramp):
+        shaped[:, k] = push_out(shaped[:, k], margins[k])
+    shaped[:, ramp:] = push_out(shaped[:, ramp:].reshape(-1, 3), p.clearance).reshape(n_strands, fine - ramp, 3)
     points = _resample(shaped, p.vertices)
     t = np.linspace(0.0, 1.0, p.vertices)
     widths = np.tile(p.root_width + (p.tip_width - p.root_width) * t, n_strands)
@@ -139,6 +152,15 @@ def grow_hairstyle(params, roots, normals, push_out, axis_point=(0.0, 0.0, 0.0))
 
 def _normalize(v):
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def _root_direction(normals, fall, lift_degrees):
+    """Unit directions root_lift above the scalp, leaning toward the fall direction's part along
+    the surface (the normal where the fall is along it)."""
+    along = fall - np.sum(fall * normals, axis=1, keepdims=True) * normals
+    leaning = np.linalg.norm(along, axis=1, keepdims=True) > 1e-6
+    lift = np.radians(lift_degrees)
+    return np.where(leaning, np.cos(lift) * _normalize(along) + np.sin(lift) * normals, normals)
 
 
 def _fall_direction(roots, axis_point, part=0.012):

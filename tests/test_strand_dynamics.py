@@ -215,3 +215,41 @@ def test_the_segment_turn_a_style_predicts_is_what_the_grown_strands_turn(style,
     again = HairstyleParams(style=style, vertices=enough, length_jitter=0.0, **settings)
     fewer = HairstyleParams(style=style, vertices=enough - 1, **settings)
     assert again.segment_turn <= SMOOTH_TURN < fewer.segment_turn
+
+
+def test_strands_leave_the_scalp_at_the_root_lift_and_keep_their_clearance():
+    """On a sphere of radius 0.1 m: with no bend toward the fall the first segment makes exactly
+    root_lift with the scalp's tangent plane (a straight line leaving a convex surface never needs a
+    push); with the default bend a shallower lift lies flatter, and past the first segment every point
+    keeps the clearance (but for the resampled chords' sag). The clearance ramps in as the lift would reach it, so the pinned first segment
+    does not stand up along the normal to reach 3 mm at once."""
+    from sim.hairstyle import HairstyleParams, grow_hairstyle
+
+    rng = np.random.default_rng(0)
+    normals = rng.normal(size=(200, 3))
+    normals[:, 1] = np.abs(normals[:, 1]) + 0.2
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+
+    def push_out(p, margin):
+        r = np.linalg.norm(p, axis=1, keepdims=True)
+        return np.where(r < 0.1 + margin, p / r * (0.1 + margin), p)
+
+    def grow(**settings):
+        params = HairstyleParams(style="straight", vertices=32, length=0.25, length_jitter=0.0, **settings)
+        points = grow_hairstyle(params, 0.1 * normals, normals, push_out)[0].reshape(len(normals), 32, 3)
+        first = points[:, 1] - points[:, 0]
+        lift = np.degrees(np.arcsin(np.sum(first * normals, 1) / np.linalg.norm(first, axis=1)))
+        return lift, np.linalg.norm(points, axis=2)
+
+    for root_lift in (15.0, 30.0, 90.0):
+        lift, _ = grow(root_lift=root_lift, bend_length=1e3)
+        np.testing.assert_allclose(lift, root_lift, atol=0.01)
+    medians = []
+    for root_lift in (15.0, 30.0, 60.0, 90.0):
+        lift, radius = grow(root_lift=root_lift)
+        assert radius[:, 2:].min() >= 0.1 + HairstyleParams().clearance - 2e-5  # chords of the resampling sag
+        assert np.median(lift) < root_lift
+        medians.append(np.median(lift))
+    assert np.all(np.diff(medians) > 5.0) and medians[1] < 30.0 < medians[3]
+    with pytest.raises(ValueError, match="root_lift"):
+        HairstyleParams(root_lift=0.0)
