@@ -18,6 +18,12 @@ STYLES = ("straight", "wavy", "curly")
 SMOOTH_TURN = np.radians(40.0)
 
 
+def check_color(color):
+    """ValueError unless color is three linear RGB values within 0 and 1 (a dataclass's `color`)."""
+    if len(color) != 3 or not all(0.0 <= c <= 1.0 for c in color):
+        raise ValueError(f"color must be three linear RGB values within 0 and 1, got {list(color)}")
+
+
 @dataclass(frozen=True)
 class HairstyleParams:
     enabled: bool = True  # false: a scene without hair (cloth only)
@@ -40,6 +46,7 @@ class HairstyleParams:
     tip_width: float = 4.0e-5  # m
     clearance: float = 0.003  # m, rest shape kept this far off the head
     seed: int = 1
+    color: tuple = (0.23, 0.14, 0.08)  # linear RGB: the curves' displayColor, which previews and DCCs draw
     guides: str = ""  # a cache with captured guide curves (cfx capture solve) the strands follow
     guide_prim: str = "hair_guides"  # the curves prim in that cache
 
@@ -54,6 +61,7 @@ class HairstyleParams:
             raise ValueError("count must be at least 1")
         if not 0.0 < self.root_lift <= 90.0:
             raise ValueError("root_lift must be more than 0 and at most 90 degrees")
+        check_color(self.color)
 
     def _bending(self):
         """(largest curvature of the styled centre line [1/m], its natural length [m]) for the nominal

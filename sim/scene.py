@@ -31,14 +31,13 @@ from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_fi
 from .hair_solver import HairParams, HairSolver, deferred_step_modules
 from .comb import before_frame as comb_before_frame
 from .haircut import parse_timeline, run_events
-from .hairstyle import HairstyleParams, grow_hairstyle, sample_scalp, scalp_area
+from .hairstyle import HairstyleParams, check_color, grow_hairstyle, sample_scalp, scalp_area
 from .head import HeadAnimation, mesh_head, procedural_head
 from .quality import QualityProbe
 from .strands import StrandBuilder
 
-HAIR_COLOR = (0.23, 0.14, 0.08)
+HAIR_COLOR = HairstyleParams.color
 SKIN_COLOR = (0.85, 0.68, 0.58)
-CLOTH_COLOR = (0.25, 0.35, 0.55)
 
 
 @dataclass(frozen=True)
@@ -107,12 +106,14 @@ class GarmentConfig:
     pinned: str = ""  # .npy of vertex indices bound to the body, for a garment file
     particles: int = 322  # particles of a built-in garment (the paper's one-piece dress has 322)
     ease: float = 0.012  # m, how far outside the body a built-in garment is fitted
+    color: tuple = (0.25, 0.35, 0.55)  # linear RGB: the garment's and its detail surface's displayColor
 
     def __post_init__(self):
         if self.particles < 16:
             raise ValueError("particles must be at least 16")
         if self.ease <= 0.0:
             raise ValueError("ease must be positive")
+        check_color(self.color)
 
 
 @dataclass(frozen=True)
@@ -523,7 +524,9 @@ class Scene:
         # grown once per style, roots and head shape (on a CPU or a GPU: their float32 queries may
         # round differently), and kept between runs by the asset cache
         grower = "cuda" if wp.get_device(self.device).is_cuda else "cpu"
-        grown = cached_arrays("groom", (cfg.hair, roots, normals, rest_points, head.faces, axis, grower),
+        # the colour is not the groom's shape: a new colour finds the strands already grown
+        grown = cached_arrays("groom", (replace(cfg.hair, color=HAIR_COLOR), roots, normals, rest_points, head.faces,
+                                        axis, grower),
                               lambda: dict(zip(("points", "counts", "widths"),
                                                grow_hairstyle(cfg.hair, roots, normals, self.collider.push_out, axis))))
         points, counts, widths = grown["points"], grown["counts"], grown["widths"]
@@ -1019,14 +1022,14 @@ def _add_prims(writer, scene):
     """Our own cache layout: one prim per object under /World."""
     writer.add_mesh(scene.collider_name, "collider", scene.head.vertices, scene.head.faces, color=SKIN_COLOR)
     if scene.model is not None:
-        writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=HAIR_COLOR)
+        writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=scene.config.hair.color)
     if scene.cloth_model is not None:
         cm = scene.cloth_model
-        writer.add_mesh("cloth", "cloth", cm.rest_positions_np, None, color=CLOTH_COLOR,
+        writer.add_mesh("cloth", "cloth", cm.rest_positions_np, None, color=scene.config.cloth.color,
                         face_counts=cm.face_counts_np, face_indices=cm.face_indices_np)
     if scene.cloth_detail is not None:
-        writer.add_mesh("cloth_detail", "cloth_detail", None, scene.cloth_detail.triangles_np, color=CLOTH_COLOR,
-                        normals=True)
+        writer.add_mesh("cloth_detail", "cloth_detail", None, scene.cloth_detail.triangles_np,
+                        color=scene.config.cloth.color, normals=True)
     if scene.face_rig is not None:
         rig = scene.face_rig
         writer.add_mesh("face", "face", None, rig.mesh.faces, color=rig.mesh.colors)

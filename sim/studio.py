@@ -41,7 +41,7 @@ class LiveReader:
     def refresh(self):
         from io_usd.cache import CachePrim
 
-        from .scene import HAIR_COLOR, SKIN_COLOR
+        from .scene import SKIN_COLOR
 
         s = self.scene
         head = s.head
@@ -50,7 +50,7 @@ class LiveReader:
                                                  color=SKIN_COLOR)}
         if s.model is not None:
             self.prims["hair"] = CachePrim("hair", "", "hair", "curves", s.model.num_particles, s.model.counts,
-                                           widths=s.model.widths_np, color=HAIR_COLOR)
+                                           widths=s.model.widths_np, color=s.config.hair.color)
 
     def points(self, name, frame=None):
         s = self.scene
@@ -282,7 +282,7 @@ def write_session_cache(session, path):
     from io_usd.cache import CacheWriter
 
     from . import __version__
-    from .scene import HAIR_COLOR, SKIN_COLOR
+    from .scene import SKIN_COLOR
 
     s, t = session.scene, session.config.timing
     frames = session.frames
@@ -290,7 +290,7 @@ def write_session_cache(session, path):
     with CacheWriter(path, t.fps, frames.numbers[0], frames.numbers[-1], settings=session.config.settings(),
                      engine_version=__version__) as writer:
         writer.add_mesh(s.collider_name, "collider", s.head.vertices, s.head.faces, color=SKIN_COLOR)
-        writer.add_curves("hair", "hair", counts, widths, color=HAIR_COLOR)
+        writer.add_curves("hair", "hair", counts, widths, color=session.config.hair.color)
         for frame, hair, counts, widths, collider in frames:
             writer.write_frame(frame, {s.collider_name: collider, "hair": hair},
                                curves={"hair": (counts, widths)})

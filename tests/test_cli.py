@@ -52,6 +52,36 @@ def test_run_writes_a_valid_cache_and_info_lists_it(tmp_path, capsys):
     assert "role=hair" in text and "40 curves, 320 points" in text and "0 errors" in text
 
 
+def test_the_hairs_colour_reaches_the_cache_and_the_preview(tmp_path, capsys):
+    """[hair] color is the curves' displayColor, which the preview draws: blond hair renders lighter
+    than the default brown where the two images differ (the strands); the groom is not grown again
+    for a new colour (its shape is the same), and a colour out of range is a one-line error."""
+    from PIL import Image
+
+    from sim.asset_cache import cache_dir
+
+    blond = (0.85, 0.66, 0.36)
+    images = {}
+    for name, extra in (("brown", ""), ("blond", f"color = {list(blond)}\n")):
+        scene = write(tmp_path, SMALL.replace("[hair]\n", "[hair]\n" + extra), f"{name}.toml")
+        out, still = str(tmp_path / f"{name}.usdc"), str(tmp_path / f"{name}.png")
+        grooms = sorted(p.name for p in cache_dir().glob("groom*")) if cache_dir() else None
+        assert main(["run", scene, "-o", out, "-q", "--preview", still]) == 0
+        if name == "blond" and grooms is not None:
+            assert sorted(p.name for p in cache_dir().glob("groom*")) == grooms
+        images[name] = np.asarray(Image.open(still).convert("RGB")).astype(int)
+    np.testing.assert_allclose(CacheReader(str(tmp_path / "blond.usdc")).prims["hair"].color, blond, atol=1e-6)
+    strands = np.abs(images["blond"] - images["brown"]).max(axis=2) > 30
+    assert strands.sum() > 200
+    assert images["blond"][strands].mean() > images["brown"][strands].mean() + 40
+    capsys.readouterr()
+    bad = write(tmp_path, SMALL.replace("[hair]\n", "[hair]\ncolor = [1.2, 0.5, 0.5]\n"), "bad.toml")
+    assert main(["run", bad, "-o", str(tmp_path / "bad.usdc"), "-q"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "bad.toml: hair.color: color must be three linear RGB values" in err, err
+    assert not (tmp_path / "bad.usdc").exists()
+
+
 def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path, capsys):
     scene = write(tmp_path, SMALL)
     out = str(tmp_path / "hair.usdc")

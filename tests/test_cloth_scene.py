@@ -188,9 +188,12 @@ def test_scene_with_a_mesh_body_and_per_frame_points(tmp_path, capsys):
     _sheet_obj(tmp_path / "sheet.obj")
     scene = tmp_path / "scene.toml"
     scene.write_text('[scene]\nframes = 6\npreroll = 0.0\n[body]\nmesh = "ball.obj"\npoints = "frames.npy"\n'
-                     '[hair]\nenabled = false\n[cloth]\ngarment = "sheet.obj"\n[cloth.solver]\nstrain_limit = 0.03\n')
+                     '[hair]\nenabled = false\n[cloth]\ngarment = "sheet.obj"\ncolor = [0.6, 0.1, 0.1]\n'
+                     '[cloth.solver]\nstrain_limit = 0.03\n')
     out = str(tmp_path / "out.usdc")
     assert main(["run", str(scene), "-o", out, "-q"]) == 0
+    for prim in ("cloth", "cloth_detail"):  # the garment's colour is both meshes' displayColor
+        np.testing.assert_allclose(CacheReader(out).prims[prim].color, (0.6, 0.1, 0.1), atol=1e-6)
     err = capsys.readouterr().err
     assert "substeps per frame, from the RK4 stability bound" in err  # the bound is reported
     stats = CacheReader(out).metadata["cfx:stats"]
