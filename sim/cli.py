@@ -71,7 +71,8 @@ def _report(result, config=None):
     s = result.stats
     parts = []
     if result.strands:
-        parts.append(f"{result.strands} strands ({result.particles} particles)")
+        parts.append(f"{result.strands} strands ({result.particles} particles)"
+                     + (f" and {result.children} render children" if result.children else ""))
     if result.cloth_particles:
         parts.append(f"{result.cloth_particles} cloth particles")
     if result.face_vertices:

@@ -47,6 +47,9 @@ class HairstyleParams:
     clearance: float = 0.003  # m, rest shape kept this far off the head
     seed: int = 1
     color: tuple = (0.23, 0.14, 0.08)  # linear RGB: the curves' displayColor, which previews and DCCs draw
+    # render children per simulated strand (sim.hair_children): grown between the simulated strands and
+    # carried by them, written as their own curves (hair_children); 0 for none
+    children: int = 0
     guides: str = ""  # a cache with captured guide curves (cfx capture solve) the strands follow
     guide_prim: str = "hair_guides"  # the curves prim in that cache
 
@@ -62,6 +65,8 @@ class HairstyleParams:
         if not 0.0 < self.root_lift <= 90.0:
             raise ValueError("root_lift must be more than 0 and at most 90 degrees")
         check_color(self.color)
+        if not 0 <= self.children <= 64:
+            raise ValueError(f"children must be 0 to 64 per simulated strand, got {self.children}")
 
     def _bending(self):
         """(largest curvature of the styled centre line [1/m], its natural length [m]) for the nominal

@@ -28,6 +28,7 @@ from .errors import InputError
 from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
+from .hair_children import HairChildren
 from .hair_solver import HairParams, HairSolver, deferred_step_modules
 from .comb import before_frame as comb_before_frame
 from .haircut import parse_timeline, run_events
@@ -372,12 +373,13 @@ class Scene:
         self.collider.apply_pose(0)
         self.collider.reset_motion()
 
-        self.model = self.solver = self.state = self.guides = self.hair_template = None
+        self.model = self.solver = self.state = self.guides = self.hair_template = self.children = None
         self.held_comb = None  # a sim.comb.CombGrip while a comb holds hair (haircut timelines, cfx studio)
         # the pose the groom is bound on: haircut edits map styled shapes back into it
         self.groom_points = self.collider.posed_points().copy()  # a copy: on the CPU numpy() is a view
         if config.hair.enabled:
             self.model = self._groom()
+            self.children = self._children()
             self.hair_template = self.model  # what a haircut's "initialise" returns to
             self.solver = HairSolver(self.model, config.solver)
             self.state, self._scratch = self.model.state(), self.model.state()
@@ -463,6 +465,9 @@ class Scene:
         if self.model is not None:
             arrays["hair"] = self.state.x
             arrays["hair_bad"], arrays["hair_first"] = self.solver.count_unhealthy(self.state)
+            if self.children is not None:
+                arrays["hair_children"] = self.children.queue(self.state.x, self.collider,
+                                                              self.config.solver.collision_margin)
         if self.cloth_model is not None:
             arrays["cloth"] = self.cloth_state.x
             arrays["cloth_bad"], arrays["cloth_first"] = self.cloth_solver.count_unhealthy(self.cloth_state)
@@ -519,19 +524,41 @@ class Scene:
                 roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, count, cfg.hair.seed)
             except ValueError as err:
                 raise InputError(cfg.source, "head.scalp_faces", str(err)) from None
-        scalp = head.vertices[np.unique(head.faces[head.scalp_faces])]
-        axis = np.array([0.5 * (scalp[:, 0].min() + scalp[:, 0].max()), 0.0, 0.5 * (scalp[:, 2].min() + scalp[:, 2].max())])
-        # grown once per style, roots and head shape (on a CPU or a GPU: their float32 queries may
-        # round differently), and kept between runs by the asset cache
-        grower = "cuda" if wp.get_device(self.device).is_cuda else "cpu"
-        # the colour is not the groom's shape: a new colour finds the strands already grown
-        grown = cached_arrays("groom", (replace(cfg.hair, color=HAIR_COLOR), roots, normals, rest_points, head.faces,
-                                        axis, grower),
-                              lambda: dict(zip(("points", "counts", "widths"),
-                                               grow_hairstyle(cfg.hair, roots, normals, self.collider.push_out, axis))))
-        points, counts, widths = grown["points"], grown["counts"], grown["widths"]
+        points, counts, widths = self._grown(cfg.hair, roots, normals)
         model = StrandBuilder().add_strands(points, counts, widths).finalize(self.device, pinned_per_strand=2)
         return model.bind_to_mesh(rest_points, head.faces)
+
+    def _grown(self, params, roots, normals):
+        """grow_hairstyle's (points, counts, widths) for `params` from roots and normals on the head in
+        the groom's pose: grown once per style, roots and head shape (on a CPU or a GPU: their float32
+        queries may round differently), and kept between runs by the asset cache."""
+        head = self.head
+        scalp = head.vertices[np.unique(head.faces[head.scalp_faces])]
+        axis = np.array([0.5 * (scalp[:, 0].min() + scalp[:, 0].max()), 0.0, 0.5 * (scalp[:, 2].min() + scalp[:, 2].max())])
+        grower = "cuda" if wp.get_device(self.device).is_cuda else "cpu"
+        # neither the colour nor the children are the strands' shape: a change finds them already grown
+        shape = replace(params, color=HAIR_COLOR, children=0)
+        grown = cached_arrays("groom", (shape, roots, normals, self.groom_points, head.faces, axis, grower),
+                              lambda: dict(zip(("points", "counts", "widths"),
+                                               grow_hairstyle(params, roots, normals, self.collider.push_out, axis))))
+        return grown["points"], grown["counts"], grown["widths"]
+
+    def _children(self):
+        """The render children ([hair] children per simulated strand), grown from roots of their own
+        on the scalp with the groom's style (another seed), or None."""
+        cfg, head = self.config, self.head
+        if cfg.hair.children == 0:
+            return None
+        if self.assets is not None:
+            raise InputError(cfg.source, "hair.children", "children grow with a groom the scene grows; this "
+                             "scene's strands are given (a USD stage or a cache)")
+        if cfg.haircut:
+            raise InputError(cfg.source, "hair.children", "a haircut changes the strands children follow: "
+                             "leave children out of a scene with [[haircut]] events")
+        count = cfg.hair.children * self.model.num_strands
+        roots, _, _, normals = sample_scalp(head.vertices, head.faces, head.scalp_faces, count, cfg.hair.seed + 1)
+        points, _, widths = self._grown(replace(cfg.hair, seed=cfg.hair.seed + 1), roots, normals)
+        return HairChildren(self.model, points, widths, self.groom_points, head.faces)
 
     def _project_roots(self, roots):
         import trimesh
@@ -897,6 +924,7 @@ class RunResult:
     cloth_particles: int = 0
     cloth_substeps_fixed: bool = False
     face_vertices: int = 0
+    children: int = 0  # render children written beside the strands (hair_children)
 
 
 def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
@@ -962,8 +990,8 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
                         worst[key] = value
                     else:
                         worst[key] = max(worst[key], value) if key in larger_is_worse else min(worst[key], value)
-            samples = {name: data[name] for name in (scene.collider_name, "hair", "cloth", "cloth_detail")
-                       if name in data}
+            samples = {name: data[name] for name in (scene.collider_name, "hair", "hair_children", "cloth",
+                                                     "cloth_detail") if name in data}
             normals = {"cloth_detail": data["cloth_detail_normals"]} if "cloth_detail_normals" in data else {}
             if stage is not None:  # the layer over a DCC's scene: its prims, in their local spaces
                 stage.write_frame(writer, frame, samples, normals)
@@ -1014,8 +1042,9 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     particles = scene.model.num_particles if scene.model is not None else 0
     cloth = scene.cloth_model.num_particles if scene.cloth_model is not None else 0
     face = scene.face_rig.mesh.num_vertices if scene.face_rig is not None else 0
+    children = scene.children.count if scene.children is not None else 0
     return RunResult(os.fspath(out_path), t.frames, strands, particles, time.perf_counter() - started, worst, cloth,
-                     config.cloth_solver.substeps > 0, face)
+                     config.cloth_solver.substeps > 0, face, children)
 
 
 def _add_prims(writer, scene):
@@ -1023,6 +1052,9 @@ def _add_prims(writer, scene):
     writer.add_mesh(scene.collider_name, "collider", scene.head.vertices, scene.head.faces, color=SKIN_COLOR)
     if scene.model is not None:
         writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=scene.config.hair.color)
+    if scene.children is not None:
+        writer.add_curves("hair_children", "hair", scene.children.counts, scene.children.widths_np,
+                          color=scene.config.hair.color)
     if scene.cloth_model is not None:
         cm = scene.cloth_model
         writer.add_mesh("cloth", "cloth", cm.rest_positions_np, None, color=scene.config.cloth.color,

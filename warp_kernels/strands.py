@@ -37,6 +37,8 @@ wp.set_module_options(MODULE_OPTIONS)
 # queued ahead and the length pass's variants: a CPU run steps fused and never launches them, so they
 # compile in a module of their own, only for the runs that do
 APART = deferred_module(__name__ + ".apart")
+# the render children's interpolation (sim.hair_children), launched once a frame by scenes that ask for them
+CHILDREN = deferred_module(__name__ + ".children")
 
 from .collision import (COLLIDE_MESH, COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded,
                         collide_point_listed, collide_point_listed_loose, collide_point_listed_mesh, list_deep_point,
@@ -2381,3 +2383,84 @@ def follow_guides(
     f, f1, t = guide_frames(pull, clock[0] + time_offset)
     strand = particle_strand[i]
     x[i] = guided_position(pull, x[i], x[strand_start[strand]], strand, i, f, f1, t)
+
+
+@wp.kernel(module=CHILDREN)
+def interpolate_children(
+    x: wp.array(dtype=wp.vec3),
+    parent_rest: wp.array(dtype=wp.vec3),
+    strand_start: wp.array(dtype=wp.int32),
+    child_rest: wp.array(dtype=wp.vec3),
+    child_parents: wp.array(dtype=wp.vec3i),
+    child_weights: wp.array(dtype=wp.vec3),
+    vertices: int,
+    collider_points: wp.array(dtype=wp.vec3),
+    collider_indices: wp.array(dtype=wp.int32),
+    anchor_face: int,
+    rest_frame: wp.mat33,
+    rest_center: wp.vec3,
+    shape: ColliderShape,
+    pinned: int,
+    margin: float,
+    search: float,
+    first: int,
+    children: wp.array(dtype=wp.vec3),
+):
+    """Place the render children: each child's groomed shape carried rigidly with the head (the anchor
+    triangle's motion from the groom's pose), plus its parents' displacements from their own shapes
+    carried the same way, weighted; then, root to tip, each vertex pushed out of the collider's mesh,
+    put back at its groomed distance from the one before (follow the leader, as the strands' length
+    pass) and pushed out again. A rigid motion of the head and hair moves the children rigidly, and at the
+    groom's pose they are their groomed shapes. Blended displacements alone stretch a child whose
+    parents move apart, and over a curved head can carry it inside (a strand over the ear settling
+    past one above it): the walk and the push keep it whole and outside.
+
+    Launch: one thread per child of a range of children (dim = children in the range).
+    Inputs:
+      x (vec3, per particle, m): the simulated strands' positions
+      parent_rest (vec3, per particle, m): their groomed shapes, in the groom's pose
+      strand_start (int32, num_strands + 1): first particle of each simulated strand, then the total
+      child_rest (vec3, per child vertex, m): the children's groomed shapes, in the groom's pose
+      child_parents (vec3i, per child): the three simulated strands a child follows
+      child_weights (vec3, per child): and their weights (summing to 1; 0 for a missing parent)
+      vertices (int): vertices of every child and of every simulated strand
+      collider_points (vec3, per vertex, m): the collider as posed now
+      collider_indices (int32, 3 per triangle): its triangles
+      anchor_face (int): the triangle the roots move with (HairModel.anchor_face); below 0 for none
+      rest_frame (mat33): skinning.triangle_frame of the anchor triangle in the groom's pose
+      rest_center (vec3, m): the anchor triangle's centroid in the groom's pose
+      shape (ColliderShape): the collider, its mesh's BVH fitted to the pose
+      pinned (int): vertices at the root of every strand that move with the head (kept rigid)
+      margin (float, m): distance kept outside the collider
+      search (float, m): mesh query radius; deeper penetrations are not seen
+      first (int, index): the range's first child; thread t works on child first + t
+    Outputs:
+      children (vec3, per child vertex, m): the children's positions
+    """
+    child = wp.tid() + first
+    turn = wp.identity(3, dtype=float)
+    center = rest_center
+    if anchor_face >= 0:
+        a = collider_points[collider_indices[3 * anchor_face]]
+        b = collider_points[collider_indices[3 * anchor_face + 1]]
+        c = collider_points[collider_indices[3 * anchor_face + 2]]
+        turn = triangle_frame(a, b, c) * wp.transpose(rest_frame)
+        center = (a + b + c) / 3.0
+    parents = child_parents[child]
+    weights = child_weights[child]
+    first = child * vertices
+    prev = wp.vec3(0.0)
+    for k in range(vertices):
+        i = first + k
+        p = turn * (child_rest[i] - rest_center) + center
+        if k >= pinned:
+            for j in range(3):
+                q = strand_start[parents[j]] + k
+                p += weights[j] * (x[q] - (turn * (parent_rest[q] - rest_center) + center))
+            # out of the collider, back to its length from the vertex before, and out again: a vertex
+            # blended deep inside comes out beside the one before, not a push's depth off its length
+            rest_length = wp.length(child_rest[i] - child_rest[i - 1])
+            p = collide_point(p, COLLIDE_MESH, shape, margin, search)
+            p = collide_point(prev + rest_length * wp.normalize(p - prev), COLLIDE_MESH, shape, margin, search)
+        children[i] = p
+        prev = p
