@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 from warp_kernels import strands
 
 from .graphs import launch_on_cores
+from .strands import triangle_frames
 
 NEIGHBOURS = 3  # simulated strands a child follows (the kernel's vec3i)
 # m: how deep the pushes out of the collider look at least, and past the longest segment: a vertex is
@@ -52,14 +53,6 @@ def choose_parents(parents, children):
     return out_parents, out_weights
 
 
-def triangle_frame_np(a, b, c):
-    """skinning.triangle_frame in NumPy: columns tangent, bitangent, normal."""
-    n = np.cross(b - a, c - a)
-    n /= np.linalg.norm(n)
-    t = (b - a) / np.linalg.norm(b - a)
-    return np.stack([t, np.cross(n, t), n], axis=1)
-
-
 class HairChildren:
     """Children of a HairModel whose strands all have the same vertex count.
 
@@ -88,7 +81,7 @@ class HairChildren:
         self.anchor_face = int(model.anchor_face)
         if self.anchor_face >= 0:
             a, b, c = (np.asarray(groom_points, np.float64)[v] for v in np.asarray(faces)[self.anchor_face])
-            self.rest_frame = wp.mat33(*triangle_frame_np(a, b, c).reshape(-1))
+            self.rest_frame = wp.mat33(*triangle_frames(np.array([[a, b, c]]))[0].reshape(-1))
             self.rest_center = wp.vec3(*((a + b + c) / 3.0))
         else:
             self.rest_frame, self.rest_center = wp.identity(3, dtype=float), wp.vec3(0.0)

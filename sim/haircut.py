@@ -577,10 +577,10 @@ def _install(scene, model, x, v):
 
 def _root_frames(model, mesh_points, faces):
     """(S, 3, 3) frames (tangent, bitangent, normal columns) of each strand's root triangle."""
-    from .strands import _triangle_frames
+    from .strands import triangle_frames
 
     tri = np.asarray(mesh_points, np.float64)[np.asarray(faces).reshape(-1, 3)[model.root_triangle_np]]
-    return _triangle_frames(tri)
+    return triangle_frames(tri)
 
 
 def _pose_maps(scene, model):

@@ -122,7 +122,7 @@ class HairModel:
                    self.bind_local], device=device)
         # every particle's rest offset from its root in the root triangle's frame (root hold)
         self.root_binding = wp.array(np.arange(self.num_strands, dtype=np.int32) * k, dtype=wp.int32, device=device)
-        frames = _triangle_frames(np.asarray(mesh_points, np.float64)[np.asarray(mesh_indices).reshape(-1, 3)[self.root_triangle_np]])
+        frames = triangle_frames(np.asarray(mesh_points, np.float64)[np.asarray(mesh_indices).reshape(-1, 3)[self.root_triangle_np]])
         offsets = self.rest_positions_np - np.repeat(roots, self.counts, axis=0)
         local = np.einsum("pji,pj->pi", np.repeat(frames, self.counts, axis=0), offsets)
         self.root_local = wp.array(local.astype(np.float32), dtype=wp.vec3, device=device)
@@ -158,7 +158,7 @@ class HairModel:
         return np.maximum(np.clip(1.0 - arc / length, 0.0, 1.0).astype(np.float32), self.wax_np)
 
 
-def _triangle_frames(tri):
+def triangle_frames(tri):
     """(T, 3, 3) frames with columns edge tangent, bitangent, normal (as skinning.triangle_frame)."""
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
     n = np.cross(b - a, c - a)
