@@ -4,11 +4,12 @@ A groom simulated with a few thousand strands shows the scalp between them; prod
 many more strands for the picture, each following the simulated strands near it. A child here is
 grown by the same hairstyle as the simulated strands, from a root of its own on the scalp, so its
 shape (waves, curls, its side of the parting) is its own. Each frame it keeps that shape carried
-rigidly with the head, plus the weighted displacement of the three simulated strands whose roots are
-nearest its root (inverse squared distance) from their own groomed shapes carried the same way:
-displacements are blended, not shapes, so a child near the parting does not average the strands
-swept to either side. Children are written to the cache beside the simulated hair
-(`hair_children`); they take no part in the simulation.
+rigidly with the head, plus the weighted displacements of three simulated strands (choose_parents:
+near in root and in shape) from their own groomed shapes carried the same way; displacements are
+blended, not shapes, so a child near the parting does not average the strands swept to either side.
+Then, root to tip, each vertex is put back at its groomed distance from the one before and kept
+outside the head (warp_kernels.strands.interpolate_children). Children are written to the cache
+beside the simulated hair (`hair_children`); they take no part in the simulation.
 """
 
 import numpy as np
