@@ -38,7 +38,9 @@ from common import commit, table  # noqa: E402
 
 MODULES = ["strands", "cloth", "collision", "detail", "skinning"]
 BASELINE = Path(__file__).resolve().parent / "cuda_resources_sm90.json"
-HEADER = ["module", "kernel", "registers", "cap", "stack B", "spill stores B", "spill loads B"]
+HEADER = ["module", "kernel", "registers", "cap", "stack B", "spill stores B", "spill loads B", "shared B"]
+# a block's static shared memory on every architecture since sm_70 (more is an opt-in Warp does not take)
+STATIC_SHARED_LIMIT = 48 * 1024
 
 
 @dataclass
@@ -49,6 +51,7 @@ class KernelResources:
     stack: int
     spill_stores: int
     spill_loads: int
+    shared: int = 0  # bytes of static shared memory a block of the module's block_dim lanes takes
 
 
 def find_ptxas():
@@ -111,7 +114,9 @@ def parse_ptxas(log, caps):
         used = re.search(r"Used (\d+) registers", line)
         if used and entry and entry.endswith("_cuda_kernel_forward"):
             stack, stores, loads = props or (0, 0, 0)
-            found.append(KernelResources(kernel_name(entry), int(used.group(1)), caps.get(entry), stack, stores, loads))
+            shared = re.search(r"(\d+) bytes smem", line)
+            found.append(KernelResources(kernel_name(entry), int(used.group(1)), caps.get(entry), stack, stores, loads,
+                                         int(shared.group(1)) if shared else 0))
             entry = None
     return found
 
@@ -222,7 +227,8 @@ def main():
             if note:
                 print(f"# {name}: {note}")
             for k in sorted(found, key=lambda k: k.kernel):
-                rows.append([name, k.kernel, k.registers, k.cap or "-", k.stack, k.spill_stores, k.spill_loads])
+                rows.append([name, k.kernel, k.registers, k.cap or "-", k.stack, k.spill_stores, k.spill_loads,
+                             k.shared])
     print(table(HEADER, rows))
     if args.arch == 90 and BASELINE.exists():
         worse = spill_regressions(by_module, json.loads(BASELINE.read_text()))

@@ -24,6 +24,9 @@ LIST_SLACK = 0.0005
 # the same before strands.step_strands, which queues from the start positions: also covers how far a
 # particle travels in the substep (1k strands on the turning head: 1.5 mm at the 99th percentile)
 FUSED_LIST_SLACK = 0.002
+# strands from which a GPU steps the hair fused with the frame in lane order (HairSolver.fused): a thread
+# per strand, so fewer leave most of an H100 idle
+FUSED_GPU_STRANDS = 30000
 # strand ranges stepped side by side on the CPU: a few per core, so that a core whose own work is done
 # (the cloth's frame beside the hair's) takes over ranges that would otherwise wait for the other core
 PARTS_PER_CORE = 3
@@ -229,11 +232,13 @@ class HairSolver:
         # cache lines and gains nothing from the copies in and out
         self.lanes = wp.get_device(device).is_cuda and len(self.parts) == 1
         # a whole substep in one launch (strands.step_strands); with leaves_ahead the walks are queued
-        # from the start positions. On by default on the CPU, where it was measured faster; a GPU keeps
-        # the launches apart, with a thread per particle for the shape passes and lane-order copies
-        # around the length pass (an H100, 100k strands against the sphere tree: 23.0 ms per frame
-        # fused, 16.3 apart; session 34)
-        self.fused = not wp.get_device(device).is_cuda
+        # from the start positions. On by default on the CPU, where it was measured faster, and on a GPU
+        # for FUSED_GPU_STRANDS strands or more, with the frame kept in lane order (frame_lanes below):
+        # an H100, 100k strands against the sphere tree, 11.45 ms a frame against 12.15 apart (loose
+        # lists both), but at 1k strands 4.08 against 3.24, a thread per strand leaving most of the GPU
+        # idle (session 41). In particle order the fused substep's scattered stores cost a GPU more
+        # (16.75 ms at 100k; session 34's 23.0 against 16.3)
+        self.fused = not wp.get_device(device).is_cuda or (self.lanes and model.num_strands >= FUSED_GPU_STRANDS)
         # mesh collisions through lists of the nearest faces kept with the contact bounds
         # (collision.collide_point_listed_mesh), on the CPU, where they saved 6% of the real-time hair's
         # frame; a GPU queries the BVH, since gathering a list inside the length pass's serial loop kept
@@ -241,25 +246,25 @@ class HairSolver:
         # without (same run, session 34)
         self.mesh_lists = not wp.get_device(device).is_cuda
         # the length pass reads each particle's inputs while the particle before it is placed
-        # (strands.FOLLOW_THE_LEADER_AHEAD; the bounded-queries and sphere-list passes, the GPU's): the
-        # same strands, the loop's chain no longer waiting on memory at each step, but more live
-        # registers. Off until a GPU has timed it (benchmarks/hair.py --try read_ahead=on)
+        # (strands.FOLLOW_THE_LEADER_AHEAD; the bounded-queries and sphere-list passes): the same strands,
+        # the loop's chain no longer waiting on memory at each step, but more live registers. Off: an
+        # H100 timed it 1-7% faster, less than loose_lists, which it excludes (session 41)
         self.read_ahead = False
         # the length pass walks the sphere tree only where a particle may be inside a leaf its list does
         # not hold, not wherever one may be within the margin (with leaves_ahead; fused, with simplified
         # shape matching): the margin to such leaves is restored a substep later, by the lists made ahead
         # in parallel (strands.FOLLOW_THE_LEADER_LOOSE, STEP_STRANDS_LOOSE). A walk in the serial loop
-        # keeps a warp's other strands waiting (100k strands on an H100: the pass 8.9 ms a frame with its
-        # walks, 5.3 without them, third lease); a CPU model of the warps (benchmarks/hair_warps.py) puts
-        # 1k strands' pass work at 0.59x. Off until a GPU has timed it (benchmarks/hair.py --try
-        # loose_lists=on)
-        self.loose_lists = False
+        # keeps a warp's other strands waiting: an H100, simplified shape matching on the sphere tree,
+        # 14.73 -> 12.15 ms a frame at 100k strands, 4.55 -> 3.24 at 1k (session 41). None: the device's
+        # way, loose on a GPU wherever the pass has a loose variant; True insists (an error where it
+        # cannot), False never
+        self.loose_lists = None
         # a frame's substeps keep the state in lane order (begin_frame, end_frame): the fused substep
         # then reads and writes each strand's state with its warp's strands side by side, where per
         # particle they lie a strand apart, and the copies into and out of the lanes are made once a
-        # frame rather than every substep. Needs fused and lanes; off until a GPU has timed it
-        # (benchmarks/hair.py --try fused=on,frame_lanes=on)
-        self.frame_lanes = False
+        # frame rather than every substep. Needs fused and lanes, and no comb holding strands (whose
+        # frames run the fused substep in particle order); on with the GPU's fused substep
+        self.frame_lanes = wp.get_device(device).is_cuda and self.fused
         self._frame = None  # [the lanes' x, v, x', v'; which pair holds the state] for frame_lanes
         self._in_frame = False  # between begin_frame and end_frame with the state in the lanes
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
@@ -486,7 +491,7 @@ class HairSolver:
         length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths != strands.PATHS_ALL else (
             strands.FOLLOW_THE_LEADER)
         length_pass = length_passes[paths]
-        if self.loose_lists and paths == strands.PATHS_SPHERE_LISTS:
+        if self._loose(self.leaves_ahead and not self.read_ahead) and paths == strands.PATHS_SPHERE_LISTS:
             if not self.leaves_ahead or self.read_ahead:
                 raise ValueError("loose_lists restores the margin through the lists made ahead (leaves_ahead on) "
                                  "and is compiled reading in turn (read_ahead off)")
@@ -572,6 +577,13 @@ class HairSolver:
             blend = min(max(offset / (dt * self.params.substeps), 0.0), 1.0) if dt > 0.0 else 1.0
             self.comb.launch(self.model, state_out, state_in, blend, dt, contact, order, r)
 
+    def _loose(self, available):
+        """Whether this substep's length pass takes the loose lists (loose_lists): its own setting, or
+        with None a GPU's way wherever the pass has a loose variant (available)."""
+        if self.loose_lists is None:
+            return wp.get_device(self.model.device).is_cuda and available
+        return bool(self.loose_lists)
+
     def begin_frame(self, state):
         """Start a frame of substeps that keeps the state in lane order (frame_lanes, with fused and
         lanes; otherwise nothing happens): state is copied into the lanes here, the substeps' step()
@@ -633,7 +645,7 @@ class HairSolver:
                       [x_in, contact, count, self._short, first, m.strand_start, order, by_particle], device=dev)
         fit = fused_fit(mode, variant, self.contact_bounds, self.mesh_lists)
         step = strands.STEP_STRANDS[fit]
-        if self.loose_lists and mode == COLLISION["sphere_tree"]:
+        if self._loose(fit in strands.STEP_STRANDS_LOOSE and self.leaves_ahead) and mode == COLLISION["sphere_tree"]:
             if fit not in strands.STEP_STRANDS_LOOSE or not self.leaves_ahead:
                 raise ValueError("loose_lists in the fused substep takes simplified shape matching against the "
                                  "sphere tree, with the lists made ahead (leaves_ahead on)")

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+from sim import hair_solver
 from sim.graphs import AsyncReadback, FrameGraphs
 from sim.scene import Scene, demo_scene, hair_demo_scene, quiet_warp, run_scene
 
@@ -521,14 +522,21 @@ def _proxy_dress_config(device):
 
 
 @pytest.mark.skipif(not wp.is_cuda_available(), reason="needs CUDA")
-@pytest.mark.parametrize("make", [_fast_hair_config, _proxy_dress_config], ids=["hair-spheres", "dress-proxy"])
-def test_cuda_frames_follow_cpu_frames(make):
+@pytest.mark.parametrize("make,fused_from", [(_fast_hair_config, None), (_fast_hair_config, 1), (_proxy_dress_config, None)],
+                         ids=["hair-spheres", "hair-spheres-fused", "dress-proxy"])
+def test_cuda_frames_follow_cpu_frames(make, fused_from, monkeypatch):
     """The real-time paths (sphere-tree hair with listed skinning and contact bounds; the dress
     against its proxy with a walked detail lift) give on CUDA what they give on the CPU, to float32
-    rounding carried over a few animated frames."""
+    rounding carried over a few animated frames, and to the collision margin where the GPU's loose
+    lists spare a walk. fused_from: the strands from which a GPU steps fused with the frame in lanes
+    (hair_solver.FUSED_GPU_STRANDS, lowered so that this small head of hair takes the way of 100k)."""
+    if fused_from is not None:
+        monkeypatch.setattr(hair_solver, "FUSED_GPU_STRANDS", fused_from)
     out = []
     for device in ("cpu", "cuda"):
         scene = Scene(make(device))
+        if fused_from is not None and device == "cuda":
+            assert scene.solver.fused and scene.solver.frame_lanes
         start = (scene.state if scene.model is not None else scene.cloth_state).x.numpy().copy()
         for _ in range(4):
             scene.advance(1.0 / scene.config.timing.fps)
@@ -567,10 +575,14 @@ def _same_hair_frames(make, device, configure):
 @pytest.mark.parametrize("make", [lambda device: _hair_config(device, True), _fast_hair_config],
                          ids=["hair-mesh", "hair-spheres"])
 def test_fused_hair_frames_follow_the_launches_apart(make, device):
-    """strands.step_strands (HairSolver.fused; off on CUDA by default) captured in the frame's graph,
+    """strands.step_strands (HairSolver.fused; on CUDA only for many strands) captured in the frame's graph,
     with the device's defaults (on CUDA lane order and the sphere tree's walks queued ahead): the
     frames of the launches apart, to float32 rounding (bit for bit on the CPU)."""
-    _same_hair_frames(make, device, lambda solver, fused: setattr(solver, "fused", fused))
+    def configure(solver, fused):
+        solver.fused = fused
+        solver.loose_lists = False  # the loose lists' walks differ between the two passes, within the margin
+
+    _same_hair_frames(make, device, configure)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -581,6 +593,7 @@ def test_read_ahead_length_pass_frames_follow_the_pass_in_turn(device):
     def configure(solver, ahead):
         solver.fused = False  # the length pass is its own launch
         solver.read_ahead = ahead
+        solver.loose_lists = False  # which reading ahead excludes
 
     _same_hair_frames(_fast_hair_config, device, configure)
 
@@ -595,6 +608,7 @@ def test_a_frame_kept_in_lanes_follows_the_fused_frames(device):
     def configure(solver, kept):
         solver.set_parts(1)
         solver.fused, solver.lanes, solver.frame_lanes = True, True, kept
+        solver.loose_lists = False
         kept_frames.append(solver)
 
     _same_hair_frames(_fast_hair_config, device, configure)

@@ -12,9 +12,13 @@ MODULE_OPTIONS = {"enable_backward": False, "default_grid_stride": False, "optim
 DEFERRED = []
 
 
-def deferred_module(name):
+def deferred_module(name, block_dim=None):
     """The name of a Warp module of its own, with MODULE_OPTIONS, for kernels only some runs launch
     (a GPU's way of stepping, a variant for one collision path): pass it as @wp.kernel(module=...).
+    block_dim: the lanes of a block its kernels are launched with, where not Warp's default (256).
+    CUDA code is generated for one block size (a BVH query keeps its traversal stack in shared memory,
+    128 bytes per lane), so a module launched with other blocks must be compiled, and checked ahead by
+    benchmarks/cuda_resources.py, at that size.
 
     Warp compiles a module whole, at the first launch of any of its kernels. A kernel kept in the
     module of the ones every run launches costs every run its compile time on a cold kernel cache;
@@ -22,7 +26,8 @@ def deferred_module(name):
     with its GPU ways and variants, 5.4 s without). warp_kernels.load compiles these modules too
     where asked (on CUDA devices by default).
     """
-    wp.set_module_options(MODULE_OPTIONS, module=name)
+    wp.set_module_options(MODULE_OPTIONS if block_dim is None else {**MODULE_OPTIONS, "block_dim": block_dim},
+                          module=name)
     if name not in DEFERRED:
         DEFERRED.append(name)
     return name

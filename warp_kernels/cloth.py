@@ -26,8 +26,10 @@ wp.set_module_options(MODULE_OPTIONS)
 from .skinning import SkinBinding, bound_position, face_frame, face_point
 
 # step_in_block's most lanes: a particle per lane for a garment of a few hundred particles (the paper's
-# dress has 332), where a lane with two would double each pass's latency
-BLOCK_STEP_LANES = 384
+# dress has 332), where a lane with two would double each pass's latency. The most that fit: a body
+# query's traversal stack takes 128 bytes of shared memory per lane and Warp's tile allocator 4, and a
+# block has 48 KB of static shared memory (384 lanes failed to build on the H100, session 41)
+BLOCK_STEP_LANES = 352
 
 # closest_in_boxes: the first radius of its growing box queries, about a body's contact range (a
 # query of the whole body's boxes would test every triangle)
@@ -1350,7 +1352,8 @@ def _step_in_block(boxes):
     collide_body = _body_collide_for(boxes)
 
     # a GPU's way for a small cloth (ClothSolver.block_step): a module of its own, compiled where launched
-    @wp.kernel(module=deferred_module(__name__ + ".step_in_block"), launch_bounds=BLOCK_STEP_LANES,
+    @wp.kernel(module=deferred_module(__name__ + ".step_in_block", block_dim=BLOCK_STEP_LANES),
+               launch_bounds=BLOCK_STEP_LANES,
                name="step_in_block" + ("" if boxes else "_mesh"))
     def step_in_block(
         n: int,
