@@ -25,8 +25,9 @@ LIST_SLACK = 0.0005
 # particle travels in the substep (1k strands on the turning head: 1.5 mm at the 99th percentile)
 FUSED_LIST_SLACK = 0.002
 # strands from which a GPU steps the hair fused with the frame in lane order (HairSolver.fused): a thread
-# per strand, so fewer leave most of an H100 idle
-FUSED_GPU_STRANDS = 30000
+# per strand, so fewer leave most of an H100 idle. Between the 30k strands timed slower (1.06x) and the
+# 100k timed faster (0.94x) on an H100, where the two ratios' line crosses 1 (session 41)
+FUSED_GPU_STRANDS = 65000
 # strand ranges stepped side by side on the CPU: a few per core, so that a core whose own work is done
 # (the cloth's frame beside the hair's) takes over ranges that would otherwise wait for the other core
 PARTS_PER_CORE = 3
@@ -233,12 +234,13 @@ class HairSolver:
         self.lanes = wp.get_device(device).is_cuda and len(self.parts) == 1
         # a whole substep in one launch (strands.step_strands); with leaves_ahead the walks are queued
         # from the start positions. On by default on the CPU, where it was measured faster, and on a GPU
-        # for FUSED_GPU_STRANDS strands or more, with the frame kept in lane order (frame_lanes below):
-        # an H100, 100k strands against the sphere tree, 11.45 ms a frame against 12.15 apart (loose
-        # lists both), but at 1k strands 4.08 against 3.24, a thread per strand leaving most of the GPU
-        # idle (session 41). In particle order the fused substep's scattered stores cost a GPU more
-        # (16.75 ms at 100k; session 34's 23.0 against 16.3)
-        self.fused = not wp.get_device(device).is_cuda or (self.lanes and model.num_strands >= FUSED_GPU_STRANDS)
+        # for simplified shape matching from FUSED_GPU_STRANDS strands, with the frame kept in lane order
+        # (frame_lanes below). An H100 against the sphere tree (loose lists, session 41): 100k strands
+        # 11.45 ms a frame fused against 12.15 apart, 30k 6.76 against 6.36, 1k 4.08 against 3.24 (a
+        # thread per strand leaves most of the GPU idle); full shape matching on the mesh at 100k 50.2
+        # against 46.5. In particle order the fused substep's scattered stores cost more (16.75 at 100k)
+        self.fused = not wp.get_device(device).is_cuda or (
+            self.lanes and model.num_strands >= FUSED_GPU_STRANDS and self.params.shape_matching != "full")
         # mesh collisions through lists of the nearest faces kept with the contact bounds
         # (collision.collide_point_listed_mesh), on the CPU, where they saved 6% of the real-time hair's
         # frame; a GPU queries the BVH, since gathering a list inside the length pass's serial loop kept
