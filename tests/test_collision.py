@@ -450,6 +450,71 @@ def test_the_loose_length_pass_keeps_the_strands_outside_the_head_within_the_mar
             full.step(s0, s1, moving, dt)
 
 
+@pytest.mark.parametrize("lanes", [False, True])
+def test_faces_listed_ahead_give_the_strands_of_the_kept_lists(head, monkeypatch, lanes):
+    """HairSolver.faces_ahead (a GPU's way for the mesh, launches apart): strands.list_faces_ahead lists the
+    four faces nearest the predicted position of every particle the length pass will query, and that
+    pass (PATHS_MESH_AHEAD) gives every substep's x and v bit for bit as the lists kept between
+    substeps do (mesh_lists), on a turning head, in particle or lane order. Each list made is the four
+    nearest faces of a float64 brute force over the mesh (trimesh), with the fifth's distance."""
+    import trimesh.triangles
+    import warp as wp
+
+    substeps, dt = 30, 1.0 / 240.0
+    moving, model, pts = _hair_on_a_turning_head(head, 0, substeps, dt, 60, 5)
+    params = HairParams(collision="mesh", shape_matching="full", shape_iterations=1)
+    launched, made, launch = [], [], wp.launch
+
+    def spy(kernel, dim, inputs=None, *args, **kwargs):
+        launched.append(kernel)
+        out = launch(kernel, dim, inputs, *args, **kwargs)
+        if kernel is strand_kernels.list_faces_ahead:
+            contact = inputs[5]
+            made.append((inputs[0].numpy().copy(), contact.near_leaves.numpy().copy(), contact.beyond.numpy().copy(),
+                         contact.search, moving.points.numpy().astype(np.float64)))
+        return out
+
+    monkeypatch.setattr(wp, "launch", spy)
+    runs = []
+    for ahead in (False, True):
+        solver = HairSolver(model, params, parts=1)
+        solver.fused, solver.lanes, solver.mesh_lists, solver.faces_ahead = False, lanes, True, ahead
+        s0, s1 = model.state(), model.state()
+        moving.apply_pose(0)
+        launched.clear()
+        frames = []
+        for k in range(1, substeps + 1):
+            moving.apply_pose(k)
+            solver.step(s0, s1, moving, dt)
+            s0, s1 = s1, s0
+            frames.append((s0.x.numpy().copy(), s0.v.numpy().copy()))
+        ahead_pass = strand_kernels.FOLLOW_THE_LEADER[strand_kernels.PATHS_MESH_AHEAD]
+        assert (ahead_pass in launched) == ahead and (strand_kernels.list_faces_ahead in launched) == ahead
+        runs.append(frames)
+    for (x, v), (x_ahead, v_ahead) in zip(*runs, strict=True):
+        np.testing.assert_array_equal(x_ahead, x)
+        np.testing.assert_array_equal(v_ahead, v)
+    assert np.abs(runs[0][-1][0] - pts).max() > 0.01  # the hair swung
+    assert len(made) == substeps
+
+    faces = head.faces.astype(np.int64)
+    checked = 0
+    for predicted, lists, beyond, search, points in made[::6]:
+        listed = np.flatnonzero(beyond > 0.5 * strand_kernels.NO_BOUND)
+        assert 0 < len(listed) < len(beyond)  # the particles near the head, not all
+        for i in listed[:: max(1, len(listed) // 12)]:
+            p = predicted[i].astype(np.float64)
+            tris = points[faces]
+            d = np.linalg.norm(trimesh.triangles.closest_point(tris, np.repeat(p[None], len(tris), 0)) - p, axis=1)
+            order = np.argsort(d)
+            near = order[:4][d[order[:4]] < search]
+            if d[order[4]] - d[order[3]] > 1e-6:  # no tie at the fourth: the list is those faces
+                np.testing.assert_array_equal(np.sort(lists[i][lists[i] >= 0]), np.sort(near))
+            assert beyond[i] == pytest.approx(min(d[order[4]], search), abs=1e-6)
+            checked += 1
+    assert checked > 10
+
+
 @pytest.mark.parametrize("lanes,fused", [(False, False), (True, False), (False, True), (True, True)])
 def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch, lanes, fused):
     """find_short_lists and list_leaves_ahead, caught around their launches on a turning head: a particle whose bounds,
