@@ -101,8 +101,7 @@ def solver_setting(text):
 
 
 # the HairSolver switches a --try may set
-SOLVER_ATTRS = {"mesh_lists", "contact_bounds", "leaves_ahead", "fused", "read_ahead", "frame_lanes", "loose_lists",
-                "faces_ahead"}
+SOLVER_ATTRS = {"mesh_lists", "contact_bounds", "leaves_ahead", "fused", "read_ahead", "frame_lanes", "loose_lists"}
 
 
 def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True, fused=None,

@@ -75,7 +75,7 @@ def counting_follow_the_leader(loose=False):
     func_edits = [
         (r"    held_beyond: float,\n\):",
          "    held_beyond: float,\n    work: wp.array(dtype=float),\n):"),
-        (r"\n( +)elif wp\.static\(paths != PATHS_MESH_AHEAD\) and listed:\n( +)if wp\.static\(loose\):\n",
+        (r"\n( +)elif listed:\n( +)if wp\.static\(loose\):\n",
          "\n\\1elif listed:\n"
          "\\2if unlisted - wp.length(p - origin) > " + ("0.0" if loose else "contact.margin + 1.0e-5") + ":\n"
          f"\\2    work[i] += {LISTED}\n"

@@ -24,9 +24,6 @@ LIST_SLACK = 0.0005
 # the same before strands.step_strands, which queues from the start positions: also covers how far a
 # particle travels in the substep (1k strands on the turning head: 1.5 mm at the 99th percentile)
 FUSED_LIST_SLACK = 0.002
-# list_faces_ahead lists a particle whose bound at its predicted position is within this of the margin:
-# the length pass then moves it by its corrections, which the lists' own bound absorbs
-FACES_AHEAD_SLACK = 0.001
 # strands from which a GPU steps the hair fused with the frame in lane order (HairSolver.fused): a thread
 # per strand, so fewer leave most of an H100 idle. Between the 30k strands timed slower (1.06x) and the
 # 100k timed faster (0.94x) on an H100, where the two ratios' line crosses 1 (session 41)
@@ -64,12 +61,10 @@ def split_strands(model, windows, count):
     return ranges
 
 
-def length_paths(mode, contact_bounds, mesh_lists, faces_ahead=False):
+def length_paths(mode, contact_bounds, mesh_lists):
     """The collision paths (strands.PATHS_*) the length pass takes against collision mode `mode` (with
-    HairSolver.contact_bounds, mesh_lists and faces_ahead): the pass is compiled with only those, for
-    fewer spilled registers."""
-    if mode == COLLISION["mesh"] and faces_ahead and contact_bounds:
-        return strands.PATHS_MESH_AHEAD
+    HairSolver.contact_bounds and mesh_lists): the pass is compiled with only those, for fewer spilled
+    registers."""
     if mode == COLLISION["mesh"] and mesh_lists:
         return strands.PATHS_ALL  # a mesh query goes through a list even without the bounds
     if mode == COLLISION["sphere_tree"] and contact_bounds:
@@ -252,13 +247,6 @@ class HairSolver:
         # its warps waiting: 100k strands, full+mesh on an H100, 93.0 ms per frame with the lists, 53.5
         # without (same run, session 34)
         self.mesh_lists = not wp.get_device(device).is_cuda
-        # the length pass meets the mesh through lists made in parallel just before it, at the
-        # predicted positions of the particles it will query (strands.list_faces_ahead, the pass
-        # PATHS_MESH_AHEAD; with contact_bounds, launches apart): the BVH queries leave its serial
-        # loop, where on a GPU with few strands each step waited for a warp's slowest query (an H100,
-        # 1k strands, full shape matching on the mesh: the pass 1.94 ms a launch, 60 us a step,
-        # session 41). The same strands as the lists kept between substeps (mesh_lists)
-        self.faces_ahead = False
         # the length pass reads each particle's inputs while the particle before it is placed
         # (strands.FOLLOW_THE_LEADER_AHEAD; the bounded-queries and sphere-list passes): the same strands,
         # the loop's chain no longer waiting on memory at each step, but more live registers. Off: an
@@ -502,13 +490,8 @@ class HairSolver:
             wp.launch(strands.list_leaves_ahead, dim,
                       [x_prev, contact, count, self._short, first, m.strand_start, order, 0], device=dev)
         paths = self._length_paths(mode)
-        if paths == strands.PATHS_MESH_AHEAD:
-            dim, first = (lane.strands * lane.longest, 0) if lanes else (r.particles, r.first_particle)
-            wp.launch(strands.list_faces_ahead, dim,
-                      [x, x_prev, m.particle_strand, m.strand_start, m.pinned_per_strand, contact, FACES_AHEAD_SLACK,
-                       order, first], device=dev)
-        length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths in (
-            strands.FOLLOW_THE_LEADER_AHEAD) else strands.FOLLOW_THE_LEADER
+        length_passes = strands.FOLLOW_THE_LEADER_AHEAD if self.read_ahead and paths != strands.PATHS_ALL else (
+            strands.FOLLOW_THE_LEADER)
         length_pass = length_passes[paths]
         if self._loose(self.leaves_ahead and not self.read_ahead) and paths == strands.PATHS_SPHERE_LISTS:
             if not self.leaves_ahead or self.read_ahead:
@@ -535,14 +518,14 @@ class HairSolver:
         # a sphere-tree query costs little more for a longer reach, and its nearest-leaf list then lasts longer
         contact.probe = min(PROBE, p.collision_search) if mode == COLLISION["mesh"] else p.collision_search
         contact.use_bounds = int(self.contact_bounds)
-        contact.mesh_lists = int(self.mesh_lists or self.faces_ahead)
+        contact.mesh_lists = int(self.mesh_lists)
         contact.motion = self._motion
         contact.strand_reach = self.reach
         contact.clearance, contact.near_leaves, contact.beyond = self.clearance, self.near_leaves, self.beyond
         return contact
 
     def _length_paths(self, mode):
-        return length_paths(mode, self.contact_bounds, self.mesh_lists, self.faces_ahead)
+        return length_paths(mode, self.contact_bounds, self.mesh_lists)
 
     def _forces(self):
         """The parameters' forces as the kernels take them (strands.StrandForces)."""

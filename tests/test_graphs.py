@@ -599,17 +599,6 @@ def test_read_ahead_length_pass_frames_follow_the_pass_in_turn(device):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_faces_listed_ahead_frames_follow_the_kept_lists(device):
-    """The mesh met through lists made ahead of the length pass (HairSolver.faces_ahead, launches apart)
-    captured in the frame's graph: the frames of the lists kept between substeps, to float32 rounding
-    (bit for bit on the CPU)."""
-    def configure(solver, ahead):
-        solver.fused, solver.mesh_lists, solver.faces_ahead = False, True, ahead
-
-    _same_hair_frames(lambda device: _hair_config(device, True), device, configure)
-
-
-@pytest.mark.parametrize("device", DEVICES)
 def test_a_frame_kept_in_lanes_follows_the_fused_frames(device):
     """The scene's captured hair frames with the state kept in lane order across each frame
     (HairSolver.frame_lanes, begin_frame and end_frame around the substeps): the frames of the fused

@@ -42,7 +42,7 @@ CHILDREN = deferred_module(__name__ + ".children")
 
 from .collision import (COLLIDE_MESH, COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded,
                         collide_point_listed, collide_point_listed_loose, collide_point_listed_mesh, list_deep_point,
-                        mesh_nearest_faces, pseudo_normal_distance, sphere_tree_nearest)
+                        pseudo_normal_distance, sphere_tree_nearest)
 from .skinning import SkinBinding, bound_position, face_frame, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
@@ -1204,75 +1204,6 @@ def list_leaves_ahead(
     contact.beyond[i] = fifth
 
 
-@wp.kernel(module=APART)
-def list_faces_ahead(
-    x: wp.array(dtype=wp.vec3),
-    x_prev: wp.array(dtype=wp.vec3),
-    particle_strand: wp.array(dtype=wp.int32),
-    strand_start: wp.array(dtype=wp.int32),
-    pinned_per_strand: int,
-    contact: StrandContact,
-    slack: float,
-    order: LaneOrder,
-    first: int,
-):
-    """List, before follow_the_leader, the four mesh faces nearest each particle's predicted position
-    where that pass will query the mesh: its BVH queries leave the serial loop.
-
-    The pass queries a particle whose contact bound falls to margin; a BVH query there costs a warp
-    the longest query of its 32 strands at every step (an H100, 1k strands on the mesh: 60 us a
-    step). Here every particle whose bound, lowered as the pass lowers it, comes within slack of
-    margin at its predicted position gets the faces nearest that position (mesh_nearest_faces, out
-    to the query radius), in parallel; the pass (PATHS_MESH_AHEAD) reads the list as holding at the
-    position it places the particle less the way from the predicted one, and a list that decides
-    gives the answer the BVH's nearest faces give (collide_point_listed_mesh), so the strands are
-    those of lists kept between substeps. Every other particle's list is cleared (beyond NO_BOUND):
-    the pass reads only lists made here.
-
-    Launch: one thread per particle of a range of particles (dim = particles in the range), or in
-    lane order one thread per lane slot (dim = order.lanes * the longest strand), after contact_motion
-    and with the mesh posed for the end of the substep; the arrays in the order follow_the_leader
-    reads them (lane_slot).
-    Inputs:
-      x (vec3, per particle, m): predicted positions (those follow_the_leader starts from)
-      x_prev (vec3, per particle, m): positions at the start of the substep, where the bounds hold
-      particle_strand (int32, per particle): the strand of each particle (particle order only)
-      strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-      pinned_per_strand (int): leading particles of each strand that follow_the_leader leaves alone
-      slack (float, m): how far above margin a bound may be and still be listed (the pass's
-          corrections move a particle from its predicted position)
-      order (LaneOrder): particle order, or the lane order (then first is 0)
-      first (int, index): the range's first particle; thread t works on particle first + t
-    In/out:
-      contact (StrandContact): the mesh, its motion and the contact bounds (clearance) in; each
-          particle's list out: four nearest faces (near_leaves) and the fifth nearest face's distance
-          or the query radius (beyond), NO_BOUND where none was made
-    """
-    i = wp.tid() + first
-    k = int(0)
-    if order.lanes > 0:
-        k = i / order.lanes
-        s = order.strand_of[i - k * order.lanes]
-        if k >= strand_start[s + 1] - strand_start[s]:
-            return  # a slot past the strand's tip
-    else:
-        k = i - strand_start[particle_strand[i]]
-    if k < pinned_per_strand:
-        return
-    contact.beyond[i] = NO_BOUND
-    p = x[i]
-    if wp.length(p - contact.motion.center[0]) > contact.strand_reach:
-        return  # follow_the_leader queries such a particle outright
-    held = contact.clearance[i]
-    if held > 0.5 * NO_BOUND:
-        _carried, lowered = bound_lowering(contact.motion, x_prev[i], p, contact.strand_reach + contact.search)
-        if held - lowered > contact.margin + slack:
-            return
-    faces, fifth = mesh_nearest_faces(p, contact.shape.mesh, contact.search)
-    contact.near_leaves[i] = faces
-    contact.beyond[i] = fifth
-
-
 # The collision paths a length pass is compiled with: lists of the nearest sphere-tree leaves and mesh
 # faces kept with the contact bounds, or bounded queries only. A kernel carries the code of every path
 # it may take, and its serial loop pays for the registers that code spills at every particle step:
@@ -1282,11 +1213,7 @@ def list_faces_ahead(
 PATHS_QUERIES = 0  # bounded queries only (collide_point_bounded): the sphere tree walked, the mesh's BVH
 PATHS_SPHERE_LISTS = 1  # the sphere tree alone, its leaf lists and walks: for COLLIDE_SPHERE_TREE only
 PATHS_ALL = 2  # every path: both lists (collide_point_listed, collide_point_listed_mesh) and the queries
-# the mesh alone through lists made ahead at the predicted positions (list_faces_ahead): for COLLIDE_MESH
-# with contact bounds only; the lists are this substep's, not kept from the last
-PATHS_MESH_AHEAD = 3
-PATH_NAMES = {PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: "",
-              PATHS_MESH_AHEAD: "_mesh_ahead"}
+PATH_NAMES = {PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: ""}
 
 
 @wp.func
@@ -1375,14 +1302,10 @@ def _follow_leader(paths, ahead=False, loose=False):
             # even without them (one made for the query), so that skipping queries changes nothing
             # a path left out of this variant is a constant False: the compiler drops its code
             listed_mesh = bool(False)
-            if wp.static(paths == PATHS_MESH_AHEAD):
-                listed_mesh = True  # the solver launches this variant against the mesh only
-            elif wp.static(paths >= PATHS_ALL):
+            if wp.static(paths >= PATHS_ALL):
                 listed_mesh = contact.mode == COLLIDE_MESH and contact.mesh_lists != 0
             listed = bool(False)
-            if wp.static(paths == PATHS_MESH_AHEAD):
-                listed = contact.use_bounds != 0
-            elif wp.static(paths >= PATHS_SPHERE_LISTS):
+            if wp.static(paths >= PATHS_SPHERE_LISTS):
                 listed = contact.use_bounds != 0 and (contact.mode == COLLIDE_SPHERE_TREE or listed_mesh)
             leaves = wp.vec4i(-1, -1, -1, -1)
             unlisted = float(NO_BOUND)
@@ -1394,12 +1317,7 @@ def _follow_leader(paths, ahead=False, loose=False):
                     if wp.static(not ahead):
                         at_start = contact.clearance[i]
                     bound = at_start - lowered
-                    if wp.static(paths == PATHS_MESH_AHEAD):
-                        # made this substep at the predicted position, in the pose the pass meets:
-                        # it holds at p less the way p came from there (NO_BOUND: no list made)
-                        leaves = contact.near_leaves[i]
-                        unlisted = contact.beyond[i] - wp.length(p - predicted)
-                    elif listed and at_start > 0.5 * NO_BOUND:
+                    if listed and at_start > 0.5 * NO_BOUND:
                         if wp.static(ahead):
                             leaves = held_leaves
                             unlisted = held_beyond - lowered
@@ -1424,7 +1342,7 @@ def _follow_leader(paths, ahead=False, loose=False):
                     if listed_mesh:
                         pushed, bound, leaves, origin, unlisted = collide_point_listed_mesh(
                             p, contact.shape.mesh, contact.margin, reach, contact.search, leaves, origin, unlisted)
-                    elif wp.static(paths != PATHS_MESH_AHEAD) and listed:
+                    elif listed:
                         if wp.static(loose):
                             pushed, bound, leaves, origin, unlisted = collide_point_listed_loose(
                                 p, contact.shape, contact.margin, reach, leaves, origin, unlisted)
@@ -1435,8 +1353,6 @@ def _follow_leader(paths, ahead=False, loose=False):
                         mode = contact.mode
                         if wp.static(paths == PATHS_SPHERE_LISTS):
                             mode = COLLIDE_SPHERE_TREE  # a constant: the mesh's query is not compiled in
-                        if wp.static(paths == PATHS_MESH_AHEAD):
-                            mode = COLLIDE_MESH  # likewise the tree's walk
                         pushed, bound = collide_point_bounded(p, mode, contact.shape, contact.margin, reach)
                     reach = contact.search
                     if pushed == p:
@@ -1613,7 +1529,7 @@ def _follow_the_leader(paths, ahead=False, loose=False):
     return follow_the_leader
 
 
-FOLLOW_THE_LEADER = {paths: _follow_the_leader(paths) for paths in PATH_NAMES}  # PATHS_MESH_AHEAD: HairSolver.faces_ahead
+FOLLOW_THE_LEADER = {paths: _follow_the_leader(paths) for paths in PATH_NAMES}
 # the GPU's paths reading a particle ahead (HairSolver.read_ahead): the same strands; more live registers
 # (sm_90 spills: bounded queries none either way, sphere lists 88 -> 220 bytes), less of the loop waiting on memory
 FOLLOW_THE_LEADER_AHEAD = {paths: _follow_the_leader(paths, ahead=True) for paths in (PATHS_QUERIES,
