@@ -19,8 +19,9 @@ leaves). The length pass can run in lane order (HairSolver.lanes, on by default 
 a warp's strands then read consecutive memory); --lanes both marks the rows with it "lanes". Its
 lanes follow the roots (hair_solver.lanes_by_root); --lane-order both also times them in the grown
 order, the rows marked "grown". A substep can run as one launch per strand range (HairSolver.fused,
-on by default on the CPU only; the sphere tree's walks are then queued ahead from the start
-positions); --fused both marks the rows with it "fused". --try times each case once more for each
+on by default on the CPU, and on a GPU for simplified shape matching from 65k strands with the frame
+kept in lane order, HairSolver.frame_lanes; the sphere tree's walks are then queued ahead from the
+start positions); --fused both marks the rows with it "fused". --try times each case once more for each
 setting of HairSolver attributes given (e.g. --try mesh_lists=on), the rows marked with it.
 
     python benchmarks/hair.py                        # 1k, 10k, 100k strands on cpu (and cuda if present)
@@ -101,7 +102,8 @@ def solver_setting(text):
 
 
 # the HairSolver switches a --try may set
-SOLVER_ATTRS = {"mesh_lists", "contact_bounds", "leaves_ahead", "fused", "read_ahead", "frame_lanes", "loose_lists"}
+SOLVER_ATTRS = {"mesh_lists", "contact_bounds", "leaves_ahead", "fused", "read_ahead", "frame_lanes", "loose_lists",
+                "strand_block"}
 
 
 def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True, fused=None,

@@ -15,6 +15,9 @@
 #   bash benchmarks/run_gpu.sh loose    # the sphere tree's length pass with loose lists (HairSolver.loose_lists:
 #                                       # walks only where a leaf may hold a particle), apart and fused in lanes
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
+#   bash benchmarks/run_gpu.sh ncu      # Nsight Compute's counters (occupancy, warp states, memory) for one
+#                                       # launch of the length pass at 1k strands on the mesh and of the fused
+#                                       # substep at 100k strands on the sphere tree (as in session 41)
 #   bash benchmarks/run_gpu.sh startup  # benchmarks/startup.py on cuda: set-up from the asset cache, and the
 #                                       # CUDA modules compiled one after another and side by side (NVRTC)
 #   bash benchmarks/run_gpu.sh hair-ab  # benchmarks/hair.py (HAIR_AB_ARGS) run by each earlier tree that
@@ -62,6 +65,15 @@ for part in "$@"; do
         tee "$out/hair-ab.log" ;;
     cloth-ab) ab benchmarks/cloth.py 250 --device cuda --peers ${CLOTH_AB_ARGS:---grids --detail-sizes 322} 2>&1 |
         tee "$out/cloth-ab.log" ;;
+    ncu) ncu=$(command -v ncu || ls /opt/nvidia/nsight-compute/*/ncu 2>/dev/null | head -1)
+        sections="--section SpeedOfLight --section WarpStateStats --section Occupancy --section LaunchStats
+          --section MemoryWorkloadAnalysis"
+        timeout 150 "$ncu" --clock-control none --kernel-name regex:follow_the_leader_queries --launch-skip 30 \
+          --launch-count 1 $sections python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 \
+          --cases full+mesh --frames 2 2>&1 | tee "$out/ncu-1k-mesh.txt" | grep -v "^|"
+        timeout 200 "$ncu" --clock-control none --kernel-name regex:step_strands_sphere_lists_simplified_loose \
+          --launch-skip 30 --launch-count 1 $sections python3 benchmarks/hair.py --device cuda --no-peer \
+          --strands 100000 --cases simplified1+spheres --frames 2 2>&1 | tee "$out/ncu-100k-fused.txt" | grep -v "^|" ;;
     startup) timeout 540 python3 benchmarks/startup.py --device cuda --repeats 1 --kernels 2>&1 | tee "$out/startup.log" ;;
     *) echo "unknown part $part"; exit 2 ;;
   esac

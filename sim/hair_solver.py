@@ -61,6 +61,19 @@ def split_strands(model, windows, count):
     return ranges
 
 
+def strand_block(strands, device):
+    """Lanes per block for a launch of a thread per strand (the length pass, the fused substep) on
+    `device`: Warp's 256, or on a GPU fewer, down to one warp, where 256 would leave streaming
+    multiprocessors without a block. Each thread runs a strand's serial loop, issuing for the few of
+    its warp's lanes that query the collider (an H100, 1k strands on the mesh: 4.1 of 32 lanes active,
+    session 41), so a warp goes only as fast as its SM's share of issue slots lets it: 1k strands in
+    blocks of 256 ran on 4 of the 132 SMs, 10k on 40."""
+    d = wp.get_device(device)
+    if not d.is_cuda or d.sm_count <= 0:
+        return 256
+    return int(min(256, max(32, strands // d.sm_count // 32 * 32)))
+
+
 def length_paths(mode, contact_bounds, mesh_lists):
     """The collision paths (strands.PATHS_*) the length pass takes against collision mode `mode` (with
     HairSolver.contact_bounds and mesh_lists): the pass is compiled with only those, for fewer spilled
@@ -267,6 +280,8 @@ class HairSolver:
         # frame rather than every substep. Needs fused and lanes, and no comb holding strands (whose
         # frames run the fused substep in particle order); on with the GPU's fused substep
         self.frame_lanes = wp.get_device(device).is_cuda and self.fused
+        # lanes per block of the length pass (strand_block); a second size builds its module again
+        self.strand_block = strand_block(model.num_strands, device)
         self._frame = None  # [the lanes' x, v, x', v'; which pair holds the state] for frame_lanes
         self._in_frame = False  # between begin_frame and end_frame with the state in the lanes
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
@@ -500,7 +515,7 @@ class HairSolver:
             length_pass = strands.FOLLOW_THE_LEADER_LOOSE[paths]
         wp.launch(length_pass, r.strands,
                   [x, x_prev, inv_mass, m.strand_start, rest, m.pinned_per_strand, contact,
-                   p.ftl_damping, dt, v, order, r.first_strand], device=dev)
+                   p.ftl_damping, dt, v, order, r.first_strand], device=dev, block_dim=self.strand_block)
         if lanes:
             wp.launch(strands.from_lanes, lane.strands * lane.longest,
                       [lane.x, lane.v, m.strand_start, order, lane.longest, state_out.x, state_out.v], device=dev)

@@ -450,6 +450,25 @@ def test_the_loose_length_pass_keeps_the_strands_outside_the_head_within_the_mar
             full.step(s0, s1, moving, dt)
 
 
+def test_a_gpus_length_pass_gives_every_multiprocessor_a_block_where_the_strands_allow(monkeypatch):
+    """hair_solver.strand_block: Warp's 256 lanes on the CPU and for many strands; on a GPU of 132 SMs
+    (an H100) fewer lanes per block, in whole warps, so that 1k or 10k strands reach more of its SMs."""
+    import warp as wp
+
+    from sim import hair_solver
+
+    assert hair_solver.strand_block(1000, "cpu") == 256
+
+    class H100:
+        is_cuda, sm_count = True, 132
+
+    monkeypatch.setattr(wp, "get_device", lambda device=None: H100())
+    blocks = {n: hair_solver.strand_block(n, "cuda") for n in (1000, 10000, 20000, 100000)}
+    assert blocks == {1000: 32, 10000: 64, 20000: 128, 100000: 256}
+    for n, lanes in blocks.items():
+        assert lanes % 32 == 0 and (-(-n // lanes) >= 132 or lanes == 32)  # every SM a block, or one warp each
+
+
 @pytest.mark.parametrize("lanes,fused", [(False, False), (True, False), (False, True), (True, True)])
 def test_leaves_ahead_lists_the_nearest_leaves_where_the_length_pass_would_run_short(head, monkeypatch, lanes, fused):
     """find_short_lists and list_leaves_ahead, caught around their launches on a turning head: a particle whose bounds,
