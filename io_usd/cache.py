@@ -14,6 +14,8 @@ from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt
 
 ROLES = ("hair", "cloth", "cloth_detail", "collider", "face", "hair_card")
 ROOT = "/World"
+# on curves drawn from other curves each frame (render children): the path of those curves
+INTERPOLATED_FROM = "cfx:interpolatedFrom"
 
 
 def _vec3f(points):
@@ -230,9 +232,15 @@ class CacheWriter:
         anim.GetScalesAttr().Set(Vt.Vec3hArray([Gf.Vec3h(1.0, 1.0, 1.0)]), t)
         anim.GetBlendShapeWeightsAttr().Set(Vt.FloatArray.FromNumpy(np.asarray(weights, np.float32)), t)
 
-    def add_curves(self, name, role, counts, widths, color=None):
-        """Linear, nonperiodic BasisCurves with per-vertex widths [m]; points come per frame."""
+    def add_curves(self, name, role, counts, widths, color=None, interpolated_from=None):
+        """Linear, nonperiodic BasisCurves with per-vertex widths [m]; points come per frame.
+        interpolated_from: the name of the curves these are interpolated from each frame (render
+        children), kept as the string attribute `cfx:interpolatedFrom` (that prim's path): readers
+        that want the simulated strands alone (scoring, a cache read back as a scene) leave them out."""
         curves = UsdGeom.BasisCurves.Define(self.stage, f"{ROOT}/{name}")
+        if interpolated_from is not None:
+            curves.GetPrim().CreateAttribute(INTERPOLATED_FROM, Sdf.ValueTypeNames.String, custom=True).Set(
+                f"{ROOT}/{interpolated_from}")
         curves.CreateTypeAttr(UsdGeom.Tokens.linear)
         curves.CreateBasisAttr(UsdGeom.Tokens.bspline)
         curves.CreateWrapAttr(UsdGeom.Tokens.nonperiodic)
@@ -387,6 +395,7 @@ class CachePrim:
     color: tuple = field(default=None)
     vertex_colors: np.ndarray = field(default=None)  # (V, 3) where displayColor is per vertex
     varying: bool = False  # curves whose curveVertexCounts change over time (a haircut): see counts()
+    interpolated_from: str = None  # the path of the curves these are drawn from (render children), or None
 
 
 class CacheReader:
@@ -433,9 +442,12 @@ class CacheReader:
                 start = Usd.TimeCode(self.start_frame)
                 counts = np.array(c.GetCurveVertexCountsAttr().Get(start), np.int32)
                 widths = np.array(c.GetWidthsAttr().Get(start) or [], np.float32)
+                source = prim.GetAttribute(INTERPOLATED_FROM)
                 self.prims[name] = CachePrim(name, str(prim.GetPath()), role, "curves", int(counts.sum()),
                                              counts, widths=widths, color=color,
-                                             varying=c.GetCurveVertexCountsAttr().GetNumTimeSamples() > 0)
+                                             varying=c.GetCurveVertexCountsAttr().GetNumTimeSamples() > 0,
+                                             interpolated_from=str(source.Get()) if source and source.HasAuthoredValue()
+                                             else None)
             elif prim.IsA(UsdGeom.Mesh):
                 m = UsdGeom.Mesh(prim)
                 counts = np.array(m.GetFaceVertexCountsAttr().Get(), np.int32)

@@ -4,7 +4,8 @@ Input. Every prim whose `cfx:role` is "collider", "hair" or "cloth" takes part; 
 the geometry itself or on the Xform above it (Blender writes an object's custom properties on its
 Xform, the geometry is its child), and `userProperties:cfx:role` counts too. Colliders are Meshes
 (several are merged into one collider); hair is BasisCurves (control points are the strand
-vertices, the first one the root); cloth is Meshes of triangles and quads (several are simulated
+vertices, the first one the root; curves marked `cfx:interpolatedFrom`, a cache's render children,
+are left out); cloth is Meshes of triangles and quads (several are simulated
 as one garment) whose pinned vertices are a per-vertex `primvars:cfx_pinned` (> 0.5) or an int[]
 `cfx:pinned`. Settings are attributes
 named `cfx:<table>:<key>` on a tagged prim: `solver` (hair solver on a hair prim, cloth solver on a
@@ -25,6 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from pxr import Usd, UsdGeom
 
+from io_usd.cache import INTERPOLATED_FROM
 from sim.embed import HostFrame, scene_config
 from sim.errors import InputError
 
@@ -192,6 +194,9 @@ def _tagged_prims(path, stage):
             continue
         if role not in ROLES:
             raise InputError(path, f"{prim.GetPath()}.{attr}", f"unknown role {role!r} (expected {', '.join(ROLES)})")
+        source = prim.GetAttribute(INTERPOLATED_FROM)
+        if role == "hair" and source and source.HasAuthoredValue():
+            continue  # render children drawn from other strands each frame: nothing to simulate
         kind = UsdGeom.BasisCurves if role == "hair" else UsdGeom.Mesh
         if prim.IsA(kind):
             geometry = prim

@@ -189,7 +189,9 @@ def _open(path, frame):
     if not os.path.isfile(path):
         raise FileNotFoundError(f"{path}: no such cache file")
     reader = CacheReader(path)
-    hair = [n for n, p in reader.prims.items() if p.role == "hair" and p.kind == "curves"]
+    # the simulated strands: render children (drawn from them each frame) would count as strands of
+    # their own, unmatched in a cache without them
+    hair = [n for n, p in reader.prims.items() if p.role == "hair" and p.kind == "curves" and not p.interpolated_from]
     if not hair:
         found = ", ".join(f"{n} ({p.role})" for n, p in reader.prims.items()) or "none"
         raise ValueError(f"{path}: no hair prim (cfx:role 'hair' curves) to score; cfx prims: {found}")

@@ -1054,7 +1054,7 @@ def _add_prims(writer, scene):
         writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=scene.config.hair.color)
     if scene.children is not None:
         writer.add_curves("hair_children", "hair", scene.children.counts, scene.children.widths_np,
-                          color=scene.config.hair.color)
+                          color=scene.config.hair.color, interpolated_from="hair")
     if scene.cloth_model is not None:
         cm = scene.cloth_model
         writer.add_mesh("cloth", "cloth", cm.rest_positions_np, None, color=scene.config.cloth.color,

@@ -6,6 +6,7 @@ import pytest
 import warp as wp
 
 from io_usd import CacheReader
+from io_usd.score import score_caches
 from sim.cli import main
 from sim.hair_children import choose_parents
 from sim.scene import Scene, hair_demo_scene
@@ -121,6 +122,17 @@ def test_a_scene_writes_children_outside_the_head_at_their_lengths(tmp_path, cap
         change = np.abs(segments / lengths - 1.0)
         # the walk keeps the lengths; the push out of the head after it moves a few vertices a little
         assert np.median(change) < 1e-5 and change.max() < 0.02
+    # marked as drawn from the strands: scoring compares the strands alone (a cache with children
+    # scores as the same hair without them)
+    assert kids.interpolated_from == "/World/hair" and reader.prims["hair"].interpolated_from is None
+    capsys.readouterr()
+    bare = scene_file.read_text().replace("children = 4", "children = 0")
+    (tmp_path / "bare.toml").write_text(bare)
+    assert main(["run", str(tmp_path / "bare.toml"), "-o", str(tmp_path / "bare.usdc"), "-q"]) == 0
+    report = score_caches(out, str(tmp_path / "bare.usdc"), size=(160, 160), images=False)
+    assert report.result_strands == report.target_strands == 30
+    assert report.matched_fraction == 1.0 and report.length_agreement == pytest.approx(1.0, abs=1e-6)
+    assert min(report.ious.values()) > 0.999
     capsys.readouterr()
     scene_file.write_text('[hair]\nchildren = 2\n[[haircut]]\nframe = 2\ntool = "blunt"\n'
                           'plane = { point = [0.0, 0.3, 0.0], normal = [0.0, 1.0, 0.0] }\n')

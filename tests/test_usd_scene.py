@@ -10,7 +10,7 @@ import pytest
 import trimesh
 from pxr import Gf, Sdf, Usd, UsdGeom, Vt
 
-from io_usd.cache import CacheReader
+from io_usd.cache import INTERPOLATED_FROM, CacheReader
 from io_usd.scene_input import read_usd_scene
 from sim.cli import main
 from sim.embed import HostFrame, Simulation
@@ -291,6 +291,23 @@ def test_stage_without_collider_or_cache_over_itself(tmp_path, capsys):
     stage.GetRootLayer().Save()
     with pytest.raises(InputError, match="collider"):
         read_usd_scene(scene)
+
+
+def test_curves_drawn_from_the_strands_are_not_simulated(tmp_path):
+    """Hair curves marked `cfx:interpolatedFrom` (a cache's render children, carried into a DCC's shot)
+    are left out of the strands a stage gives; the tagged strands are read as before."""
+    path = build_stage(tmp_path / "shot.usda")
+    stage = Usd.Stage.Open(str(path))
+    kids = UsdGeom.BasisCurves.Define(stage, "/root/HairChildren")
+    kids.GetPrim().CreateAttribute("cfx:role", Sdf.ValueTypeNames.String, custom=True).Set("hair")
+    kids.GetPrim().CreateAttribute(INTERPOLATED_FROM, Sdf.ValueTypeNames.String, custom=True).Set("/root/Hair")
+    points, counts = _strands(count=3)
+    kids.CreateCurveVertexCountsAttr(Vt.IntArray.FromNumpy(counts.astype(np.int32)))
+    kids.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(points.astype(np.float32)))
+    stage.GetRootLayer().Save()
+    scene = read_usd_scene(path)
+    assert [p.geometry.GetPath().pathString for p in scene.hair] == ["/root/Hair/HairData"]
+    assert len(scene.assets.hair[1]) == len(_strands()[1])
 
 
 def test_a_cache_given_as_a_shot_says_so(ran, tmp_path, capsys):
