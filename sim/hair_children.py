@@ -91,17 +91,23 @@ class HairChildren:
         self.parents = wp.array(parents, dtype=wp.vec3i, device=device)
         self.weights = wp.array(weights, dtype=wp.vec3, device=device)
         self.points = wp.zeros(len(points), dtype=wp.vec3, device=device)
+        self._none_float = wp.zeros(0, dtype=float, device=device)  # no contact bounds: every vertex pushed
+        self._none_int = wp.zeros(0, dtype=wp.int32, device=device)
         longest = np.linalg.norm(np.diff(points.reshape(-1, vertices, 3), axis=1), axis=2).max()
         self.search = max(SEARCH, float(longest) + 0.005)
 
-    def queue(self, x, collider, margin):
+    def queue(self, x, collider, margin, bounds=None):
         """Launch the children's placement for positions x of the model's particles and the
         collider as posed now, kept `margin` [m] outside it; returns the device array it fills
-        (valid once the launch has run)."""
+        (valid once the launch has run). bounds: (clearance, slot_of) from HairSolver.mesh_clearance(),
+        lower bounds of the particles' distances from this collider's mesh at x, which spare the
+        pushes of child vertices they show clear of it (the same children); None pushes every vertex."""
         m = self._model
         collider.fresh_mesh()
+        clearance, slot_of = bounds if bounds is not None else (self._none_float, self._none_int)
         inputs = [x, m.rest_positions, m.strand_start, self.child_rest, self.parents, self.weights, self.vertices,
                   collider.points, collider.indices, self.anchor_face, self.rest_frame, self.rest_center,
-                  collider.shape, m.pinned_per_strand, float(margin), self.search, 0, self.points]
+                  collider.shape, m.pinned_per_strand, float(margin), self.search,
+                  clearance, slot_of if slot_of is not None else self._none_int, 0, self.points]
         launch_on_cores(strands.interpolate_children, self.count, inputs, m.device, first=len(inputs) - 2)
         return self.points

@@ -400,6 +400,21 @@ class HairSolver:
             return bounds
         return tuple(b[self._lanes.slot] for b in bounds)
 
+    def mesh_clearance(self):
+        """(clearance, slot_of) for readers of the particles' distances from the collider's mesh:
+        the length pass's contact bounds, lower bounds of each particle's signed distance from the mesh
+        as posed for the end of the last substep, at its position then (per slot; slot_of gives each
+        particle's slot, None where they are the same), or None where they are not bounds of the mesh
+        (another collision mode, or contact_bounds off)."""
+        if self.params.collision != "mesh" or not self.contact_bounds:
+            return None
+        if self._lanes is None:
+            return self.clearance, None
+        if getattr(self, "_slot_array", (None, None))[0] is not self._lanes:
+            self._slot_array = (self._lanes, wp.array(self._lanes.slot.astype(np.int32), dtype=wp.int32,
+                                                      device=self.model.device))
+        return self.clearance, self._slot_array[1]
+
     def set_parts(self, count):
         """Step the strands as `count` StrandRanges (self.parts) from now on: the same strands, a
         different share of the CPU's cores. Frames captured with the old ranges must be forgotten."""

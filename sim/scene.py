@@ -467,7 +467,8 @@ class Scene:
             arrays["hair_bad"], arrays["hair_first"] = self.solver.count_unhealthy(self.state)
             if self.children is not None:
                 arrays["hair_children"] = self.children.queue(self.state.x, self.collider,
-                                                              self.config.solver.collision_margin)
+                                                              self.config.solver.collision_margin,
+                                                              self.solver.mesh_clearance())
         if self.cloth_model is not None:
             arrays["cloth"] = self.cloth_state.x
             arrays["cloth_bad"], arrays["cloth_first"] = self.cloth_solver.count_unhealthy(self.cloth_state)

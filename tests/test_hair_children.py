@@ -11,6 +11,7 @@ from sim.cli import main
 from sim.hair_children import choose_parents
 from sim.scene import Scene, hair_demo_scene
 from warp_kernels import collision
+from warp_kernels import strands as strand_kernels
 
 VERTICES = 8
 
@@ -81,6 +82,34 @@ def test_children_follow_their_parents_as_the_float64_reference_does(scene):
         want[:, k] = want[:, k - 1] + length * step / np.linalg.norm(step, axis=1, keepdims=True)
     np.testing.assert_allclose(got, want, atol=5e-6)
     assert np.abs(got - child_rest @ R.T - t).max() > 0.01  # the lift did move them
+
+
+def test_the_strands_contact_bounds_spare_pushes_without_changing_the_children():
+    """interpolate_children with the hair solver's contact bounds against the mesh (mesh_clearance) gives
+    the children of pushing every vertex, bit for bit, after frames of a turning head with hair lying
+    on it; bounds that claim every point is 1 m clear change them (the pushes were read from the
+    bounds, and some were needed)."""
+    scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "preroll": 0.1, "stats": False},
+                                   "head": {"animation": "turn"},
+                                   "hair": {"count": 60, "vertices": VERTICES, "length": 0.15, "children": 3},
+                                   "solver": {"collision": "mesh"}}))
+    for _ in range(3):
+        scene.advance(1.0 / 24.0)
+    kids, margin, x = scene.children, scene.config.solver.collision_margin, scene.state.x
+    bounds = scene.solver.mesh_clearance()
+    assert bounds is not None
+    clearance = bounds[0].numpy()
+    known = clearance > 0.5 * strand_kernels.NO_BOUND
+    assert known.mean() > 0.5 and np.any(clearance[known] > margin + 0.005)  # many parents are clear of the head
+    every = kids.queue(x, scene.collider, margin).numpy().copy()
+    spared = kids.queue(x, scene.collider, margin, bounds).numpy().copy()
+    np.testing.assert_array_equal(spared, every)
+    far = wp.full(len(clearance), 1.0, dtype=float, device="cpu")
+    blind = kids.queue(x, scene.collider, margin, (far, bounds[1])).numpy()
+    assert np.abs(blind - every).max() > 1e-4
+    assert scene.solver.mesh_clearance() is not None
+    scene.solver.contact_bounds = False
+    assert scene.solver.mesh_clearance() is None
 
 
 def test_parents_are_chosen_by_root_and_shape_so_the_parting_splits_them():

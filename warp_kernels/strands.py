@@ -49,6 +49,9 @@ SHAPE_SIMPLIFIED = wp.constant(0)
 TAUT = wp.constant(0.995)  # hold_in_comb: a root-to-comb chain this close to straight is laid straight
 SHAPE_FULL = wp.constant(1)
 NO_BOUND = wp.constant(-1.0e30)  # a contact bound that says nothing: the next query looks as far as it can
+# interpolate_children skips a push only where its bound clears the margin by this much more, for the
+# float rounding of the bound's own arithmetic
+CHILD_PUSH_TOLERANCE = wp.constant(1.0e-5)  # m
 MOTION_GRID = wp.constant(16)  # cells per axis of ContactMotion.cells
 # m per count of ContactMotion's fixed-point motions. A float atomic max is a compare-and-swap loop on a
 # GPU, and thousands of collider vertices raising the same few cells retried it in turn (contact_motion
@@ -2403,6 +2406,8 @@ def interpolate_children(
     pinned: int,
     margin: float,
     search: float,
+    clearance: wp.array(dtype=float),
+    slot_of: wp.array(dtype=wp.int32),
     first: int,
     children: wp.array(dtype=wp.vec3),
 ):
@@ -2414,6 +2419,11 @@ def interpolate_children(
     groom's pose they are their groomed shapes. Blended displacements alone stretch a child whose
     parents move apart, and over a curved head can carry it inside (a strand over the ear settling
     past one above it): the walk and the push keep it whole and outside.
+
+    A push moves only a point within margin of the mesh or inside it, so none is made where the
+    strands' contact bounds show the point farther: a parent particle at least c from the mesh puts a
+    point d from it at least c - d away, and the walk's move lowers that bound by its length. The
+    children are those of pushing every vertex, bit for bit.
 
     Launch: one thread per child of a range of children (dim = children in the range).
     Inputs:
@@ -2433,6 +2443,9 @@ def interpolate_children(
       pinned (int): vertices at the root of every strand that move with the head (kept rigid)
       margin (float, m): distance kept outside the collider
       search (float, m): mesh query radius; deeper penetrations are not seen
+      clearance (float, per particle or lane slot, m): lower bounds of the simulated particles'
+          distances from this mesh at x (the hair solver's contact bounds against it); empty for none
+      slot_of (int32, per particle): each particle's element of clearance; empty where they are the same
       first (int, index): the range's first child; thread t works on child first + t
     Outputs:
       children (vec3, per child vertex, m): the children's positions
@@ -2460,7 +2473,20 @@ def interpolate_children(
             # out of the collider, back to its length from the vertex before, and out again: a vertex
             # blended deep inside comes out beside the one before, not a push's depth off its length
             rest_length = wp.length(child_rest[i] - child_rest[i - 1])
-            p = collide_point(p, COLLIDE_MESH, shape, margin, search)
-            p = collide_point(prev + rest_length * wp.normalize(p - prev), COLLIDE_MESH, shape, margin, search)
+            room = float(NO_BOUND)  # a lower bound of p's distance from the mesh
+            if clearance.shape[0] > 0:
+                for j in range(3):
+                    q = strand_start[parents[j]] + k
+                    e = q
+                    if slot_of.shape[0] > 0:
+                        e = slot_of[q]
+                    room = wp.max(room, clearance[e] - wp.length(p - x[q]))
+            pushed = room <= margin + CHILD_PUSH_TOLERANCE
+            if pushed:
+                p = collide_point(p, COLLIDE_MESH, shape, margin, search)
+            walked = prev + rest_length * wp.normalize(p - prev)
+            if pushed or room - wp.length(walked - p) <= margin + CHILD_PUSH_TOLERANCE:
+                walked = collide_point(walked, COLLIDE_MESH, shape, margin, search)
+            p = walked
         children[i] = p
         prev = p
