@@ -84,15 +84,22 @@ def test_children_follow_their_parents_as_the_float64_reference_does(scene):
     assert np.abs(got - child_rest @ R.T - t).max() > 0.01  # the lift did move them
 
 
-def test_the_strands_contact_bounds_spare_pushes_without_changing_the_children():
+@pytest.mark.parametrize("lanes", [False, True])
+def test_the_strands_contact_bounds_spare_pushes_without_changing_the_children(lanes):
     """interpolate_children with the hair solver's contact bounds against the mesh (mesh_clearance) gives
     the children of pushing every vertex, bit for bit, after frames of a turning head with hair lying
-    on it; bounds that claim every point is 1 m clear change them (the pushes were read from the
-    bounds, and some were needed)."""
-    scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "preroll": 0.1, "stats": False},
+    on it, with the bounds in particle order or in a GPU's lane order (each particle's slot read);
+    bounds that claim every point is 1 m clear change them (the pushes were read from the bounds, and
+    some were needed)."""
+    scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "preroll": 0.0, "stats": False},
                                    "head": {"animation": "turn"},
                                    "hair": {"count": 60, "vertices": VERTICES, "length": 0.15, "children": 3},
                                    "solver": {"collision": "mesh"}}))
+    if lanes:
+        scene.solver.fused = False
+        scene.solver.set_parts(1)
+        scene.solver.set_lanes(True)
+        assert scene.solver.mesh_clearance()[1] is not None
     for _ in range(3):
         scene.advance(1.0 / 24.0)
     kids, margin, x = scene.children, scene.config.solver.collision_margin, scene.state.x
