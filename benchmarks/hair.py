@@ -22,7 +22,8 @@ order, the rows marked "grown". A substep can run as one launch per strand range
 on by default on the CPU, and on a GPU for simplified shape matching from 65k strands with the frame
 kept in lane order, HairSolver.frame_lanes; the sphere tree's walks are then queued ahead from the
 start positions); --fused both marks the rows with it "fused". --try times each case once more for each
-setting of HairSolver attributes given (e.g. --try mesh_lists=on), the rows marked with it.
+setting of HairSolver attributes given (e.g. --try mesh_lists=on), the rows marked with it: --try
+frame_in_block=on steps each frame in one launch, a block of lanes per strand (strands.frame_in_block).
 
     python benchmarks/hair.py                        # 1k, 10k, 100k strands on cpu (and cuda if present)
     python benchmarks/hair.py --strands 1000 --device cuda --cases full+mesh
@@ -30,6 +31,7 @@ setting of HairSolver attributes given (e.g. --try mesh_lists=on), the rows mark
     python benchmarks/hair.py --device cuda --lane-order both
     python benchmarks/hair.py --device cuda --fused both
     python benchmarks/hair.py --device cuda --cases full+mesh --try mesh_lists=on
+    python benchmarks/hair.py --device cuda --no-peer --cases simplified1+spheres --try frame_in_block=on
 """
 
 import argparse
@@ -103,7 +105,7 @@ def solver_setting(text):
 
 # the HairSolver switches a --try may set
 SOLVER_ATTRS = {"mesh_lists", "contact_bounds", "leaves_ahead", "fused", "read_ahead", "frame_lanes", "loose_lists",
-                "strand_block"}
+                "strand_block", "frame_in_block"}
 
 
 def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True, fused=None,

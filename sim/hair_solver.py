@@ -2,6 +2,7 @@
 follow-the-leader inextensibility and head collision, one fixed sequence of launches per substep.
 """
 
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from functools import partial
 
@@ -32,6 +33,21 @@ FUSED_GPU_STRANDS = 65000
 # (the cloth's frame beside the hair's) takes over ranges that would otherwise wait for the other core
 PARTS_PER_CORE = 3
 MAX_PARTS = 8
+
+
+@contextmanager
+def cpu_blocks(device):
+    """Launches on the CPU within run a block's lanes as fibers (wp.config.enable_cpu_blocks), as
+    kernels that share a block's memory need (strands.frame_in_block); a CUDA device always does."""
+    if not wp.get_device(device).is_cpu:
+        yield
+        return
+    before = wp.config.enable_cpu_blocks
+    wp.config.enable_cpu_blocks = True
+    try:
+        yield
+    finally:
+        wp.config.enable_cpu_blocks = before
 
 
 @dataclass(frozen=True)
@@ -283,6 +299,14 @@ class HairSolver:
         self.frame_lanes = wp.get_device(device).is_cuda and self.fused
         # lanes per block of the length pass (strand_block); a second size builds its module again
         self.strand_block = strand_block(model.num_strands, device)
+        # whole frames in one launch each (step_frame, strands.frame_in_block): a block of lanes per strand,
+        # a lane per particle, the state in registers across the frame's substeps and the collider posed
+        # for all of them ahead. Simplified shape matching (or none) against the sphere tree (or no
+        # collider), strands of up to 64 particles; it reads the strands in particle order, so setting it
+        # sets lanes off. Off by default until a GPU has timed it (the CPU runs a block's lanes as fibers,
+        # for its tests)
+        self._frame_in_block = False
+        self._frame_poses = None  # (key, FramePoses, per-substep ContactMotion rows) for step_frame
         self._frame = None  # [the lanes' x, v, x', v'; which pair holds the state] for frame_lanes
         self._in_frame = False  # between begin_frame and end_frame with the state in the lanes
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)
@@ -594,9 +618,9 @@ class HairSolver:
         elif measure:
             self._launch_motion(c, mode)
 
-    def _launch_motion(self, c, mode):
+    def _launch_motion(self, c, mode, motion=None):
         m, p, dev = self.model, self.params, self.model.device
-        motion, adjacency = self._motion, c.adjacency()
+        motion, adjacency = self._motion if motion is None else motion, c.adjacency()
         wp.launch(strands.anchor_frame, strands.MOTION_GRID ** 3,
                   [c.prev_points, c.points, c.indices, m.anchor_face, motion], device=dev)
         mesh = mode == COLLISION["mesh"]  # the sphere tree's strands see only its leaves
@@ -645,6 +669,115 @@ class HairSolver:
                   [buffers[2 * at], buffers[2 * at + 1], self.model.strand_start, lane.order, lane.longest, state.x,
                    state.v], device=self.model.device)
         self._in_frame = False
+
+    @property
+    def frame_in_block(self):
+        """Whether the scene steps this solver's frames with step_frame (strands.frame_in_block), a launch
+        a frame. Setting it on sets lanes off (the kernel reads the strands in particle order)."""
+        return self._frame_in_block
+
+    @frame_in_block.setter
+    def frame_in_block(self, on):
+        if on and self.lanes:
+            self.set_lanes(False)
+        self._frame_in_block = bool(on)
+
+    def frame_in_block_misfit(self, collider):
+        """Why step_frame cannot step this solver's frames against `collider` (a line), or None."""
+        p, m = self.params, self.model
+        longest = int(np.diff(m.strand_start_np).max()) if m.num_strands else 0
+        if p.shape_matching == "full":
+            return "frame_in_block takes simplified shape matching or none, not full"
+        if collider is not None and p.collision == "mesh":
+            return "frame_in_block collides with the sphere tree or nothing, not the mesh (its BVH is one pose)"
+        if self.comb is not None:
+            return "frame_in_block does not step strands held by a comb"
+        if p.substeps > strands.FRAME_SUBSTEPS:
+            return f"frame_in_block takes at most {strands.FRAME_SUBSTEPS} substeps a frame, not {p.substeps}"
+        if longest > max(strands.FRAME_IN_BLOCK):
+            return f"frame_in_block takes strands of at most {max(strands.FRAME_IN_BLOCK)} particles, not {longest}"
+        if self.lanes:
+            return "frame_in_block reads the strands in particle order: set lanes off"
+        return None
+
+    def step_frame(self, state_in, state_out, collider, dt, times, guides=None, listed=None):
+        """A whole frame of len(times) - 1 substeps of dt in one launch per part (strands.frame_in_block),
+        the same strands bit for bit as step() at each substep (times: the substeps' ends, after the
+        frame's start). The collider is posed here for the end of
+        every substep, Collider.apply_pose(k) for k = 1, 2, ... without refits (the sphere tree and the
+        skin only), listed vertices only (an int32 array, or None for all) at every pose but the last;
+        it must be at the frame's first pose (times[0]) on entry and is left at its last.
+        Raises ValueError where frame_in_block_misfit names a reason."""
+        misfit = self.frame_in_block_misfit(collider)
+        if misfit is not None:
+            raise ValueError(misfit)
+        m, p, dev = self.model, self.params, self.model.device
+        substeps = len(times) - 1
+        mode = COLLISION[p.collision] if collider is not None else 0
+        bound = m.bind_particle is not None and collider is not None
+        poses = self._pose_frame(collider, times, listed, mode, bound)
+        hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
+        variant = SHAPE_MATCHING[p.shape_matching]
+        passes = p.shape_iterations if variant >= 0 and self.windows.count > 0 else 0
+        if getattr(m, "root_local", None) is not self._slots_root_local:
+            self.slots = self._strand_slots()  # bound to a mesh since the slots were made
+        longest = int(np.diff(m.strand_start_np).max())
+        lanes = min(n for n in strands.FRAME_IN_BLOCK if n >= longest)
+        contact = self.strand_contact(collider, mode)
+        skin = collider.skin_binding(m) if bound else skinning.SkinBinding()
+
+        def launch(r):
+            with cpu_blocks(dev):
+                wp.launch_tiled(strands.FRAME_IN_BLOCK[lanes], dim=[r.strands], block_dim=lanes, device=dev, inputs=[
+                    state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(), self.clock, poses,
+                    substeps, dt, int(bound), skin, m.particle_binding if bound else None,
+                    m.root_binding if bound else None, hold if bound else 0.0, self._pull(guides, dt),
+                    self.windows.size, passes, p.shape_stiffness, self.slots, contact, p.ftl_damping, state_out.x,
+                    state_out.v, r.first_strand])
+
+        # one launch for every strand: the CPU's fibers share one arena for the blocks' memory, which
+        # launches of the parts side by side on its cores overflow
+        launch(self.whole)
+
+    def _pose_frame(self, c, times, listed, mode, bound):
+        """strands.FramePoses of collider c for the frame's substeps: each pose applied in turn (see
+        step_frame) and what the substeps read of it copied into its row, the collider's motion near
+        the strands measured into it where the contact bounds need it."""
+        dev = self.model.device
+        substeps = len(times) - 1
+        vertices = len(c.points) if bound else 1
+        nodes = len(c.sphere_nodes) if mode != 0 else 1
+        key = (substeps, vertices, nodes)
+        if self._frame_poses is None or self._frame_poses[0] != key:
+            poses = strands.FramePoses()
+            poses.points = wp.zeros((substeps, vertices), dtype=wp.vec3, device=dev)
+            poses.spheres = wp.zeros((substeps, nodes), dtype=wp.vec4, device=dev)
+            poses.moved = wp.zeros((substeps, 1), dtype=wp.int32, device=dev)
+            poses.rigid = wp.zeros((substeps, 1), dtype=wp.mat44, device=dev)
+            poses.center = wp.zeros((substeps, 1), dtype=wp.vec3, device=dev)
+            poses.cells = wp.zeros((substeps, strands.MOTION_GRID ** 3), dtype=wp.int32, device=dev)
+            rows = []
+            for k in range(substeps):
+                motion = strands.ContactMotion()
+                motion.moved, motion.rigid, motion.center = poses.moved[k], poses.rigid[k], poses.center[k]
+                motion.cells = poses.cells[k]
+                rows.append(motion)
+            self._frame_poses = (key, poses, rows)
+        _, poses, rows = self._frame_poses
+        offsets = np.zeros(strands.FRAME_SUBSTEPS, np.float32)
+        offsets[:substeps] = [float(t - self._clock_time) for t in times[1:]]
+        poses.offsets = strands.frame_offsets(*offsets)
+        if c is None:
+            return poses
+        for k in range(1, substeps + 1):
+            c.apply_pose(k, refit=False, listed=None if k == substeps else listed)
+            if bound:
+                wp.copy(poses.points[k - 1], c.points)
+            if mode != 0:
+                wp.copy(poses.spheres[k - 1], c.sphere_nodes)
+                if self.contact_bounds:
+                    self._launch_motion(c, mode, rows[k - 1])
+        return poses
 
     def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r, guides):
         """step() as one launch per range (strands.step_strands), after the collider's motion."""

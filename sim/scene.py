@@ -594,7 +594,8 @@ class Scene:
                                                 frame_dt, animate, self._step_hair, self._hair_refs, bvh=mesh,
                                                 refit_in_step=mesh, listed=None if mesh else self._hair_root_vertices(),
                                                 around=(lambda: self.solver.begin_frame(self.state),
-                                                        lambda: self.solver.end_frame(self.state))))
+                                                        lambda: self.solver.end_frame(self.state)),
+                                                whole=self._step_hair_frame if self.solver.frame_in_block else None))
             if self.cloth_model is not None:
                 body = self.cloth_body if self.cloth_body is not self.cloth_collider else None
                 # the cloth queries the body's triangle boxes, swept over the frame or refitted to each
@@ -629,7 +630,7 @@ class Scene:
                 self.time = t0 + frame_dt
 
     def _solver_frame(self, name, collider, substep_poses, frame_dt, animate, step, refs, bvh=True, end_pose=None,
-                      listed=None, sweep=False, refit_last=False, refit_in_step=False, around=None):
+                      listed=None, sweep=False, refit_last=False, refit_in_step=False, around=None, whole=None):
         """One solver's frame against `collider`, substep_poses = (times, poses) at the start and the
         end of each substep: the poses are uploaded now, and the returned (graph key, task) runs the
         frame. bvh=False: the solver makes no mesh queries, so the BVH is not refitted at all, and the
@@ -645,7 +646,9 @@ class Scene:
         refit_in_step (with bvh): the step refits the BVH itself, beside work that does not read it
         (HairSolver.step), so the poses leave it stale.
         around: (begin, end) called before the first substep and after the last (the hair's
-        HairSolver.begin_frame and end_frame)."""
+        HairSolver.begin_frame and end_frame).
+        whole (with bvh=False): whole(dt, times, listed) steps every substep at once, posing the collider
+        itself (the hair's HairSolver.step_frame), in place of a step per substep."""
         times, poses = substep_poses
         substeps = len(times) - 1
         dt = frame_dt / substeps
@@ -654,6 +657,9 @@ class Scene:
             self._pose(end_pose, poses[-1:])
 
         def steps():
+            if whole is not None:
+                whole(dt, times, listed)
+                return
             refit = bvh and not refit_in_step
             for k in range(1, substeps + 1):
                 last = k == substeps
@@ -714,6 +720,10 @@ class Scene:
     def _step_hair(self, dt, t):
         # the solver's strand ranges, side by side on the CPU's cores once the frame is a graph
         run_parallel(self.solver.branches(self.state, self._scratch, self.collider, dt, t, self.guides))
+        self.state, self._scratch = self._scratch, self.state
+
+    def _step_hair_frame(self, dt, times, listed):
+        self.solver.step_frame(self.state, self._scratch, self.collider, dt, times, self.guides, listed)
         self.state, self._scratch = self._scratch, self.state
 
     def _step_cloth(self, dt, t):

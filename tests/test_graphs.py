@@ -613,3 +613,61 @@ def test_a_frame_kept_in_lanes_follows_the_fused_frames(device):
 
     _same_hair_frames(_fast_hair_config, device, configure)
     assert [solver._frame is not None for solver in kept_frames] == [False, True]
+
+
+def _free_hair_config(device):
+    # no collider, two shape passes, gusts that read each substep's time; odd substeps
+    return hair_demo_scene({"scene": {"device": device, "frames": 4, "preroll": 0.0, "stats": False},
+                            "head": {"animation": "turn_nod"},
+                            "hair": {"count": 120, "vertices": 12, "style": "wavy"},
+                            "solver": {"substeps": 5, "collision": "none", "shape_matching": "simplified",
+                                       "shape_iterations": 2, "wind": [1.5, 0.0, 0.5], "wind_turbulence": 0.6}})
+
+
+def _long_hair_config(device):
+    # strands of 40 particles: blocks of 64 lanes, 24 of them past every tip
+    return hair_demo_scene({"scene": {"device": device, "frames": 4, "preroll": 0.0, "stats": False},
+                            "head": {"sphere_leaves": 128, "animation": "turn_nod"},
+                            "hair": {"count": 60, "vertices": 40, "style": "straight"},
+                            "solver": {"substeps": 4, "collision": "sphere_tree", "shape_matching": "simplified",
+                                       "shape_iterations": 1}})
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("make", [_fast_hair_config, _free_hair_config, _long_hair_config],
+                         ids=["spheres", "no-collider", "64-lanes"])
+def test_frames_in_block_follow_the_substeps(make, device):
+    """A whole frame in one launch, a block of lanes per strand (HairSolver.frame_in_block,
+    strands.frame_in_block, the collider posed for every substep ahead) captured in the frame's graph:
+    the frames of the substeps one by one, to float32 rounding (bit for bit on the CPU)."""
+    def configure(solver, whole):
+        solver.loose_lists = False  # the loose lists' walks differ, within the margin
+        solver.frame_in_block = whole
+        assert not (whole and solver.lanes)
+
+    _same_hair_frames(make, device, configure)
+
+
+def test_a_frame_in_block_names_what_it_cannot_step():
+    """frame_in_block takes simplified shape matching (or none) against the sphere tree (or no
+    collider), strands of up to 64 particles, up to FRAME_SUBSTEPS substeps: otherwise the scene's
+    first frame raises, naming why, before it moves the collider or the hair."""
+    from dataclasses import replace
+
+    from sim.strands import StrandBuilder
+
+    scene = Scene(_hair_config("cpu", False))  # full shape matching against the mesh
+    scene.solver.frame_in_block = True
+    start = scene.state.x.numpy().copy()
+    with pytest.raises(ValueError, match="full"):
+        scene.advance(1.0 / scene.config.timing.fps)
+    np.testing.assert_array_equal(scene.state.x.numpy(), start)
+    solver = hair_solver.HairSolver(scene.model, replace(scene.solver.params, shape_matching="simplified"))
+    assert "mesh" in solver.frame_in_block_misfit(scene.collider)
+    assert solver.frame_in_block_misfit(None) is None
+    solver = hair_solver.HairSolver(scene.model, replace(solver.params, substeps=40))
+    assert "40" in solver.frame_in_block_misfit(None)
+    points = np.stack([np.zeros(70), -np.linspace(0.0, 0.7, 70), np.zeros(70)], axis=1)
+    model = StrandBuilder().add_strands(points, [70], np.full(70, 1e-4)).finalize("cpu", pinned_per_strand=2)
+    solver = hair_solver.HairSolver(model, hair_solver.HairParams(collision="none", shape_matching="none"))
+    assert "70" in solver.frame_in_block_misfit(None)

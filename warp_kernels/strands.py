@@ -17,7 +17,10 @@ cost an H100 several times the gathers (measured, see BENCHMARKS.md).
 
 step_strands is the whole sequence from root_frames to follow_the_leader in one launch, guides
 included, a thread per strand (after anchor_frame and contact_motion, and the tree walks queued ahead
-from the start positions), with the same strands bit for bit.
+from the start positions), with the same strands bit for bit. frame_in_block is a whole frame of
+those substeps in one launch, a block of lanes per strand and a lane per particle, its state in
+registers from the frame's start to its end and the collider posed for every substep ahead of it
+(FramePoses; simplified shape matching against the sphere tree or no collider).
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
 (window goals, root positions, FTL corrections) is recomputed or carried in registers instead,
@@ -27,6 +30,8 @@ because on a GPU the bytes moved, not the arithmetic, set the cost.
 # float(0.0), int(0) and bool(False) declare variables that a kernel reassigns (Warp treats a
 # bare literal as a constant); the nested ifs are kept as the kernels were written and verified
 # ruff: noqa: UP018, RUF046, SIM102
+
+from typing import Any
 
 import warp as wp
 
@@ -440,11 +445,11 @@ def refine_rotation(q: wp.quat, A: wp.mat33, iterations: int):
 
 
 @wp.func
-def window_centroid(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: int):
+def window_centroid(x: Any, first: int, stride: int, size: int):
     """Mean position of a window's particles, held at first, first + stride, ... (size of them).
 
     Inputs:
-      x (vec3, per particle or lane slot, m): positions
+      x (vec3, per particle or lane slot, m): positions, an array or a block's shared tile (frame_in_block)
       first (int, index): element of the window's first particle
       stride (int): elements from one particle of the strand to the next (1 in particle order, the
           lane count in lane order, see lane_slot)
@@ -606,11 +611,11 @@ def shape_match_rotations(
 
 
 @wp.func
-def window_direction(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: int):
+def window_direction(x: Any, first: int, stride: int, size: int):
     """Unit first-to-last direction of a window, the axis of the simplified variant's goals.
 
     Inputs:
-      x (vec3, per particle or lane slot, m): current positions
+      x (vec3, per particle or lane slot, m): current positions, an array or a block's shared tile
       first (int, index): element of the window's first particle
       stride (int): elements from one particle to the next (window_centroid)
       size (int): particles per window
@@ -1762,18 +1767,57 @@ def shaped_position(
     if variant != SHAPE_SIMPLIFIED:
         return full_shaped_position(p, k, count, window_size, stiffness, per.frames, per.translations, slot, stride,
                                     per.rest_local[slot])
+    return simplified_shaped_position(p, k, slot, stride, slot, window_size, stiffness, per.window_at, per.centroids,
+                                      per.axes, per.offsets, per.slots)
+
+
+@wp.func(inline=True)
+def simplified_shaped_position(
+    p: wp.vec3,
+    k: int,
+    at: int,
+    stride: int,
+    slot: int,
+    window_size: int,
+    stiffness: float,
+    window_at: Any,
+    centroids: Any,
+    axes: Any,
+    offsets: wp.array(dtype=float),
+    slots: int,
+):
+    """A free particle, k-th of its strand, moved toward the mean goal of the simplified windows that
+    hold it (shaped_position's simplified variant), the windows read from arrays (per slot) or from a
+    block's shared tiles (per lane, frame_in_block).
+
+    Inputs:
+      p (vec3, m): the particle's position before the pass
+      k (int, index): its place along the strand
+      at (int, index): its element of window_at, centroids and axes
+      stride (int): elements of those from one particle of the strand to the next
+      slot (int, index): its slot of offsets (StrandSlots)
+      window_size (int): particles per window
+      stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
+      window_at (int32, per element): the window starting at the element's particle, -1 for none
+      centroids (vec3, per element, m): the centroid of the window starting there (update_window)
+      axes (vec3, per element): its axis, zero when degenerate
+      offsets (float, window_size * slots, m): rest offsets along the rest axis (StrandSlots.offsets)
+      slots (int): elements per row of offsets
+    Returns:
+      vec3 (m): the particle's position after the pass
+    """
     goal = wp.vec3(0.0)
     held = float(0.0)
     for j in range(window_size):
         if k - j >= 0:
-            first = slot - j * stride
-            w = per.window_at[first]
+            first = at - j * stride
+            w = window_at[first]
             if w >= 0:
-                u = per.axes[first]
+                u = axes[first]
                 if u == wp.vec3(0.0):
                     goal += p  # a degenerate window holds its particles where they are
                 else:
-                    goal += per.centroids[first] + per.offsets[j * per.slots + first] * u
+                    goal += centroids[first] + offsets[j * slots + slot - j * stride] * u
                 held += 1.0
     if held > 0.0:
         p = p + stiffness * (goal / held - p)
@@ -2100,6 +2144,220 @@ STEP_STRANDS = {(PATHS_ALL, False): _step_strands(PATHS_ALL),
 # the sphere tree's fused substep with loose lists (HairSolver.loose_lists with fused, a GPU experiment)
 STEP_STRANDS_LOOSE = {(PATHS_SPHERE_LISTS, True): _step_strands(PATHS_SPHERE_LISTS, simplified=True, loose=True)}
 step_strands = STEP_STRANDS[(PATHS_ALL, False)]
+
+# substeps a frame_in_block launch takes at most (FramePoses.offsets)
+FRAME_SUBSTEPS = 32
+frame_offsets = wp.types.vector(length=FRAME_SUBSTEPS, dtype=float)
+
+
+@wp.struct
+class FramePoses:
+    """The collider posed for every substep of a frame, ahead of it, as frame_in_block reads it: row j
+    of each array is what the launches of substep j would read of the collider (Collider.apply_pose
+    for the end of the substep, contact_motion over it).
+
+    Fields:
+      points (vec3, substeps x collider vertices, m): the posed vertices (the bindings' skin); one
+          row of one element where the strands are not bound
+      spheres (vec4, substeps x sphere-tree nodes): the packed sphere tree (ColliderShape.spheres)
+      moved, rigid, center, cells: ContactMotion's arrays, a row per substep
+      offsets (vector of FRAME_SUBSTEPS floats, s): each substep's end relative to the clock
+    """
+
+    points: wp.array2d(dtype=wp.vec3)
+    spheres: wp.array2d(dtype=wp.vec4)
+    moved: wp.array2d(dtype=wp.int32)
+    rigid: wp.array2d(dtype=wp.mat44)
+    center: wp.array2d(dtype=wp.vec3)
+    cells: wp.array2d(dtype=wp.int32)
+    offsets: frame_offsets
+
+
+@wp.func
+def block_sync(tile: Any):
+    """A barrier across the block: the masked write of nothing, which every lane calls, syncs; a
+    shared tile read before it may be written after it."""
+    wp.tile_scatter_masked(tile, 0, tile[0], False)
+
+
+def _frame_in_block(lanes):
+    """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand."""
+    follow = _follow_leader(PATHS_SPHERE_LISTS)
+
+    # sm_90: 191 registers uncapped (10 one-warp blocks an SM); capped at 128, 16 blocks with 352/304 bytes
+    # of spills (at 96: 1020/1696). Untimed on a GPU: the cap is the length pass's (follow_the_leader)
+    @wp.kernel(module=deferred_module(f"{__name__}.frame_in_block_{lanes}", block_dim=lanes), cuda_max_registers=128,
+               name=f"frame_in_block_{lanes}")
+    def frame_in_block(
+        x: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        strand_start: wp.array(dtype=wp.int32),
+        pinned_per_strand: int,
+        forces: StrandForces,
+        clock: wp.array(dtype=float),
+        poses: FramePoses,
+        substeps: int,
+        dt: float,
+        bound: int,
+        skin: SkinBinding,
+        particle_binding: wp.array(dtype=wp.int32),
+        root_binding: wp.array(dtype=wp.int32),
+        hold_stiffness: float,
+        pull: GuidePull,
+        window_size: int,
+        passes: int,
+        stiffness: float,
+        per: StrandSlots,
+        contact: StrandContact,
+        ftl_damping: float,
+        x_out: wp.array(dtype=wp.vec3),
+        v_out: wp.array(dtype=wp.vec3),
+        first: int,
+    ):
+        """A whole frame of hair substeps in one launch, a block of lanes per strand and a lane per
+        particle: the state stays in the lanes' registers from the frame's start to its end, and what
+        a particle needs of its neighbours (windows, parents, the FTL corrections) passes through the
+        block's shared memory, not through global memory. Each substep is step_strands' with
+        simplified shape matching (or none) against the sphere tree (or no collider): the same
+        strands, bit for bit.
+
+        Prediction, the guides' pull and the shape passes run a lane per particle. The length pass is
+        a chain: lane k places its particle once lane k - 1 has placed its own (follow_leader, with
+        its collisions and contact bounds), a barrier a particle. The velocities then take each
+        child's correction from shared memory.
+
+        The collider is posed for every substep ahead of the frame (FramePoses): the launches between
+        substeps that step_strands needs (apply_pose, contact_motion) are all made before this one.
+
+        Launch: wp.launch_tiled over the strands of a range (dim = [strands], block_dim = lanes), every
+        strand of at most `lanes` particles. On the CPU with wp.config.enable_cpu_blocks (a block's
+        lanes as fibers).
+        Inputs:
+          x (vec3, per particle, m): positions at the start of the frame
+          v (vec3, per particle, m/s): velocities at the start of the frame
+          strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+          pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
+          forces (StrandForces): gravity, wind with its gusts, drag and damping
+          clock (float, 1 element, s): device clock
+          poses (FramePoses): the collider for each substep and the substeps' times
+          substeps (int): substeps of the frame, at most FRAME_SUBSTEPS
+          dt (float, s): substep length
+          bound (int, flag): non-zero when the strands are bound to the collider
+          skin (SkinBinding): the bindings (its points replaced by each substep's row of poses.points)
+          particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
+          root_binding (int32, per strand): binding of the strand's root particle
+          hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+          pull (GuidePull): captured guides; pull.stiffness 0 for none
+          window_size (int): particles per window
+          passes (int): simplified shape-matching passes, 0 for none
+          stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+          per (StrandSlots): the particles and windows in particle order (its scratch is not used)
+          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+          first (int, index): the range's first strand; block b works on strand first + b
+        In/out:
+          contact (StrandContact): the collider's settings and the contact bounds per particle (its
+              shape's spheres and its motion replaced by each substep's rows of poses)
+        Outputs:
+          x_out (vec3, per particle, m): positions at the end of the frame
+          v_out (vec3, per particle, m/s): velocities at the end of the frame
+        """
+        block, lane = wp.tid()
+        s = block + first
+        start = strand_start[s]
+        count = strand_start[s + 1] - start
+        here = lane < count
+        i = start + wp.min(lane, count - 1)  # lanes past the tip shadow it and write nothing
+        placed = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")
+        centroids = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")
+        axes = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")
+        corrections = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")
+        window_at = wp.tile_zeros(shape=lanes, dtype=wp.int32, storage="shared")
+        w = int(-1)
+        if here:
+            w = per.window_at[i]
+        wp.tile_scatter_masked(window_at, lane, w, True)
+        p0 = x[i]
+        vel = v[i]
+        inv_mass = per.inv_mass[i]
+        length = per.rest_length[i]
+        binding = int(-1)
+        weight = float(0.0)
+        local = wp.vec3(0.0)
+        rb = int(0)
+        if bound != 0:
+            if inv_mass == 0.0:
+                binding = particle_binding[i]
+            weight = per.hold[i] * hold_stiffness
+            if weight > 0.0:
+                local = per.root_local[i]
+                rb = root_binding[s]
+        for j in range(substeps):
+            time = clock[0] + poses.offsets[j]
+            posed = skin
+            target = wp.vec3(0.0)
+            if bound != 0:
+                posed.mesh_points = poses.points[j]
+                if weight > 0.0:
+                    origin = bound_position(posed, rb)
+                    target = origin + face_frame(posed.mesh_points, posed.mesh_indices, posed.triangle[rb]) * local
+            p, _vel = predicted_position(p0, vel, inv_mass, forces, time, dt, posed, binding, target, weight)
+            if pull.stiffness > 0.0:
+                guide_frame, guide_next, guide_weight = guide_frames(pull, time)
+                block_sync(placed)
+                wp.tile_scatter_masked(placed, lane, p, here)
+                root = placed[0]
+                if here and inv_mass != 0.0:
+                    p = guided_position(pull, p, root, s, i, guide_frame, guide_next, guide_weight)
+            for _pass in range(passes):
+                block_sync(placed)
+                wp.tile_scatter_masked(placed, lane, p, here)
+                c = wp.vec3(0.0)
+                u = wp.vec3(0.0)
+                if here and window_at[lane] >= 0:
+                    u, _straight = window_direction(placed, lane, 1, window_size)
+                    c = window_centroid(placed, lane, 1, window_size)
+                wp.tile_scatter_masked(centroids, lane, c, True)
+                wp.tile_scatter_masked(axes, lane, u, True)
+                if here and inv_mass != 0.0:
+                    p = simplified_shaped_position(p, lane, lane, 1, i, window_size, stiffness, window_at, centroids,
+                                                   axes, per.offsets, per.slots)
+            touching = contact
+            if contact.mode != 0:
+                shape = contact.shape
+                shape.spheres = poses.spheres[j]
+                touching.shape = shape
+                motion = contact.motion
+                motion.moved = poses.moved[j]
+                motion.rigid = poses.rigid[j]
+                motion.center = poses.center[j]
+                motion.cells = poses.cells[j]
+                touching.motion = motion
+            block_sync(placed)
+            wp.tile_scatter_masked(placed, lane, p, here)
+            correction = wp.vec3(0.0)
+            for k in range(pinned_per_strand, count):
+                if lane == k:
+                    predicted = p
+                    p = follow(placed[k - 1], placed[wp.max(k - 2, 0)], k, predicted, length, i, p0, touching,
+                               NO_BOUND, wp.vec4i(-1, -1, -1, -1), NO_BOUND)
+                    correction = p - predicted
+                wp.tile_scatter_masked(placed, k, p, lane == k)
+            wp.tile_scatter_masked(corrections, lane, correction, True)
+            step_v = (p - p0) / dt
+            if lane + 1 < count and inv_mass > 0.0:
+                step_v = step_v - (ftl_damping / dt) * corrections[lane + 1]
+            p0 = p
+            vel = step_v
+        if here:
+            x_out[i] = p0
+            v_out[i] = vel
+
+    return frame_in_block
+
+
+# a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
+FRAME_IN_BLOCK = {lanes: _frame_in_block(lanes) for lanes in (32, 64)}
+frame_in_block = FRAME_IN_BLOCK[32]
 
 
 @wp.func
