@@ -694,8 +694,8 @@ class HairSolver:
             return "frame_in_block does not step strands held by a comb"
         if p.substeps > strands.FRAME_SUBSTEPS:
             return f"frame_in_block takes at most {strands.FRAME_SUBSTEPS} substeps a frame, not {p.substeps}"
-        if longest > max(strands.FRAME_IN_BLOCK):
-            return f"frame_in_block takes strands of at most {max(strands.FRAME_IN_BLOCK)} particles, not {longest}"
+        if longest > max(strands.FRAME_LANES):
+            return f"frame_in_block takes strands of at most {max(strands.FRAME_LANES)} particles, not {longest}"
         if self.lanes:
             return "frame_in_block reads the strands in particle order: set lanes off"
         return None
@@ -722,22 +722,20 @@ class HairSolver:
         if getattr(m, "root_local", None) is not self._slots_root_local:
             self.slots = self._strand_slots()  # bound to a mesh since the slots were made
         longest = int(np.diff(m.strand_start_np).max())
-        lanes = min(n for n in strands.FRAME_IN_BLOCK if n >= longest)
+        lanes = min(n for n in strands.FRAME_LANES if n >= longest)
+        paths = strands.PATHS_SPHERE_LISTS if mode != 0 else strands.PATHS_NONE
         contact = self.strand_contact(collider, mode)
         skin = collider.skin_binding(m) if bound else skinning.SkinBinding()
 
-        def launch(r):
-            with cpu_blocks(dev):
-                wp.launch_tiled(strands.FRAME_IN_BLOCK[lanes], dim=[r.strands], block_dim=lanes, device=dev, inputs=[
-                    state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(), self.clock, poses,
-                    substeps, dt, int(bound), skin, m.particle_binding if bound else None,
-                    m.root_binding if bound else None, hold if bound else 0.0, self._pull(guides, dt),
-                    self.windows.size, passes, p.shape_stiffness, self.slots, contact, p.ftl_damping, state_out.x,
-                    state_out.v, r.first_strand])
-
         # one launch for every strand: the CPU's fibers share one arena for the blocks' memory, which
         # launches of the parts side by side on its cores overflow
-        launch(self.whole)
+        with cpu_blocks(dev):
+            wp.launch_tiled(strands.FRAME_IN_BLOCK[(lanes, paths)], dim=[m.num_strands], block_dim=lanes, device=dev,
+                            inputs=[state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(),
+                                    self.clock, poses, substeps, dt, int(bound), skin,
+                                    m.particle_binding if bound else None, m.root_binding if bound else None,
+                                    hold if bound else 0.0, self._pull(guides, dt), self.windows.size, passes,
+                                    p.shape_stiffness, self.slots, contact, p.ftl_damping, state_out.x, state_out.v, 0])
 
     def _pose_frame(self, c, times, listed, mode, bound):
         """strands.FramePoses of collider c for the frame's substeps: each pose applied in turn (see

@@ -12,6 +12,7 @@ import re
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 import warp as wp
@@ -35,7 +36,10 @@ def short(module):
 
 
 def documented_dtypes(t):
-    """The dtype words a docstring may use for an argument of Warp type t."""
+    """The dtype words a docstring may use for an argument of Warp type t; None for a generic one
+    (typing.Any: an array or a tile, its word the elements' own)."""
+    if t is Any:
+        return None
     name = reference.type_name(t.dtype if wp.types.is_array(t) else t)
     if name == "float32":
         return {"float", "float32"}
@@ -81,7 +85,8 @@ def problems(kind, doc, signature):
             found.append(f"{name} has no (dtype, shape, unit)")
             continue
         fields = [f.strip() for f in spec.split(",")]
-        if fields[0] not in documented_dtypes(types[name]):
+        dtypes = documented_dtypes(types[name])
+        if dtypes is not None and fields[0] not in dtypes:
             found.append(f"{name} is documented as {fields[0]}, the signature has {reference.type_name(types[name])}")
         if wp.types.is_array(types[name]) and not (len(fields) > 1 and SHAPE.search(fields[1])):
             found.append(f"{name} is an array but its shape is not given as the second field")

@@ -107,6 +107,8 @@ def type_name(t):
         return "int32"
     if t is bool:
         return "bool"
+    if wp.types.type_is_vector(t) and t.__name__ == "vec_t":  # a length of its own: named as vec3f is
+        return f"vec{t._length_}{type_name(t._wp_scalar_type_)[0]}"
     return getattr(t, "__name__", None) or str(t)
 
 

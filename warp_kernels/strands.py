@@ -1221,7 +1221,8 @@ def list_leaves_ahead(
 PATHS_QUERIES = 0  # bounded queries only (collide_point_bounded): the sphere tree walked, the mesh's BVH
 PATHS_SPHERE_LISTS = 1  # the sphere tree alone, its leaf lists and walks: for COLLIDE_SPHERE_TREE only
 PATHS_ALL = 2  # every path: both lists (collide_point_listed, collide_point_listed_mesh) and the queries
-PATH_NAMES = {PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: ""}
+PATHS_NONE = -1  # no collider: the placement alone, contact.mode read as 0 (frame_in_block's own)
+PATH_NAMES = {PATHS_NONE: "_none", PATHS_QUERIES: "_queries", PATHS_SPHERE_LISTS: "_sphere_lists", PATHS_ALL: ""}
 
 
 @wp.func
@@ -1304,7 +1305,10 @@ def _follow_leader(paths, ahead=False, loose=False):
                 d = parent - before
             dist = wp.length(d)
         p = parent + d * (length / dist)
-        if contact.mode != 0:
+        colliding = contact.mode
+        if wp.static(paths == PATHS_NONE):
+            colliding = 0  # a constant: no collision code is compiled in
+        if colliding != 0:
             bound = float(NO_BOUND)
             # the lists near each particle are kept with the bounds; mesh queries go through a list
             # even without them (one made for the query), so that skipping queries changes nothing
@@ -1537,7 +1541,7 @@ def _follow_the_leader(paths, ahead=False, loose=False):
     return follow_the_leader
 
 
-FOLLOW_THE_LEADER = {paths: _follow_the_leader(paths) for paths in PATH_NAMES}
+FOLLOW_THE_LEADER = {paths: _follow_the_leader(paths) for paths in (PATHS_QUERIES, PATHS_SPHERE_LISTS, PATHS_ALL)}
 # the GPU's paths reading a particle ahead (HairSolver.read_ahead): the same strands; more live registers
 # (sm_90 spills: bounded queries none either way, sphere lists 88 -> 220 bytes), less of the loop waiting on memory
 FOLLOW_THE_LEADER_AHEAD = {paths: _follow_the_leader(paths, ahead=True) for paths in (PATHS_QUERIES,
@@ -2157,11 +2161,14 @@ class FramePoses:
     for the end of the substep, contact_motion over it).
 
     Fields:
-      points (vec3, substeps x collider vertices, m): the posed vertices (the bindings' skin); one
-          row of one element where the strands are not bound
-      spheres (vec4, substeps x sphere-tree nodes): the packed sphere tree (ColliderShape.spheres)
-      moved, rigid, center, cells: ContactMotion's arrays, a row per substep
-      offsets (vector of FRAME_SUBSTEPS floats, s): each substep's end relative to the clock
+      points (vec3, per substep * collider vertex, m): the posed vertices (the bindings' skin); rows
+          of one element where the strands are not bound
+      spheres (vec4, per substep * sphere-tree node, m): the packed sphere tree (ColliderShape.spheres)
+      moved (int32, per substep * 1 element, MOTION_UNIT): ContactMotion.moved of each substep
+      rigid (mat44, per substep * 1 element): ContactMotion.rigid of each substep
+      center (vec3, per substep * 1 element, m): ContactMotion.center of each substep
+      cells (int32, per substep * MOTION_GRID^3 cells, MOTION_UNIT): ContactMotion.cells of each substep
+      offsets (vec32f, s): each substep's end relative to the clock, FRAME_SUBSTEPS of them
     """
 
     points: wp.array2d(dtype=wp.vec3)
@@ -2176,18 +2183,31 @@ class FramePoses:
 @wp.func
 def block_sync(tile: Any):
     """A barrier across the block: the masked write of nothing, which every lane calls, syncs; a
-    shared tile read before it may be written after it."""
+    shared tile read before it may be written after it.
+
+    Inputs:
+      tile (Any, per lane): a shared tile of the block (its first element is read, nothing written)
+    Returns:
+      nothing: every lane of the block has reached the barrier when any returns
+    """
     wp.tile_scatter_masked(tile, 0, tile[0], False)
 
 
-def _frame_in_block(lanes):
-    """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand."""
-    follow = _follow_leader(PATHS_SPHERE_LISTS)
+def _frame_in_block(lanes, paths):
+    """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand,
+    its length pass compiled with the collision paths `paths` (PATHS_SPHERE_LISTS, or PATHS_NONE for no
+    collider: the code of the sphere tree's left out)."""
+    # the length pass's step with the contact bounds as values, which every lane reads before the chain
+    # (its particle's, in parallel), so that no step of the chain waits on them
+    follow = _follow_leader(paths, ahead=True)
+    name = f"frame_in_block_{lanes}" + PATH_NAMES[paths]
 
-    # sm_90: 191 registers uncapped (10 one-warp blocks an SM); capped at 128, 16 blocks with 352/304 bytes
-    # of spills (at 96: 1020/1696). Untimed on a GPU: the cap is the length pass's (follow_the_leader)
-    @wp.kernel(module=deferred_module(f"{__name__}.frame_in_block_{lanes}", block_dim=lanes), cuda_max_registers=128,
-               name=f"frame_in_block_{lanes}")
+    # sm_90: the sphere tree's takes 191 registers uncapped (10 one-warp blocks an SM), at 128 16 blocks with
+    # 380/348 bytes of spills (at 96 about 1 KB); without a collider 115, at 96 21 blocks with 56/48 bytes
+    # (at 64, 32 blocks: 260/296). Untimed on a GPU: capped where spills stay near 100 bytes or less
+    cap = 96 if paths == PATHS_NONE else 128
+
+    @wp.kernel(module=deferred_module(f"{__name__}.{name}", block_dim=lanes), cuda_max_registers=cap, name=name)
     def frame_in_block(
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
@@ -2223,15 +2243,15 @@ def _frame_in_block(lanes):
 
         Prediction, the guides' pull and the shape passes run a lane per particle. The length pass is
         a chain: lane k places its particle once lane k - 1 has placed its own (follow_leader, with
-        its collisions and contact bounds), a barrier a particle. The velocities then take each
-        child's correction from shared memory.
+        its collisions and contact bounds, which every lane reads before the chain), a barrier a
+        particle. The velocities then take each child's correction from shared memory.
 
         The collider is posed for every substep ahead of the frame (FramePoses): the launches between
         substeps that step_strands needs (apply_pose, contact_motion) are all made before this one.
 
-        Launch: wp.launch_tiled over the strands of a range (dim = [strands], block_dim = lanes), every
-        strand of at most `lanes` particles. On the CPU with wp.config.enable_cpu_blocks (a block's
-        lanes as fibers).
+        Launch: one thread per lane, a block of `lanes` per strand (dim = [strands], block_dim = lanes)
+        with wp.launch_tiled, every strand of at most `lanes` particles; on the CPU with
+        wp.config.enable_cpu_blocks (a block's lanes as fibers).
         Inputs:
           x (vec3, per particle, m): positions at the start of the frame
           v (vec3, per particle, m/s): velocities at the start of the frame
@@ -2332,14 +2352,15 @@ def _frame_in_block(lanes):
                 motion.center = poses.center[j]
                 motion.cells = poses.cells[j]
                 touching.motion = motion
+            held, held_leaves, held_beyond = held_bounds(i, int(touching.mode == COLLIDE_SPHERE_TREE), touching)
             block_sync(placed)
             wp.tile_scatter_masked(placed, lane, p, here)
             correction = wp.vec3(0.0)
             for k in range(pinned_per_strand, count):
                 if lane == k:
                     predicted = p
-                    p = follow(placed[k - 1], placed[wp.max(k - 2, 0)], k, predicted, length, i, p0, touching,
-                               NO_BOUND, wp.vec4i(-1, -1, -1, -1), NO_BOUND)
+                    p = follow(placed[k - 1], placed[wp.max(k - 2, 0)], k, predicted, length, i, p0, touching, held,
+                               held_leaves, held_beyond)
                     correction = p - predicted
                 wp.tile_scatter_masked(placed, k, p, lane == k)
             wp.tile_scatter_masked(corrections, lane, correction, True)
@@ -2356,8 +2377,11 @@ def _frame_in_block(lanes):
 
 
 # a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
-FRAME_IN_BLOCK = {lanes: _frame_in_block(lanes) for lanes in (32, 64)}
-frame_in_block = FRAME_IN_BLOCK[32]
+# keyed by (lanes, paths): a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
+FRAME_IN_BLOCK = {(lanes, paths): _frame_in_block(lanes, paths) for lanes in (32, 64)
+                  for paths in (PATHS_NONE, PATHS_SPHERE_LISTS)}
+FRAME_LANES = (32, 64)
+frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS)]
 
 
 @wp.func
