@@ -303,7 +303,8 @@ class HairSolver:
         # a lane per particle, the state in registers across the frame's substeps and the collider posed
         # for all of them ahead. Simplified shape matching (or none) against the sphere tree (or no
         # collider), strands of up to 64 particles; it reads the strands in particle order, so setting it
-        # sets lanes off. Off by default until a GPU has timed it (the CPU runs a block's lanes as fibers,
+        # sets lanes off. With loose_lists (a GPU's default) each lane walks for its own short list ahead
+        # of the chain. Off by default until a GPU has timed it (the CPU runs a block's lanes as fibers,
         # for its tests)
         self._frame_in_block = False
         self._frame_poses = None  # (key, FramePoses, per-substep ContactMotion rows) for step_frame
@@ -698,6 +699,8 @@ class HairSolver:
             return f"frame_in_block takes strands of at most {max(strands.FRAME_LANES)} particles, not {longest}"
         if self.lanes:
             return "frame_in_block reads the strands in particle order: set lanes off"
+        if self.loose_lists and not self.contact_bounds and collider is not None and p.collision == "sphere_tree":
+            return "frame_in_block's loose lists are kept with the contact bounds: set contact_bounds on"
         return None
 
     def step_frame(self, state_in, state_out, collider, dt, times, guides=None, listed=None):
@@ -724,18 +727,21 @@ class HairSolver:
         longest = int(np.diff(m.strand_start_np).max())
         lanes = min(n for n in strands.FRAME_LANES if n >= longest)
         paths = strands.PATHS_SPHERE_LISTS if mode != 0 else strands.PATHS_NONE
+        # loose lists (loose_lists, a GPU's way): each lane walks for its own list ahead of the chain
+        loose = mode != 0 and self.contact_bounds and self._loose(True)
         contact = self.strand_contact(collider, mode)
         skin = collider.skin_binding(m) if bound else skinning.SkinBinding()
 
         # one launch for every strand: the CPU's fibers share one arena for the blocks' memory, which
         # launches of the parts side by side on its cores overflow
         with cpu_blocks(dev):
-            wp.launch_tiled(strands.FRAME_IN_BLOCK[(lanes, paths)], dim=[m.num_strands], block_dim=lanes, device=dev,
+            wp.launch_tiled(strands.FRAME_IN_BLOCK[(lanes, paths, loose)], dim=[m.num_strands], block_dim=lanes, device=dev,
                             inputs=[state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(),
                                     self.clock, poses, substeps, dt, int(bound), skin,
                                     m.particle_binding if bound else None, m.root_binding if bound else None,
                                     hold if bound else 0.0, self._pull(guides, dt), self.windows.size, passes,
-                                    p.shape_stiffness, self.slots, contact, p.ftl_damping, state_out.x, state_out.v, 0])
+                                    p.shape_stiffness, self.slots, contact, p.ftl_damping, FUSED_LIST_SLACK, state_out.x,
+                                    state_out.v, 0])
 
     def _pose_frame(self, c, times, listed, mode, bound):
         """strands.FramePoses of collider c for the frame's substeps: each pose applied in turn (see

@@ -648,6 +648,25 @@ def test_frames_in_block_follow_the_substeps(make, device):
     _same_hair_frames(make, device, configure)
 
 
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_frames_in_block_with_loose_lists_follow_the_fused_substeps(device):
+    """frame_in_block with loose lists (a GPU's way: every lane walks for its own list that would run
+    short before the chain, the chain walks only inside unlisted leaves): the frames of the fused
+    substeps with their walks queued ahead and loose lists, to float32 rounding (bit for bit on the
+    CPU), and on the CPU the same lists and contact bounds."""
+    solvers = []
+
+    def configure(solver, whole):
+        solver.fused, solver.leaves_ahead, solver.loose_lists = True, True, True
+        solver.frame_in_block = whole
+        solvers.append(solver)
+
+    _same_hair_frames(_fast_hair_config, device, configure)
+    if device == "cpu":
+        for bounds, block_bounds in zip(solvers[0].particle_bounds(), solvers[1].particle_bounds(), strict=True):
+            np.testing.assert_array_equal(block_bounds, bounds)
+
 def test_a_frame_in_block_names_what_it_cannot_step():
     """frame_in_block takes simplified shape matching (or none) against the sphere tree (or no
     collider), strands of up to 64 particles, up to FRAME_SUBSTEPS substeps: otherwise the scene's

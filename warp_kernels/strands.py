@@ -1086,6 +1086,56 @@ def from_lanes(
         v[start + k] = lane_v[slot]
 
 
+@wp.func
+def list_runs_short(p: wp.vec3, start: wp.vec3, i: int, contact: StrandContact, slack: float):
+    """Whether the length pass would find a particle's sphere-tree leaf list run short at p: both its
+    contact bound and its unlisted-leaf bound, lowered as follow_leader lowers them, within slack of
+    the margin (or its bounds unknown). A particle beyond the strands' reach is queried outright, and
+    its list never runs short.
+
+    Inputs:
+      p (vec3, m): where the particle is expected (predicted, or its start with slack to cover the
+          substep's travel)
+      start (vec3, m): its position at the start of the substep, where the bounds hold
+      i (int, index): its element of the contact bounds
+      contact (StrandContact): the collider's settings, its motion and the contact bounds
+      slack (float, m): how far short of margin a bound may be and still run short
+    Returns:
+      bool: true where a walk down the tree should list the particle afresh (list_leaves)
+    """
+    if wp.length(p - contact.motion.center[0]) > contact.strand_reach:
+        return False  # follow_leader queries such a particle outright
+    _carried, lowered = bound_lowering(contact.motion, start, p, contact.strand_reach + contact.search)
+    bound = float(NO_BOUND)
+    unlisted = float(NO_BOUND)
+    held = contact.clearance[i]
+    if held > 0.5 * NO_BOUND:
+        bound = held - lowered
+        unlisted = contact.beyond[i] - lowered
+    return bound <= contact.margin + slack and unlisted <= contact.margin + slack
+
+
+@wp.func
+def list_leaves(i: int, start: wp.vec3, contact: StrandContact):
+    """List a particle's nearest sphere-tree leaves afresh, with its contact bounds, where its start
+    position lies in the collider's new pose (carried by the anchor's rigid motion).
+
+    Inputs:
+      i (int, index): the particle's element of the contact bounds
+      start (vec3, m): its position at the start of the substep
+    In/out:
+      contact (StrandContact): its motion and shape read; the particle's near_leaves, clearance and
+          beyond written (sphere_tree_nearest)
+    Returns:
+      nothing: the bounds are written into contact's arrays
+    """
+    carried = wp.transform_point(contact.motion.rigid[0], start)
+    leaves, nearest, fifth = sphere_tree_nearest(carried, contact.shape, contact.search)
+    contact.near_leaves[i] = leaves
+    contact.clearance[i] = nearest
+    contact.beyond[i] = fifth
+
+
 @wp.kernel(module=APART)
 def find_short_lists(
     x: wp.array(dtype=wp.vec3),
@@ -1149,17 +1199,7 @@ def find_short_lists(
         k = i - strand_start[particle_strand[i]]
     if k < pinned_per_strand:
         return
-    p = x[j]
-    if wp.length(p - contact.motion.center[0]) > contact.strand_reach:
-        return  # follow_the_leader queries such a particle outright
-    _carried, lowered = bound_lowering(contact.motion, x_prev[j], p, contact.strand_reach + contact.search)
-    bound = float(NO_BOUND)
-    unlisted = float(NO_BOUND)
-    held = contact.clearance[i]
-    if held > 0.5 * NO_BOUND:
-        bound = held - lowered
-        unlisted = contact.beyond[i] - lowered
-    if bound <= contact.margin + slack and unlisted <= contact.margin + slack:
+    if list_runs_short(x[j], x_prev[j], i, contact, slack):
         queue[first + wp.atomic_add(short_count, 0, 1)] = i
 
 
@@ -1205,11 +1245,7 @@ def list_leaves_ahead(
     if by_particle != 0 and order.lanes > 0:
         k = i / order.lanes
         j = strand_start[order.strand_of[i - k * order.lanes]] + k
-    carried = wp.transform_point(contact.motion.rigid[0], x_prev[j])
-    leaves, nearest, fifth = sphere_tree_nearest(carried, contact.shape, contact.search)
-    contact.near_leaves[i] = leaves
-    contact.clearance[i] = nearest
-    contact.beyond[i] = fifth
+    list_leaves(i, x_prev[j], contact)
 
 
 # The collision paths a length pass is compiled with: lists of the nearest sphere-tree leaves and mesh
@@ -2193,14 +2229,16 @@ def block_sync(tile: Any):
     wp.tile_scatter_masked(tile, 0, tile[0], False)
 
 
-def _frame_in_block(lanes, paths):
+def _frame_in_block(lanes, paths, loose=False):
     """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand,
     its length pass compiled with the collision paths `paths` (PATHS_SPHERE_LISTS, or PATHS_NONE for no
-    collider: the code of the sphere tree's left out)."""
+    collider: the code of the sphere tree's left out); `loose`: the lists that would run short are
+    walked for by every lane before the chain, which walks only where a particle may be inside an
+    unlisted leaf (step_strands' loose variant, with the walks of find_short_lists and list_leaves_ahead)."""
     # the length pass's step with the contact bounds as values, which every lane reads before the chain
     # (its particle's, in parallel), so that no step of the chain waits on them
-    follow = _follow_leader(paths, ahead=True)
-    name = f"frame_in_block_{lanes}" + PATH_NAMES[paths]
+    follow = _follow_leader(paths, ahead=True, loose=loose)
+    name = f"frame_in_block_{lanes}" + PATH_NAMES[paths] + ("_loose" if loose else "")
 
     # sm_90: the sphere tree's takes 191 registers uncapped (10 one-warp blocks an SM), at 128 16 blocks with
     # 380/348 bytes of spills (at 96 about 1 KB); without a collider 115, at 96 21 blocks with 56/48 bytes
@@ -2230,6 +2268,7 @@ def _frame_in_block(lanes, paths):
         per: StrandSlots,
         contact: StrandContact,
         ftl_damping: float,
+        list_slack: float,
         x_out: wp.array(dtype=wp.vec3),
         v_out: wp.array(dtype=wp.vec3),
         first: int,
@@ -2244,7 +2283,11 @@ def _frame_in_block(lanes, paths):
         Prediction, the guides' pull and the shape passes run a lane per particle. The length pass is
         a chain: lane k places its particle once lane k - 1 has placed its own (follow_leader, with
         its collisions and contact bounds, which every lane reads before the chain), a barrier a
-        particle. The velocities then take each child's correction from shared memory.
+        particle. The velocities then take each child's correction from shared memory. Compiled loose,
+        every lane first walks the sphere tree for its own list where step_strands' walks queued ahead
+        would (list_runs_short at the substep's start, list_leaves), all lanes at once, and the chain
+        walks only where a particle may be inside an unlisted leaf: the strands of step_strands' loose
+        variant with those walks.
 
         The collider is posed for every substep ahead of the frame (FramePoses): the launches between
         substeps that step_strands needs (apply_pose, contact_motion) are all made before this one.
@@ -2273,6 +2316,8 @@ def _frame_in_block(lanes, paths):
           stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
           per (StrandSlots): the particles and windows in particle order (its scratch is not used)
           ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+          list_slack (float, m): the loose variant's slack of list_runs_short at the substep's start
+              positions (hair_solver.FUSED_LIST_SLACK, as step_strands' walks queued ahead)
           first (int, index): the range's first strand; block b works on strand first + b
         In/out:
           contact (StrandContact): the collider's settings and the contact bounds per particle (its
@@ -2352,6 +2397,10 @@ def _frame_in_block(lanes, paths):
                 motion.center = poses.center[j]
                 motion.cells = poses.cells[j]
                 touching.motion = motion
+            if wp.static(loose):
+                if here and lane >= pinned_per_strand and touching.use_bounds != 0:
+                    if list_runs_short(p0, p0, i, touching, list_slack):
+                        list_leaves(i, p0, touching)
             held, held_leaves, held_beyond = held_bounds(i, int(touching.mode == COLLIDE_SPHERE_TREE), touching)
             block_sync(placed)
             wp.tile_scatter_masked(placed, lane, p, here)
@@ -2377,11 +2426,11 @@ def _frame_in_block(lanes, paths):
 
 
 # a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
-# keyed by (lanes, paths): a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
-FRAME_IN_BLOCK = {(lanes, paths): _frame_in_block(lanes, paths) for lanes in (32, 64)
-                  for paths in (PATHS_NONE, PATHS_SPHERE_LISTS)}
+# keyed by (lanes, paths, loose): a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
 FRAME_LANES = (32, 64)
-frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS)]
+FRAME_IN_BLOCK = {(lanes, paths, loose): _frame_in_block(lanes, paths, loose) for lanes in FRAME_LANES
+                  for paths, loose in ((PATHS_NONE, False), (PATHS_SPHERE_LISTS, False), (PATHS_SPHERE_LISTS, True))}
+frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS, False)]
 
 
 @wp.func
