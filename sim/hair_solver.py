@@ -674,7 +674,9 @@ class HairSolver:
     @property
     def frame_in_block(self):
         """Whether the scene steps this solver's frames with step_frame (strands.frame_in_block), a launch
-        a frame. Setting it on sets lanes off (the kernel reads the strands in particle order)."""
+        a frame; while a comb holds strands it steps substeps. Setting it on sets lanes off (the kernel
+        reads the strands in particle order); frames captured before must be forgotten
+        (sim.graphs.FrameGraphs.clear)."""
         return self._frame_in_block
 
     @frame_in_block.setter

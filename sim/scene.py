@@ -595,7 +595,7 @@ class Scene:
                                                 refit_in_step=mesh, listed=None if mesh else self._hair_root_vertices(),
                                                 around=(lambda: self.solver.begin_frame(self.state),
                                                         lambda: self.solver.end_frame(self.state)),
-                                                whole=self._step_hair_frame if self.solver.frame_in_block else None))
+                                                whole=self._step_hair_frame if self.solver.frame_in_block and not held else None))
             if self.cloth_model is not None:
                 body = self.cloth_body if self.cloth_body is not self.cloth_collider else None
                 # the cloth queries the body's triangle boxes, swept over the frame or refitted to each

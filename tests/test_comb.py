@@ -148,30 +148,40 @@ def test_comb_drag_stays_in_the_plane_facing_the_camera():
 
 
 # -- the comb in a scene's timeline --------------------------------------------------------------------
-def _timeline_config(events, frames=10):
+def _timeline_config(events, frames=10, solver=None):
     from sim.scene import _build_config
 
     data = {"scene": {"frames": frames, "preroll": 0.2, "stats": False}, "head": {"animation": "none"},
             "hair": {"style": "straight", "count": 120, "length": 0.3, "vertices": 12},
-            "solver": {"substeps": 4}, "haircut": events}
+            "solver": {"substeps": 4, **(solver or {})}, "haircut": events}
     return _build_config("<test>", data, None)
 
 
 SIDE = {"eye": [1.0, 0.32, 0.0], "target": [0.0, 0.32, 0.0], "yfov": 0.6, "width": 480, "height": 360}
 
 
-def test_a_timeline_comb_lifts_holds_and_releases():
+@pytest.mark.parametrize("in_block", [False, True], ids=["substeps", "frame-in-block"])
+def test_a_timeline_comb_lifts_holds_and_releases(in_block, monkeypatch):
     """A comb placed at frame 2 across the side's lengths, lifted 40 px by frame 5, released at 8,
     stepped the way run_scene steps a timeline: the held particles reach the comb, dragged in the
-    side view's image plane, stay there, and fall once released."""
+    side view's image plane, stay there, and fall once released. in_block: the hair's frames in one
+    launch (HairSolver.frame_in_block, simplified shape matching on the sphere tree), which give way
+    to substeps while the comb holds strands."""
     from sim.comb import before_frame
     from sim.haircut import run_events
+    from sim.hair_solver import HairSolver
     from sim.scene import Scene
 
     comb = {"frame": 2, "tool": "comb", "stroke": [[200, 230], [240, 232], [280, 230]], "camera": SIDE,
             "moves": [[5, 0, -40]], "release": 8}
-    config = _timeline_config([comb])
+    config = _timeline_config([comb], solver={"shape_matching": "simplified", "collision": "sphere_tree"}
+                              if in_block else None)
     scene = Scene(config)
+    scene.solver.frame_in_block = in_block
+    whole_frames = []
+    step_frame = HairSolver.step_frame
+    monkeypatch.setattr(HairSolver, "step_frame",
+                        lambda *a, **k: whole_frames.append(scene.solver.comb is None) or step_frame(*a, **k))
     scene.advance(config.timing.preroll, animate=False)
     held = {}
     for frame in range(1, 11):
@@ -192,6 +202,8 @@ def test_a_timeline_comb_lifts_holds_and_releases():
         assert reached.mean() > 0.8  # the rest were stopped short by the head
     assert np.median(held[7][0][:, 1] - held[2][0][:, 1]) > 0.04  # 40 px at about 0.9 m: 6 cm
     assert np.median(held[10][0][:, 1] - held[7][0][:, 1]) < -0.005  # released, it falls back
+    # the preroll before the comb and frames 8 to 10 after its release, none while it holds strands
+    assert len(whole_frames) == (8 if in_block else 0) and all(whole_frames)
 
 
 def test_a_comb_over_the_length_pass_in_lane_order_holds_the_same_strands():
