@@ -14,9 +14,10 @@
 #                                       # then cloth-block
 #   bash benchmarks/run_gpu.sh loose    # the sphere tree's length pass with loose lists (HairSolver.loose_lists:
 #                                       # walks only where a leaf may hold a particle), apart and fused in lanes
-#   bash benchmarks/run_gpu.sh in-block # a frame in one launch, a block of lanes per strand (HairSolver.frame_in_block)
-#                                       # against the device's way, 1k to 100k strands with and without the sphere
-#                                       # tree, profiled; its CUDA graph tests; Nsight Compute on its 100k launch
+#   bash benchmarks/run_gpu.sh in-block # a frame in one launch, a block of lanes per strand (HairSolver.frame_in_block):
+#                                       # its CUDA graph tests, then against the device's way at 1k to 100k strands
+#                                       # with and without the sphere tree, profiled
+#   bash benchmarks/run_gpu.sh in-block-ncu # Nsight Compute on its launch at 100k strands on the sphere tree
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh ncu      # Nsight Compute's counters (occupancy, warp states, memory) for one
 #                                       # launch of the length pass at 1k strands on the mesh and of the fused
@@ -63,11 +64,11 @@ for part in "$@"; do
           --cases simplified1+spheres \
           --try loose_lists=on fused=on,frame_lanes=on fused=on,frame_lanes=on,loose_lists=on \
           --profile 2>&1 | tee "$out/loose-hair.log" ;;
-    in-block) timeout 150 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py -k in_block 2>&1 |
+    in-block) timeout 200 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py -k in_block 2>&1 |
           tee "$out/in-block-tests.log"
-        timeout 400 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
-          --cases simplified1 simplified1+spheres --try frame_in_block=on --profile 2>&1 | tee "$out/in-block-hair.log"
-        ncu=$(command -v ncu || ls /opt/nvidia/nsight-compute/*/ncu 2>/dev/null | head -1)
+        timeout 380 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
+          --cases simplified1 simplified1+spheres --try frame_in_block=on --profile 2>&1 | tee "$out/in-block-hair.log" ;;
+    in-block-ncu) ncu=$(command -v ncu || ls /opt/nvidia/nsight-compute/*/ncu 2>/dev/null | head -1)
         timeout 200 "$ncu" --clock-control none --kernel-name regex:frame_in_block --launch-skip 3 --launch-count 1 \
           --section SpeedOfLight --section WarpStateStats --section Occupancy --section LaunchStats \
           --section MemoryWorkloadAnalysis python3 benchmarks/hair.py --device cuda --no-peer --strands 100000 \
