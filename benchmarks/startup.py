@@ -42,13 +42,13 @@ import warp as wp
 wp.config.quiet = True
 wp.init()
 import warp_kernels
-from warp_kernels._options import DEFERRED
+from warp_kernels._options import DEFERRED, OPT_IN
 deferred = sys.argv[3] == "deferred"
 start = time.perf_counter()
 if sys.argv[1] == "side_by_side":
     warp_kernels.load(sys.argv[2], deferred=deferred)
 else:
-    for name in [m.__name__ for m in warp_kernels._MODULES] + (DEFERRED if deferred else []):
+    for name in [m.__name__ for m in warp_kernels._MODULES] + ([d for d in DEFERRED if d not in OPT_IN] if deferred else []):
         wp.load_module(wp.get_module(name), device=sys.argv[2])
 print(json.dumps(time.perf_counter() - start))
 """

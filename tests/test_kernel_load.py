@@ -123,6 +123,23 @@ def test_the_deferred_modules_take_the_package_options():
         assert {key: options[key] for key in MODULE_OPTIONS} == MODULE_OPTIONS, name
 
 
+
+def test_opt_in_modules_load_only_where_named(monkeypatch):
+    """The hair's frame in one block (strands.FRAME_IN_BLOCK, six variants) is opt-in: load(deferred=True),
+    a GPU's default, leaves it to the first frame that launches it; naming it loads it."""
+    import warp as wp
+
+    from warp_kernels import strands
+    from warp_kernels._options import OPT_IN
+
+    seen = []
+    monkeypatch.setattr(wp, "force_load", lambda device, modules, max_workers: seen.append({m.name for m in modules}))
+    warp_kernels.load("cpu", modules=(strands,), deferred=True)
+    assert {kernel.module.name for kernel in strands.FRAME_IN_BLOCK.values()} == set(OPT_IN)
+    assert "warp_kernels.strands.apart" in seen[0] and not seen[0] & set(OPT_IN)
+    warp_kernels.load("cpu", modules=(strands,), deferred=OPT_IN[:1])
+    assert OPT_IN[0] in seen[1]
+
 def test_a_cpu_run_of_the_built_in_scene_launches_nothing_deferred(monkeypatch):
     """The CPU's default ways (the hair's fused substep on the mesh, the cloth's box queries, the detail
     surface, the face) launch only kernels of the six modules warp_kernels.load compiles for a run, so a

@@ -26,7 +26,8 @@ def load(device="cpu", threads=None, modules=_MODULES, deferred=None):
     deferred: also the Warp modules of kernels only some runs launch (_options.deferred_module: a
     GPU's hair substep in launches apart, the sphere tree's and no collider's fused variants, a small
     cloth's step in one block), those of `modules`; or a list of those a run will launch
-    (sim.hair_solver.deferred_step_modules). All of them by default on a CUDA device, where its
+    (sim.hair_solver.deferred_step_modules). All of them but the opt-in ones (the hair's frame in one
+    block, HairSolver.frame_in_block) by default on a CUDA device, where its
     compiler is quick and a module must not load during a graph capture; none on a CPU, which compiles
     each at its first launch, if any, so a run that never launches them does not wait for them.
     """
@@ -34,13 +35,13 @@ def load(device="cpu", threads=None, modules=_MODULES, deferred=None):
 
     import warp as wp
 
-    from ._options import DEFERRED
+    from ._options import DEFERRED, OPT_IN
 
     if deferred is None:
         deferred = wp.get_device(device).is_cuda
     names = [m.__name__ for m in modules]
     if deferred is True:
-        names += [d for d in DEFERRED if any(d.startswith(n + ".") for n in names)]
+        names += [d for d in DEFERRED if any(d.startswith(n + ".") for n in names) and d not in OPT_IN]
     elif deferred:
         unknown = sorted(set(deferred) - set(DEFERRED))
         if unknown:

@@ -10,9 +10,11 @@ MODULE_OPTIONS = {"enable_backward": False, "default_grid_stride": False, "optim
 
 # names of the Warp modules made by deferred_module, in the order they were made
 DEFERRED = []
+# those of them that warp_kernels.load takes only where named (opt_in)
+OPT_IN = []
 
 
-def deferred_module(name, block_dim=None):
+def deferred_module(name, block_dim=None, opt_in=False):
     """The name of a Warp module of its own, with MODULE_OPTIONS, for kernels only some runs launch
     (a GPU's way of stepping, a variant for one collision path): pass it as @wp.kernel(module=...).
     block_dim: the lanes of a block its kernels are launched with, where not Warp's default (256).
@@ -24,10 +26,13 @@ def deferred_module(name, block_dim=None):
     module of the ones every run launches costs every run its compile time on a cold kernel cache;
     kept apart, it costs only the runs that launch it (the hair's module on two CPU cores: 13.4 s
     with its GPU ways and variants, 5.4 s without). warp_kernels.load compiles these modules too
-    where asked (on CUDA devices by default).
+    where asked (on CUDA devices by default); with opt_in only where named, for kernels that a run
+    launches only when asked to (their first frame runs eager, outside a graph capture, and loads them).
     """
     wp.set_module_options(MODULE_OPTIONS if block_dim is None else {**MODULE_OPTIONS, "block_dim": block_dim},
                           module=name)
     if name not in DEFERRED:
         DEFERRED.append(name)
+    if opt_in and name not in OPT_IN:
+        OPT_IN.append(name)
     return name

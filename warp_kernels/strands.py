@@ -2245,7 +2245,10 @@ def _frame_in_block(lanes, paths, loose=False):
     # (at 64, 32 blocks: 260/296). Untimed on a GPU: capped where spills stay near 100 bytes or less
     cap = 96 if paths == PATHS_NONE else 128
 
-    @wp.kernel(module=deferred_module(f"{__name__}.{name}", block_dim=lanes), cuda_max_registers=cap, name=name)
+    # opt in: launched only where a run asks for it (HairSolver.frame_in_block), so a GPU's start does not
+    # compile its six variants
+    @wp.kernel(module=deferred_module(f"{__name__}.{name}", block_dim=lanes, opt_in=True), cuda_max_registers=cap,
+               name=name)
     def frame_in_block(
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
