@@ -48,7 +48,8 @@ start = time.perf_counter()
 if sys.argv[1] == "side_by_side":
     warp_kernels.load(sys.argv[2], deferred=deferred)
 else:
-    for name in [m.__name__ for m in warp_kernels._MODULES] + ([d for d in DEFERRED if d not in OPT_IN] if deferred else []):
+    extra = [d for d in DEFERRED if d not in OPT_IN] if deferred else []
+    for name in [m.__name__ for m in warp_kernels._MODULES] + extra:
         wp.load_module(wp.get_module(name), device=sys.argv[2])
 print(json.dumps(time.perf_counter() - start))
 """
