@@ -736,19 +736,21 @@ class HairSolver:
 
         # one launch for every strand: the CPU's fibers share one arena for the blocks' memory, which
         # launches of the parts side by side on its cores overflow
+        kernel = strands.FRAME_IN_BLOCK[(lanes, paths, loose)]
         with cpu_blocks(dev):
-            wp.launch_tiled(strands.FRAME_IN_BLOCK[(lanes, paths, loose)], dim=[m.num_strands], block_dim=lanes, device=dev,
+            wp.launch_tiled(kernel, dim=[m.num_strands], block_dim=lanes, device=dev,
                             inputs=[state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(),
                                     self.clock, poses, substeps, dt, int(bound), skin,
                                     m.particle_binding if bound else None, m.root_binding if bound else None,
                                     hold if bound else 0.0, self._pull(guides, dt), self.windows.size, passes,
-                                    p.shape_stiffness, self.slots, contact, p.ftl_damping, FUSED_LIST_SLACK, state_out.x,
-                                    state_out.v, 0])
+                                    p.shape_stiffness, self.slots, contact, p.ftl_damping, FUSED_LIST_SLACK,
+                                    state_out.x, state_out.v, 0])
 
     def _pose_frame(self, c, times, listed, mode, bound):
-        """strands.FramePoses of collider c for the frame's substeps: each pose applied in turn (see
-        step_frame) and what the substeps read of it copied into its row, the collider's motion near
-        the strands measured into it where the contact bounds need it."""
+        """strands.FramePoses of collider c for the frame's substeps, row 0 its pose on entry and row k
+        pose k: a skinned collider's poses made at once (_skin_frame), others applied in turn (see
+        step_frame) and what the substeps read of each copied into its row; the collider's motion near
+        the strands measured into them where the contact bounds need it."""
         dev = self.model.device
         substeps = len(times) - 1
         vertices = len(c.points) if bound else 1
@@ -756,8 +758,8 @@ class HairSolver:
         key = (substeps, vertices, nodes)
         if self._frame_poses is None or self._frame_poses[0] != key:
             poses = strands.FramePoses()
-            poses.points = wp.zeros((substeps, vertices), dtype=wp.vec3, device=dev)
-            poses.spheres = wp.zeros((substeps, nodes), dtype=wp.vec4, device=dev)
+            poses.points = wp.zeros((substeps + 1, vertices), dtype=wp.vec3, device=dev)
+            poses.spheres = wp.zeros((substeps + 1, nodes), dtype=wp.vec4, device=dev)
             poses.moved = wp.zeros((substeps, 1), dtype=wp.int32, device=dev)
             poses.rigid = wp.zeros((substeps, 1), dtype=wp.mat44, device=dev)
             poses.center = wp.zeros((substeps, 1), dtype=wp.vec3, device=dev)
@@ -768,22 +770,64 @@ class HairSolver:
                 motion.moved, motion.rigid, motion.center = poses.moved[k], poses.rigid[k], poses.center[k]
                 motion.cells = poses.cells[k]
                 rows.append(motion)
-            self._frame_poses = (key, poses, rows)
-        _, poses, rows = self._frame_poses
+            # the sphere tree's centres and radii of each pose (_skin_frame)
+            trees = [wp.zeros((substeps + 1, nodes), dtype=t, device=dev) for t in (wp.vec3, float)]
+            self._frame_poses = (key, poses, rows, trees)
+        _, poses, rows, trees = self._frame_poses
         offsets = np.zeros(strands.FRAME_SUBSTEPS, np.float32)
         offsets[:substeps] = [float(t - self._clock_time) for t in times[1:]]
         poses.offsets = strands.frame_offsets(*offsets)
         if c is None:
             return poses
-        for k in range(1, substeps + 1):
+        if c.bone_matrices is not None and c._swept is None:
+            self._skin_frame(c, poses, trees, substeps, listed, mode, bound)
+            return poses
+        for k in range(1, substeps + 1):  # point caches: the poses as the substeps one by one apply them
             c.apply_pose(k, refit=False, listed=None if k == substeps else listed)
             if bound:
-                wp.copy(poses.points[k - 1], c.points)
+                wp.copy(poses.points[k], c.points)
             if mode != 0:
-                wp.copy(poses.spheres[k - 1], c.sphere_nodes)
+                wp.copy(poses.spheres[k], c.sphere_nodes)
                 if self.contact_bounds:
                     self._launch_motion(c, mode, rows[k - 1])
         return poses
+
+    def _skin_frame(self, c, poses, trees, substeps, listed, mode, bound):
+        """A skinned collider's poses for every substep of a frame in six launches (strands.FRAME_POSES:
+        the listed vertices, the sphere tree skinned, refitted and packed, the motions), where applying
+        them in turn takes some ten launches and copies a substep: the same rows. The collider is left
+        at the frame's last pose, every vertex skinned, as the substeps leave it (its pose before is the
+        frame's first)."""
+        m, p, dev = self.model, self.params, self.model.device
+        centers, radii = trees
+        nodes = centers.shape[1]
+        if bound:
+            wp.copy(poses.points[0], c.points)
+            if listed is None:
+                if getattr(self, "_every_vertex", None) is None or len(self._every_vertex) != len(c.points):
+                    self._every_vertex = wp.array(np.arange(len(c.points), dtype=np.int32), device=dev)
+                listed = self._every_vertex
+            wp.launch(strands.skin_listed_poses, (substeps, len(listed)),
+                      [c.rest_points, c.skin_indices, c.skin_weights, c.bone_matrices, c.num_bones, listed,
+                       poses.points], device=dev)
+        if mode != 0:
+            wp.copy(centers[0], c.sphere_centers)
+            wp.launch(strands.skin_sphere_poses, (substeps, nodes),
+                      [c.sphere_rest_centers, c.sphere_skin_indices, c.sphere_skin_weights, c.bone_matrices,
+                       c.num_bones, c.sphere_radii, c.sphere_is_leaf, centers, radii], device=dev)
+            wp.launch(strands.refit_sphere_poses, (substeps, nodes),
+                      [centers, radii, c.sphere_parent, c.sphere_is_leaf], device=dev)
+            wp.launch(strands.pack_sphere_poses, (substeps, nodes), [centers, radii, poses.spheres], device=dev)
+            if self.contact_bounds:
+                motion = [poses.moved, poses.rigid, poses.center, poses.cells]
+                wp.launch(strands.anchor_frames, (substeps, strands.MOTION_GRID ** 3),
+                          [poses.points, c.indices, m.anchor_face, *motion], device=dev)
+                adjacency = c.adjacency()
+                # the sphere tree's strands see only its leaves: no vertices counted
+                wp.launch(strands.contact_motions, (substeps, nodes),
+                          [poses.points, centers, radii, c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj,
+                           int(m.anchor_face >= 0), 0, self.reach, p.collision_search, *motion], device=dev)
+        c.apply_pose(substeps, refit=False)
 
     def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r, guides):
         """step() as one launch per range (strands.step_strands), after the collider's motion."""

@@ -649,6 +649,26 @@ def test_frames_in_block_follow_the_substeps(make, device):
 
 
 
+
+def test_a_frame_in_block_poses_the_collider_at_once_as_the_substeps_do(monkeypatch):
+    """A skinned collider's poses for a frame in block are made in six launches (HairSolver._skin_frame,
+    strands.FRAME_POSES) instead of applied substep by substep: the same hair bit for bit, and the
+    collider left where the substeps leave it (every vertex and sphere at the frame's last pose)."""
+    made = []
+    skin_frame = hair_solver.HairSolver._skin_frame
+    monkeypatch.setattr(hair_solver.HairSolver, "_skin_frame", lambda *a: made.append(1) or skin_frame(*a))
+    out = []
+    for whole in (False, True):
+        scene = Scene(_fast_hair_config("cpu"))
+        scene.solver.frame_in_block = whole
+        for _ in range(3):
+            scene.advance(1.0 / scene.config.timing.fps)
+        c = scene.collider
+        out.append([scene.state.x.numpy(), scene.state.v.numpy(), c.points.numpy(), c.sphere_nodes.numpy()])
+    assert len(made) == 3
+    for name, a, b in zip(("x", "v", "collider points", "sphere tree"), *out, strict=True):
+        np.testing.assert_array_equal(b, a, err_msg=name)
+
 @pytest.mark.parametrize("device", DEVICES)
 def test_frames_in_block_with_loose_lists_follow_the_fused_substeps(device):
     """frame_in_block with loose lists (a GPU's way: every lane walks for its own list that would run

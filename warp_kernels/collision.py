@@ -1064,8 +1064,24 @@ def refit_sphere_tree(
       radii (float, per tree node, m): leaf radii read; inner radii grown to bound their leaves
     """
     j = wp.tid()
-    if is_leaf[j] == 0:
-        return
+    if is_leaf[j] != 0:
+        grow_ancestors(centers, radii, parent, j)
+
+
+@wp.func
+def grow_ancestors(centers: wp.array(dtype=wp.vec3), radii: wp.array(dtype=float), parent: wp.array(dtype=wp.int32),
+                   j: int):
+    """Raise every ancestor of leaf j to reach past it (refit_sphere_tree's walk up the tree).
+
+    Inputs:
+      centers (vec3, per tree node, m): posed node centres
+      parent (int32, per tree node): parent node, -1 for the root
+      j (int, index): a leaf
+    In/out:
+      radii (float, per tree node, m): the leaf's radius read; its ancestors' raised (atomic max)
+    Returns:
+      nothing: the radii are raised in place
+    """
     c = centers[j]
     r = radii[j]
     a = parent[j]

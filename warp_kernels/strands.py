@@ -44,11 +44,13 @@ wp.set_module_options(MODULE_OPTIONS)
 APART = deferred_module(__name__ + ".apart")
 # the render children's interpolation (sim.hair_children), launched once a frame by scenes that ask for them
 CHILDREN = deferred_module(__name__ + ".children")
+# a frame's collider poses made ahead of frame_in_block (HairSolver.frame_in_block, which opts in)
+FRAME_POSES = deferred_module(__name__ + ".frame_poses", opt_in=True)
 
 from .collision import (COLLIDE_MESH, COLLIDE_SPHERE_TREE, ColliderShape, collide_point, collide_point_bounded,
                         collide_point_listed, collide_point_listed_loose, collide_point_listed_mesh, list_deep_point,
-                        pseudo_normal_distance, sphere_tree_nearest)
-from .skinning import SkinBinding, bound_position, face_frame, triangle_frame
+                        grow_ancestors, pseudo_normal_distance, sphere_tree_nearest)
+from .skinning import SkinBinding, bound_position, face_frame, skinned_point, triangle_frame
 
 SHAPE_SIMPLIFIED = wp.constant(0)
 TAUT = wp.constant(0.995)  # hold_in_comb: a root-to-comb chain this close to straight is laid straight
@@ -883,7 +885,31 @@ def anchor_frame(
       motion (ContactMotion): rigid (x -> R x + t: R the frame's turn, t taking the old centroid to
           the new one) and center written, moved and cells zeroed
     """
-    cell = wp.tid()
+    anchor_motion(points_before, points, indices, anchor_face, motion, wp.tid())
+
+
+@wp.func
+def anchor_motion(
+    points_before: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    anchor_face: int,
+    motion: ContactMotion,
+    cell: int,
+):
+    """anchor_frame's work for one cell of the motion grid (the first cell also the rigid motion).
+
+    Inputs:
+      points_before (vec3, per vertex, m): collider vertices in the previous pose
+      points (vec3, per vertex, m): and in the new one
+      indices (int32, 3 per triangle): collider triangles
+      anchor_face (int): the anchor triangle, below 0 for none
+      cell (int, index): the cell
+    Outputs:
+      motion (ContactMotion): the cell zeroed; from cell 0 also rigid, center and moved
+    Returns:
+      nothing: motion's arrays are written
+    """
     motion.cells[cell] = 0
     if cell > 0:
         return
@@ -961,7 +987,49 @@ def contact_motion(
       motion (ContactMotion): rigid and center read; moved raised to the largest displacement, and
           each cell to the largest near it
     """
-    i = wp.tid()
+    raise_motion(wp.tid(), points_before, points, centers_before, centers, radii, is_leaf, neighbor_start, neighbors,
+                 local, vertices, reach, search, motion)
+
+
+@wp.func
+def raise_motion(
+    thread: int,
+    points_before: wp.array(dtype=wp.vec3),
+    points: wp.array(dtype=wp.vec3),
+    centers_before: wp.array(dtype=wp.vec3),
+    centers: wp.array(dtype=wp.vec3),
+    radii: wp.array(dtype=float),
+    is_leaf: wp.array(dtype=wp.int32),
+    neighbor_start: wp.array(dtype=wp.int32),
+    neighbors: wp.array(dtype=wp.int32),
+    local: int,
+    vertices: int,
+    reach: float,
+    search: float,
+    motion: ContactMotion,
+):
+    """contact_motion's work for one thread: one vertex or leaf sphere's move raises the motion.
+
+    Inputs:
+      thread (int, index): the thread of contact_motion's launch
+      points_before (vec3, per vertex, m): mesh vertices in the previous pose
+      points (vec3, per vertex, m): and in the new one
+      centers_before (vec3, per tree node, m): sphere centres in the previous pose
+      centers (vec3, per tree node, m): and in the new one
+      radii (float, per tree node, m): sphere radii
+      is_leaf (int32, per tree node): 1 for leaf spheres
+      neighbor_start (int32, vertices + 1): CSR offsets of each vertex's edge neighbours
+      neighbors (int32, per vertex-neighbour pair): the neighbours
+      local (int, flag): 0 counts every vertex and leaf
+      vertices (int, flag): 0 counts the sphere tree's leaves only
+      reach (float, m): the strands' reach from the anchor's centroid
+      search (float, m): the largest contact bound follow_the_leader keeps
+    In/out:
+      motion (ContactMotion): rigid and center read; moved and the cells raised
+    Returns:
+      nothing: motion's arrays are raised
+    """
+    i = thread
     rigid = motion.rigid[0]
     n = points.shape[0]
     if vertices == 0:
@@ -2197,9 +2265,11 @@ class FramePoses:
     for the end of the substep, contact_motion over it).
 
     Fields:
-      points (vec3, per substep * collider vertex, m): the posed vertices (the bindings' skin); rows
-          of one element where the strands are not bound
-      spheres (vec4, per substep * sphere-tree node, m): the packed sphere tree (ColliderShape.spheres)
+      points (vec3, per pose * collider vertex, m): the posed vertices (the bindings' skin), row 0 the
+          frame's start and row j + 1 the end of substep j; rows of one element where the strands are
+          not bound
+      spheres (vec4, per pose * sphere-tree node, m): the packed sphere tree (ColliderShape.spheres),
+          rows as points
       moved (int32, per substep * 1 element, MOTION_UNIT): ContactMotion.moved of each substep
       rigid (mat44, per substep * 1 element): ContactMotion.rigid of each substep
       center (vec3, per substep * 1 element, m): ContactMotion.center of each substep
@@ -2228,6 +2298,208 @@ def block_sync(tile: Any):
     """
     wp.tile_scatter_masked(tile, 0, tile[0], False)
 
+
+
+@wp.func
+def motion_row(moved: wp.array2d(dtype=wp.int32), rigid: wp.array2d(dtype=wp.mat44), center: wp.array2d(dtype=wp.vec3),
+               cells: wp.array2d(dtype=wp.int32), r: int):
+    """Row r of a frame's motions (FramePoses) as one substep's ContactMotion.
+
+    Inputs:
+      moved (int32, per substep * 1 element, MOTION_UNIT): the substeps' ContactMotion.moved
+      rigid (mat44, per substep * 1 element): their ContactMotion.rigid
+      center (vec3, per substep * 1 element, m): their ContactMotion.center
+      cells (int32, per substep * MOTION_GRID^3 cells, MOTION_UNIT): their ContactMotion.cells
+      r (int, index): the substep
+    Returns:
+      ContactMotion: views of row r
+    """
+    motion = ContactMotion()
+    motion.moved = moved[r]
+    motion.rigid = rigid[r]
+    motion.center = center[r]
+    motion.cells = cells[r]
+    return motion
+
+
+@wp.kernel(module=FRAME_POSES)
+def skin_listed_poses(
+    rest_points: wp.array(dtype=wp.vec3),
+    skin_indices: wp.array(dtype=wp.vec4i),
+    skin_weights: wp.array(dtype=wp.vec4),
+    bone_matrices: wp.array(dtype=wp.mat44),
+    num_bones: int,
+    listed: wp.array(dtype=wp.int32),
+    points: wp.array2d(dtype=wp.vec3),
+):
+    """skinning.skin_listed_points for every substep's pose of a frame at once (FramePoses.points):
+    row r + 1 takes pose r + 1 of the uploaded ones.
+
+    Launch: one thread per substep and listed point (dim = (substeps, len(listed))).
+    Inputs:
+      rest_points (vec3, per point, m): points in the bind pose
+      skin_indices (vec4i, per point): bone of each influence, within one pose
+      skin_weights (vec4, per point): weight of each influence; 0 skips it
+      bone_matrices (mat44, num_poses * num_bones, m): per pose and bone, bind pose to posed
+      num_bones (int): bones per pose
+      listed (int32, per listed point): the points to skin
+    Outputs:
+      points (vec3, per pose * point, m): the listed points skinned, rows 1 to substeps
+    """
+    r, t = wp.tid()
+    i = listed[t]
+    points[r + 1, i] = skinned_point(rest_points, skin_indices, skin_weights, bone_matrices, (r + 1) * num_bones, i)
+
+
+@wp.kernel(module=FRAME_POSES)
+def skin_sphere_poses(
+    rest_centers: wp.array(dtype=wp.vec3),
+    skin_indices: wp.array(dtype=wp.vec4i),
+    skin_weights: wp.array(dtype=wp.vec4),
+    bone_matrices: wp.array(dtype=wp.mat44),
+    num_bones: int,
+    radii: wp.array(dtype=float),
+    is_leaf: wp.array(dtype=wp.int32),
+    centers: wp.array2d(dtype=wp.vec3),
+    posed_radii: wp.array2d(dtype=float),
+):
+    """The sphere tree's centres skinned to every substep's pose of a frame at once, with the inner
+    radii cleared (Collider.apply_pose's skin_points and collision.clear_inner_radii): row r + 1 takes
+    pose r + 1.
+
+    Launch: one thread per substep and tree node (dim = (substeps, num_nodes)).
+    Inputs:
+      rest_centers (vec3, per tree node, m): node centres in the bind pose
+      skin_indices (vec4i, per tree node): bone of each influence (the nearest vertex's)
+      skin_weights (vec4, per tree node): weight of each influence
+      bone_matrices (mat44, num_poses * num_bones, m): per pose and bone, bind pose to posed
+      num_bones (int): bones per pose
+      radii (float, per tree node, m): the tree's radii, leaves' read
+      is_leaf (int32, per tree node): 1 for leaves
+    Outputs:
+      centers (vec3, per pose * tree node, m): posed centres, rows 1 to substeps
+      posed_radii (float, per pose * tree node, m): leaf radii, inner radii 0 (refit_sphere_poses grows
+          them)
+    """
+    r, i = wp.tid()
+    centers[r + 1, i] = skinned_point(rest_centers, skin_indices, skin_weights, bone_matrices, (r + 1) * num_bones, i)
+    radius = float(0.0)
+    if is_leaf[i] != 0:
+        radius = radii[i]
+    posed_radii[r + 1, i] = radius
+
+
+@wp.kernel(module=FRAME_POSES)
+def refit_sphere_poses(
+    centers: wp.array2d(dtype=wp.vec3),
+    radii: wp.array2d(dtype=float),
+    parent: wp.array(dtype=wp.int32),
+    is_leaf: wp.array(dtype=wp.int32),
+):
+    """collision.refit_sphere_tree for every substep's pose of a frame at once (after skin_sphere_poses).
+
+    Launch: one thread per substep and tree node (dim = (substeps, num_nodes)); inner nodes' return.
+    Inputs:
+      centers (vec3, per pose * tree node, m): posed centres
+      parent (int32, per tree node): parent node, -1 for the root
+      is_leaf (int32, per tree node): 1 for leaves
+    In/out:
+      radii (float, per pose * tree node, m): rows 1 to substeps: inner radii grown to bound their leaves
+    """
+    r, j = wp.tid()
+    if is_leaf[j] != 0:
+        grow_ancestors(centers[r + 1], radii[r + 1], parent, j)
+
+
+@wp.kernel(module=FRAME_POSES)
+def pack_sphere_poses(
+    centers: wp.array2d(dtype=wp.vec3),
+    radii: wp.array2d(dtype=float),
+    spheres: wp.array2d(dtype=wp.vec4),
+):
+    """collision.pack_sphere_tree for every substep's pose of a frame at once (FramePoses.spheres).
+
+    Launch: one thread per substep and tree node (dim = (substeps, num_nodes)).
+    Inputs:
+      centers (vec3, per pose * tree node, m): posed centres
+      radii (float, per pose * tree node, m): refitted radii
+    Outputs:
+      spheres (vec4, per pose * tree node, m): rows 1 to substeps: centre and radius side by side
+    """
+    r, i = wp.tid()
+    c = centers[r + 1, i]
+    spheres[r + 1, i] = wp.vec4(c[0], c[1], c[2], radii[r + 1, i])
+
+
+@wp.kernel(module=FRAME_POSES)
+def anchor_frames(
+    points: wp.array2d(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    anchor_face: int,
+    moved: wp.array2d(dtype=wp.int32),
+    rigid: wp.array2d(dtype=wp.mat44),
+    center: wp.array2d(dtype=wp.vec3),
+    cells: wp.array2d(dtype=wp.int32),
+):
+    """anchor_frame for every substep of a frame at once: substep r from pose r to pose r + 1.
+
+    Launch: one thread per substep and motion-grid cell (dim = (substeps, MOTION_GRID^3)).
+    Inputs:
+      points (vec3, per pose * collider vertex, m): FramePoses.points (the anchor's vertices read)
+      indices (int32, 3 per triangle): collider triangles
+      anchor_face (int): the anchor triangle, below 0 for none
+    Outputs:
+      moved (int32, per substep * 1 element, MOTION_UNIT): zeroed
+      rigid (mat44, per substep * 1 element): each substep's anchor motion
+      center (vec3, per substep * 1 element, m): the anchor's centroid after each substep
+      cells (int32, per substep * MOTION_GRID^3 cells, MOTION_UNIT): zeroed
+    """
+    r, cell = wp.tid()
+    anchor_motion(points[r], points[r + 1], indices, anchor_face, motion_row(moved, rigid, center, cells, r), cell)
+
+
+@wp.kernel(module=FRAME_POSES)
+def contact_motions(
+    points: wp.array2d(dtype=wp.vec3),
+    centers: wp.array2d(dtype=wp.vec3),
+    radii: wp.array2d(dtype=float),
+    is_leaf: wp.array(dtype=wp.int32),
+    neighbor_start: wp.array(dtype=wp.int32),
+    neighbors: wp.array(dtype=wp.int32),
+    local: int,
+    vertices: int,
+    reach: float,
+    search: float,
+    moved: wp.array2d(dtype=wp.int32),
+    rigid: wp.array2d(dtype=wp.mat44),
+    center: wp.array2d(dtype=wp.vec3),
+    cells: wp.array2d(dtype=wp.int32),
+):
+    """contact_motion for every substep of a frame at once (after anchor_frames): substep r from pose
+    r to pose r + 1.
+
+    Launch: one thread per substep and vertex and tree node (dim = (substeps, vertices + nodes)), or per
+    substep and node only when vertices == 0.
+    Inputs:
+      points (vec3, per pose * collider vertex, m): FramePoses.points
+      centers (vec3, per pose * tree node, m): posed sphere centres
+      radii (float, per pose * tree node, m): their radii
+      is_leaf (int32, per tree node): 1 for leaf spheres
+      neighbor_start (int32, vertices + 1): CSR offsets of each vertex's edge neighbours
+      neighbors (int32, per vertex-neighbour pair): the neighbours
+      local (int, flag): 0 counts every vertex and leaf
+      vertices (int, flag): 0 counts the sphere tree's leaves only
+      reach (float, m): the strands' reach from the anchor's centroid
+      search (float, m): the largest contact bound follow_the_leader keeps
+    In/out:
+      moved (int32, per substep * 1 element, MOTION_UNIT): raised
+      rigid (mat44, per substep * 1 element): read
+      center (vec3, per substep * 1 element, m): read
+      cells (int32, per substep * MOTION_GRID^3 cells, MOTION_UNIT): raised
+    """
+    r, t = wp.tid()
+    raise_motion(t, points[r], points[r + 1], centers[r], centers[r + 1], radii[r + 1], is_leaf, neighbor_start,
+                 neighbors, local, vertices, reach, search, motion_row(moved, rigid, center, cells, r))
 
 def _frame_in_block(lanes, paths, loose=False):
     """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand,
@@ -2364,7 +2636,7 @@ def _frame_in_block(lanes, paths, loose=False):
             posed = skin
             target = wp.vec3(0.0)
             if bound != 0:
-                posed.mesh_points = poses.points[j]
+                posed.mesh_points = poses.points[j + 1]
                 if weight > 0.0:
                     origin = bound_position(posed, rb)
                     target = origin + face_frame(posed.mesh_points, posed.mesh_indices, posed.triangle[rb]) * local
@@ -2392,7 +2664,7 @@ def _frame_in_block(lanes, paths, loose=False):
             touching = contact
             if contact.mode != 0:
                 shape = contact.shape
-                shape.spheres = poses.spheres[j]
+                shape.spheres = poses.spheres[j + 1]
                 touching.shape = shape
                 motion = contact.motion
                 motion.moved = poses.moved[j]
