@@ -12,7 +12,7 @@ import warp as wp
 from warp_kernels import collision, skinning, strands
 
 from .errors import SimulationError
-from .graphs import cpu_cores, run_parallel
+from .graphs import cpu_cores, refit_bvh, run_parallel
 
 SHAPE_MATCHING = {"simplified": 0, "full": 1, "none": -1}
 COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
@@ -691,8 +691,6 @@ class HairSolver:
         longest = int(np.diff(m.strand_start_np).max()) if m.num_strands else 0
         if p.shape_matching == "full":
             return "frame_in_block takes simplified shape matching or none, not full"
-        if collider is not None and p.collision == "mesh":
-            return "frame_in_block collides with the sphere tree or nothing, not the mesh (its BVH is one pose)"
         if self.comb is not None:
             return "frame_in_block does not step strands held by a comb"
         if p.substeps > strands.FRAME_SUBSTEPS:
@@ -728,9 +726,10 @@ class HairSolver:
             self.slots = self._strand_slots()  # bound to a mesh since the slots were made
         longest = int(np.diff(m.strand_start_np).max())
         lanes = min(n for n in strands.FRAME_LANES if n >= longest)
-        paths = strands.PATHS_SPHERE_LISTS if mode != 0 else strands.PATHS_NONE
+        paths = {0: strands.PATHS_NONE, COLLISION["sphere_tree"]: strands.PATHS_SPHERE_LISTS,
+                 COLLISION["mesh"]: strands.PATHS_QUERIES}[mode]
         # loose lists (loose_lists, a GPU's way): each lane walks for its own list ahead of the chain
-        loose = mode != 0 and self.contact_bounds and self._loose(True)
+        loose = mode == COLLISION["sphere_tree"] and self.contact_bounds and self._loose(True)
         contact = self.strand_contact(collider, mode)
         skin = collider.skin_binding(m) if bound else skinning.SkinBinding()
 
@@ -750,16 +749,19 @@ class HairSolver:
         """strands.FramePoses of collider c for the frame's substeps, row 0 its pose on entry and row k
         pose k: a skinned collider's poses made at once (_skin_frame), others applied in turn (see
         step_frame) and what the substeps read of each copied into its row; the collider's motion near
-        the strands measured into them where the contact bounds need it."""
+        the strands measured into them where the contact bounds need it, and against the mesh a BVH
+        refitted to each pose. The collider is left at the last pose, every vertex posed (and its own
+        BVH refitted where the strands query the mesh)."""
         dev = self.model.device
         substeps = len(times) - 1
-        vertices = len(c.points) if bound else 1
-        nodes = len(c.sphere_nodes) if mode != 0 else 1
-        key = (substeps, vertices, nodes)
+        mesh = mode == COLLISION["mesh"]
+        vertices = len(c.points) if bound or mesh else 1
+        nodes = len(c.sphere_nodes) if mode != 0 else 0
+        key = (substeps, vertices, nodes, mesh)
         if self._frame_poses is None or self._frame_poses[0] != key:
             poses = strands.FramePoses()
             poses.points = wp.zeros((substeps + 1, vertices), dtype=wp.vec3, device=dev)
-            poses.spheres = wp.zeros((substeps + 1, nodes), dtype=wp.vec4, device=dev)
+            poses.spheres = wp.zeros((substeps + 1, max(nodes, 1)), dtype=wp.vec4, device=dev)
             poses.moved = wp.zeros((substeps, 1), dtype=wp.int32, device=dev)
             poses.rigid = wp.zeros((substeps, 1), dtype=wp.mat44, device=dev)
             poses.center = wp.zeros((substeps, 1), dtype=wp.vec3, device=dev)
@@ -771,28 +773,37 @@ class HairSolver:
                 motion.cells = poses.cells[k]
                 rows.append(motion)
             # the sphere tree's centres and radii of each pose (_skin_frame)
-            trees = [wp.zeros((substeps + 1, nodes), dtype=t, device=dev) for t in (wp.vec3, float)]
-            self._frame_poses = (key, poses, rows, trees)
-        _, poses, rows, trees = self._frame_poses
+            trees = [wp.zeros((substeps + 1, max(nodes, 1)), dtype=t, device=dev) for t in (wp.vec3, float)]
+            # a BVH over each pose's row of points (not row 0: no substep queries the frame's start)
+            meshes = [wp.Mesh(points=poses.points[k], indices=c.indices) for k in range(1, substeps + 1)] \
+                if mesh else []
+            poses.meshes = wp.array([0] + [each.id for each in meshes] if mesh else [0] * (substeps + 1),
+                                    dtype=wp.uint64, device=dev)
+            self._frame_poses = (key, poses, rows, trees, meshes)
+        _, poses, rows, trees, meshes = self._frame_poses
         offsets = np.zeros(strands.FRAME_SUBSTEPS, np.float32)
         offsets[:substeps] = [float(t - self._clock_time) for t in times[1:]]
         poses.offsets = strands.frame_offsets(*offsets)
         if c is None:
             return poses
         if c.bone_matrices is not None and c._swept is None:
-            self._skin_frame(c, poses, trees, substeps, listed, mode, bound)
-            return poses
-        for k in range(1, substeps + 1):  # point caches: the poses as the substeps one by one apply them
-            c.apply_pose(k, refit=False, listed=None if k == substeps else listed)
-            if bound:
-                wp.copy(poses.points[k], c.points)
-            if mode != 0:
-                wp.copy(poses.spheres[k], c.sphere_nodes)
-                if self.contact_bounds:
+            self._skin_frame(c, poses, trees, substeps, listed, mode, bound, nodes)
+        else:
+            for k in range(1, substeps + 1):  # point caches: the poses as the substeps one by one apply them
+                c.apply_pose(k, refit=False, listed=None if k == substeps or mesh else listed)
+                if bound or mesh:
+                    wp.copy(poses.points[k], c.points)
+                if nodes > 0:
+                    wp.copy(poses.spheres[k], c.sphere_nodes)
+                if mode != 0 and self.contact_bounds:
                     self._launch_motion(c, mode, rows[k - 1])
+        for each in meshes:
+            refit_bvh(each)
+        if mesh:
+            c.refit_mesh()  # the BVH the host queries after the frame, at its last pose
         return poses
 
-    def _skin_frame(self, c, poses, trees, substeps, listed, mode, bound):
+    def _skin_frame(self, c, poses, trees, substeps, listed, mode, bound, nodes):
         """A skinned collider's poses for every substep of a frame in six launches (strands.FRAME_POSES:
         the listed vertices, the sphere tree skinned, refitted and packed, the motions), where applying
         them in turn takes some ten launches and copies a substep: the same rows. The collider is left
@@ -800,17 +811,17 @@ class HairSolver:
         frame's first)."""
         m, p, dev = self.model, self.params, self.model.device
         centers, radii = trees
-        nodes = centers.shape[1]
-        if bound:
+        mesh = mode == COLLISION["mesh"]
+        if bound or mesh:
             wp.copy(poses.points[0], c.points)
-            if listed is None:
+            if listed is None or mesh:
                 if getattr(self, "_every_vertex", None) is None or len(self._every_vertex) != len(c.points):
                     self._every_vertex = wp.array(np.arange(len(c.points), dtype=np.int32), device=dev)
                 listed = self._every_vertex
             wp.launch(strands.skin_listed_poses, (substeps, len(listed)),
                       [c.rest_points, c.skin_indices, c.skin_weights, c.bone_matrices, c.num_bones, listed,
                        poses.points], device=dev)
-        if mode != 0:
+        if nodes > 0:
             wp.copy(centers[0], c.sphere_centers)
             wp.launch(strands.skin_sphere_poses, (substeps, nodes),
                       [c.sphere_rest_centers, c.sphere_skin_indices, c.sphere_skin_weights, c.bone_matrices,
@@ -818,15 +829,15 @@ class HairSolver:
             wp.launch(strands.refit_sphere_poses, (substeps, nodes),
                       [centers, radii, c.sphere_parent, c.sphere_is_leaf], device=dev)
             wp.launch(strands.pack_sphere_poses, (substeps, nodes), [centers, radii, poses.spheres], device=dev)
-            if self.contact_bounds:
-                motion = [poses.moved, poses.rigid, poses.center, poses.cells]
-                wp.launch(strands.anchor_frames, (substeps, strands.MOTION_GRID ** 3),
-                          [poses.points, c.indices, m.anchor_face, *motion], device=dev)
-                adjacency = c.adjacency()
-                # the sphere tree's strands see only its leaves: no vertices counted
-                wp.launch(strands.contact_motions, (substeps, nodes),
-                          [poses.points, centers, radii, c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj,
-                           int(m.anchor_face >= 0), 0, self.reach, p.collision_search, *motion], device=dev)
+        if mode != 0 and self.contact_bounds:
+            motion = [poses.moved, poses.rigid, poses.center, poses.cells]
+            wp.launch(strands.anchor_frames, (substeps, strands.MOTION_GRID ** 3),
+                      [poses.points, c.indices, m.anchor_face, *motion], device=dev)
+            adjacency = c.adjacency()
+            # the sphere tree's strands see only its leaves, the mesh's its vertices and leaves
+            wp.launch(strands.contact_motions, (substeps, (len(c.points) if mesh else 0) + nodes),
+                      [poses.points, centers, radii, c.sphere_is_leaf, adjacency.vv_start, adjacency.vv_adj,
+                       int(m.anchor_face >= 0), int(mesh), self.reach, p.collision_search, *motion], device=dev)
         c.apply_pose(substeps, refit=False)
 
     def _step_fused(self, state_in, state_out, c, dt, offset, variant, passes, part, r, guides):

@@ -633,15 +633,25 @@ def _long_hair_config(device):
                                        "shape_iterations": 1}})
 
 
+def _mesh_hair_config(device):
+    return hair_demo_scene({"scene": {"device": device, "frames": 4, "preroll": 0.0, "stats": False},
+                            "head": {"sphere_leaves": 128, "animation": "turn_nod"},
+                            "hair": {"count": 150, "vertices": 16, "style": "wavy"},
+                            "solver": {"substeps": 4, "collision": "mesh", "shape_matching": "simplified",
+                                       "shape_iterations": 1}})
+
+
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("make", [_fast_hair_config, _free_hair_config, _long_hair_config],
-                         ids=["spheres", "no-collider", "64-lanes"])
+@pytest.mark.parametrize("make", [_fast_hair_config, _free_hair_config, _long_hair_config, _mesh_hair_config],
+                         ids=["spheres", "no-collider", "64-lanes", "mesh"])
 def test_frames_in_block_follow_the_substeps(make, device):
     """A whole frame in one launch, a block of lanes per strand (HairSolver.frame_in_block,
-    strands.frame_in_block, the collider posed for every substep ahead) captured in the frame's graph:
-    the frames of the substeps one by one, to float32 rounding (bit for bit on the CPU)."""
+    strands.frame_in_block, the collider posed for every substep ahead, against the mesh a BVH for
+    each pose) captured in the frame's graph: the frames of the substeps one by one, to float32
+    rounding (bit for bit on the CPU)."""
     def configure(solver, whole):
         solver.loose_lists = False  # the loose lists' walks differ, within the margin
+        solver.mesh_lists = False  # the frame queries the mesh's BVH, as a GPU does
         solver.frame_in_block = whole
         assert not (whole and solver.lanes)
 
@@ -702,7 +712,7 @@ def test_a_frame_in_block_names_what_it_cannot_step():
         scene.advance(1.0 / scene.config.timing.fps)
     np.testing.assert_array_equal(scene.state.x.numpy(), start)
     solver = hair_solver.HairSolver(scene.model, replace(scene.solver.params, shape_matching="simplified"))
-    assert "mesh" in solver.frame_in_block_misfit(scene.collider)
+    assert solver.frame_in_block_misfit(scene.collider) is None  # simplified against the mesh
     assert solver.frame_in_block_misfit(None) is None
     solver = hair_solver.HairSolver(scene.model, replace(solver.params, substeps=40))
     assert "40" in solver.frame_in_block_misfit(None)

@@ -2270,6 +2270,8 @@ class FramePoses:
           not bound
       spheres (vec4, per pose * sphere-tree node, m): the packed sphere tree (ColliderShape.spheres),
           rows as points
+      meshes (uint64, per pose): wp.Mesh ids over each row of points, refitted to it (mesh collisions;
+          0 otherwise)
       moved (int32, per substep * 1 element, MOTION_UNIT): ContactMotion.moved of each substep
       rigid (mat44, per substep * 1 element): ContactMotion.rigid of each substep
       center (vec3, per substep * 1 element, m): ContactMotion.center of each substep
@@ -2279,6 +2281,7 @@ class FramePoses:
 
     points: wp.array2d(dtype=wp.vec3)
     spheres: wp.array2d(dtype=wp.vec4)
+    meshes: wp.array(dtype=wp.uint64)
     moved: wp.array2d(dtype=wp.int32)
     rigid: wp.array2d(dtype=wp.mat44)
     center: wp.array2d(dtype=wp.vec3)
@@ -2503,8 +2506,8 @@ def contact_motions(
 
 def _frame_in_block(lanes, paths, loose=False):
     """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand,
-    its length pass compiled with the collision paths `paths` (PATHS_SPHERE_LISTS, or PATHS_NONE for no
-    collider: the code of the sphere tree's left out); `loose`: the lists that would run short are
+    its length pass compiled with the collision paths `paths` (PATHS_SPHERE_LISTS; PATHS_QUERIES for the
+    mesh, its BVH queried; or PATHS_NONE for no collider: no collision code); `loose`: the lists that would run short are
     walked for by every lane before the chain, which walks only where a particle may be inside an
     unlisted leaf (step_strands' loose variant, with the walks of find_short_lists and list_leaves_ahead)."""
     # the length pass's step with the contact bounds as values, which every lane reads before the chain
@@ -2665,6 +2668,7 @@ def _frame_in_block(lanes, paths, loose=False):
             if contact.mode != 0:
                 shape = contact.shape
                 shape.spheres = poses.spheres[j + 1]
+                shape.mesh = poses.meshes[j + 1]
                 touching.shape = shape
                 motion = contact.motion
                 motion.moved = poses.moved[j]
@@ -2704,7 +2708,8 @@ def _frame_in_block(lanes, paths, loose=False):
 # keyed by (lanes, paths, loose): a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
 FRAME_LANES = (32, 64)
 FRAME_IN_BLOCK = {(lanes, paths, loose): _frame_in_block(lanes, paths, loose) for lanes in FRAME_LANES
-                  for paths, loose in ((PATHS_NONE, False), (PATHS_SPHERE_LISTS, False), (PATHS_SPHERE_LISTS, True))}
+                  for paths, loose in ((PATHS_NONE, False), (PATHS_SPHERE_LISTS, False), (PATHS_SPHERE_LISTS, True),
+                                       (PATHS_QUERIES, False))}
 frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS, False)]
 
 
