@@ -17,7 +17,8 @@
 #   bash benchmarks/run_gpu.sh in-block # a frame in one launch, a block of lanes per strand (HairSolver.frame_in_block):
 #                                       # its CUDA graph tests, then against the device's way at 1k to 100k strands
 #                                       # with and without the sphere tree, profiled
-#   bash benchmarks/run_gpu.sh in-block-mesh # the same against the mesh (a BVH per substep's pose), 1k and 10k strands
+#   bash benchmarks/run_gpu.sh in-block-mesh # the same against the mesh (a BVH per substep's pose), simplified and
+#                                       # full shape matching (the default model), 1k to 100k strands
 #   bash benchmarks/run_gpu.sh in-block-ncu # Nsight Compute on its launch at 100k strands on the sphere tree
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh ncu      # Nsight Compute's counters (occupancy, warp states, memory) for one
@@ -69,8 +70,8 @@ for part in "$@"; do
           tee "$out/in-block-tests.log"
         timeout 380 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
           --cases simplified1 simplified1+spheres --try frame_in_block=on --profile 2>&1 | tee "$out/in-block-hair.log" ;;
-    in-block-mesh) timeout 500 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 \
-          --cases simplified+mesh --try frame_in_block=on --profile 2>&1 | tee "$out/in-block-mesh-hair.log" ;;
+    in-block-mesh) timeout 540 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
+          --cases full+mesh simplified+mesh --try frame_in_block=on --profile 2>&1 | tee "$out/in-block-mesh-hair.log" ;;
     in-block-ncu) ncu=$(command -v ncu || ls /opt/nvidia/nsight-compute/*/ncu 2>/dev/null | head -1)
         timeout 200 "$ncu" --clock-control none --kernel-name regex:frame_in_block --launch-skip 3 --launch-count 1 \
           --section SpeedOfLight --section WarpStateStats --section Occupancy --section LaunchStats \

@@ -689,8 +689,6 @@ class HairSolver:
         """Why step_frame cannot step this solver's frames against `collider` (a line), or None."""
         p, m = self.params, self.model
         longest = int(np.diff(m.strand_start_np).max()) if m.num_strands else 0
-        if p.shape_matching == "full":
-            return "frame_in_block takes simplified shape matching or none, not full"
         if self.comb is not None:
             return "frame_in_block does not step strands held by a comb"
         if p.substeps > strands.FRAME_SUBSTEPS:
@@ -735,15 +733,18 @@ class HairSolver:
 
         # one launch for every strand: the CPU's fibers share one arena for the blocks' memory, which
         # launches of the parts side by side on its cores overflow
-        kernel = strands.FRAME_IN_BLOCK[(lanes, paths, loose)]
+        kernel = strands.FRAME_IN_BLOCK[(lanes, paths, loose, variant != SHAPE_MATCHING["full"])]
         with cpu_blocks(dev):
             wp.launch_tiled(kernel, dim=[m.num_strands], block_dim=lanes, device=dev,
                             inputs=[state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(),
                                     self.clock, poses, substeps, dt, int(bound), skin,
                                     m.particle_binding if bound else None, m.root_binding if bound else None,
-                                    hold if bound else 0.0, self._pull(guides, dt), self.windows.size, passes,
-                                    p.shape_stiffness, self.slots, contact, p.ftl_damping, FUSED_LIST_SLACK,
+                                    hold if bound else 0.0, self._pull(guides, dt), self.windows.size, variant,
+                                    passes, p.shape_stiffness, int(self._rotations_exact), p.rotation_iterations,
+                                    self.rotations, self.slots, contact, p.ftl_damping, FUSED_LIST_SLACK,
                                     state_out.x, state_out.v, 0])
+        if variant == SHAPE_MATCHING["full"] and passes > 0:
+            self._rotations_exact = False  # the later frames refine the rotations from their last values
 
     def _pose_frame(self, c, times, listed, mode, bound):
         """strands.FramePoses of collider c for the frame's substeps, row 0 its pose on entry and row k
@@ -774,9 +775,13 @@ class HairSolver:
                 rows.append(motion)
             # the sphere tree's centres and radii of each pose (_skin_frame)
             trees = [wp.zeros((substeps + 1, max(nodes, 1)), dtype=t, device=dev) for t in (wp.vec3, float)]
-            # a BVH over each pose's row of points (not row 0: no substep queries the frame's start)
-            meshes = [wp.Mesh(points=poses.points[k], indices=c.indices) for k in range(1, substeps + 1)] \
-                if mesh else []
+            # a BVH over each pose's row of points (not row 0: no substep queries the frame's start), built
+            # where the collider's own was, at the rest pose, so that refitted to a pose it answers a query
+            # as the collider's does, equidistant triangles included
+            meshes = []
+            for k in range(1, substeps + 1 if mesh else 1):
+                wp.copy(poses.points[k], c.rest_points)
+                meshes.append(wp.Mesh(points=poses.points[k], indices=c.indices))
             poses.meshes = wp.array([0] + [each.id for each in meshes] if mesh else [0] * (substeps + 1),
                                     dtype=wp.uint64, device=dev)
             self._frame_poses = (key, poses, rows, trees, meshes)

@@ -641,9 +641,18 @@ def _mesh_hair_config(device):
                                        "shape_iterations": 1}})
 
 
+def _full_mesh_config(device):
+    # the default model, full shape matching (windows of 6) against the mesh, on the turning head
+    return hair_demo_scene({"scene": {"device": device, "frames": 4, "preroll": 0.0, "stats": False},
+                            "head": {"animation": "turn_nod"},
+                            "hair": {"count": 120, "vertices": 16, "style": "curly"},
+                            "solver": {"substeps": 4}})
+
+
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("make", [_fast_hair_config, _free_hair_config, _long_hair_config, _mesh_hair_config],
-                         ids=["spheres", "no-collider", "64-lanes", "mesh"])
+@pytest.mark.parametrize("make", [_fast_hair_config, _free_hair_config, _long_hair_config, _mesh_hair_config,
+                                  _full_mesh_config],
+                         ids=["spheres", "no-collider", "64-lanes", "mesh", "full-mesh"])
 def test_frames_in_block_follow_the_substeps(make, device):
     """A whole frame in one launch, a block of lanes per strand (HairSolver.frame_in_block,
     strands.frame_in_block, the collider posed for every substep ahead, against the mesh a BVH for
@@ -698,21 +707,24 @@ def test_frames_in_block_with_loose_lists_follow_the_fused_substeps(device):
             np.testing.assert_array_equal(block_bounds, bounds)
 
 def test_a_frame_in_block_names_what_it_cannot_step():
-    """frame_in_block takes simplified shape matching (or none) against the sphere tree (or no
-    collider), strands of up to 64 particles, up to FRAME_SUBSTEPS substeps: otherwise the scene's
-    first frame raises, naming why, before it moves the collider or the hair."""
+    """frame_in_block takes strands of up to 64 particles and up to FRAME_SUBSTEPS substeps: otherwise
+    the scene's first frame raises, naming why, before it moves the collider or the hair."""
     from dataclasses import replace
 
     from sim.strands import StrandBuilder
 
-    scene = Scene(_hair_config("cpu", False))  # full shape matching against the mesh
+    scene = Scene(hair_demo_scene({"scene": {"device": "cpu", "frames": 1, "preroll": 0.0, "stats": False},
+                                   "hair": {"count": 20, "vertices": 70}, "solver": {"substeps": 2}}))
     scene.solver.frame_in_block = True
     start = scene.state.x.numpy().copy()
-    with pytest.raises(ValueError, match="full"):
+    points = scene.collider.points.numpy().copy()
+    with pytest.raises(ValueError, match="70"):
         scene.advance(1.0 / scene.config.timing.fps)
     np.testing.assert_array_equal(scene.state.x.numpy(), start)
-    solver = hair_solver.HairSolver(scene.model, replace(scene.solver.params, shape_matching="simplified"))
-    assert solver.frame_in_block_misfit(scene.collider) is None  # simplified against the mesh
+    np.testing.assert_array_equal(scene.collider.points.numpy(), points)
+    scene = Scene(_hair_config("cpu", False))  # full shape matching against the mesh
+    solver = hair_solver.HairSolver(scene.model, scene.solver.params)
+    assert solver.frame_in_block_misfit(scene.collider) is None
     assert solver.frame_in_block_misfit(None) is None
     solver = hair_solver.HairSolver(scene.model, replace(solver.params, substeps=40))
     assert "40" in solver.frame_in_block_misfit(None)

@@ -466,19 +466,18 @@ def window_centroid(x: Any, first: int, stride: int, size: int):
 
 
 @wp.func
-def window_rotation(x: wp.array(dtype=wp.vec3), first: int, stride: int, size: int,
-                    rest_local: wp.array(dtype=wp.vec3), rest_centroid: wp.vec3, q: wp.quat, exact: int,
-                    iterations: int):
+def window_rotation(x: Any, first: int, stride: int, size: int, rest_local: Any, rest_centroid: wp.vec3, q: wp.quat,
+                    exact: int, iterations: int):
     """A window's optimal rotation of its rest offsets onto its current particles, and its centroid
     (full variant): solved outright (exact != 0) or refined from q, its last rotation.
 
     Inputs:
-      x (vec3, per particle or lane slot, m): current positions
+      x (vec3, per particle or lane slot, m): current positions, an array or a block's shared tile
       first (int, index): element of the window's first particle
       stride (int): elements from one particle to the next (window_centroid)
       size (int): particles in the window
       rest_local (vec3, per particle or lane slot, m): rest positions from the strand's root, in the
-          order of x
+          order of x (an array, or a tile with x)
       rest_centroid (vec3, m): the window's rest centroid from the strand's root
       q (quat): the window's last rotation; read only when exact == 0
       exact (int, flag): non-zero solves from scratch (float64 SVD)
@@ -526,9 +525,8 @@ def window_frame(q: wp.quat, centroid: wp.vec3, rest_centroid: wp.vec3):
 
 
 @wp.func
-def full_shaped_position(p: wp.vec3, k: int, count: int, window_size: int, stiffness: float,
-                         frames: wp.array(dtype=wp.mat33), translations: wp.array(dtype=wp.vec3), at: int,
-                         stride: int, rest_local: wp.vec3):
+def full_shaped_position(p: wp.vec3, k: int, count: int, window_size: int, stiffness: float, frames: Any,
+                         translations: Any, at: int, stride: int, rest_local: wp.vec3):
     """A free particle moved toward the mean goal of the full windows holding it (window_frame).
 
     The windows holding the k-th particle of a strand start at its k - window_size + 1 .. k, those
@@ -541,8 +539,8 @@ def full_shaped_position(p: wp.vec3, k: int, count: int, window_size: int, stiff
       count (int): the strand's particles
       window_size (int): particles per window
       stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
-      frames (mat33, per window or slot): the windows' rotations
-      translations (vec3, per window or slot, m): the windows' goal translations
+      frames (mat33, per window or slot): the windows' rotations (an array, or a block's shared tile)
+      translations (vec3, per window or slot, m): the windows' goal translations (likewise)
       at (int, index): where frames and translations hold the window starting at the particle
           (whether or not one does); the one starting j particles before is at at - j * stride
       stride (int): elements from one window of the strand to the next
@@ -2504,21 +2502,24 @@ def contact_motions(
     raise_motion(t, points[r], points[r + 1], centers[r], centers[r + 1], radii[r + 1], is_leaf, neighbor_start,
                  neighbors, local, vertices, reach, search, motion_row(moved, rigid, center, cells, r))
 
-def _frame_in_block(lanes, paths, loose=False):
+def _frame_in_block(lanes, paths, loose=False, simplified=True):
     """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand,
     its length pass compiled with the collision paths `paths` (PATHS_SPHERE_LISTS; PATHS_QUERIES for the
     mesh, its BVH queried; or PATHS_NONE for no collider: no collision code); `loose`: the lists that would run short are
     walked for by every lane before the chain, which walks only where a particle may be inside an
-    unlisted leaf (step_strands' loose variant, with the walks of find_short_lists and list_leaves_ahead)."""
+    unlisted leaf (step_strands' loose variant, with the walks of find_short_lists and list_leaves_ahead);
+    `simplified`: simplified shape matching alone (variant read as SHAPE_SIMPLIFIED), else either."""
     # the length pass's step with the contact bounds as values, which every lane reads before the chain
     # (its particle's, in parallel), so that no step of the chain waits on them
     follow = _follow_leader(paths, ahead=True, loose=loose)
-    name = f"frame_in_block_{lanes}" + PATH_NAMES[paths] + ("_loose" if loose else "")
+    name = f"frame_in_block_{lanes}" + PATH_NAMES[paths] + ("_loose" if loose else "") + \
+        ("" if simplified else "_full")
 
     # sm_90: the sphere tree's takes 191 registers uncapped (10 one-warp blocks an SM), at 128 16 blocks with
     # 380/348 bytes of spills (at 96 about 1 KB); without a collider 115, at 96 21 blocks with 56/48 bytes
-    # (at 64, 32 blocks: 260/296). Untimed on a GPU: capped where spills stay near 100 bytes or less
-    cap = 96 if paths == PATHS_NONE else 128
+    # (at 64, 32 blocks: 260/296). Untimed on a GPU: capped where spills stay near 100 bytes or less; the
+    # full variants at 128 (without a collider 412/324 bytes at 96)
+    cap = 96 if paths == PATHS_NONE and simplified else 128
 
     # opt in: launched only where a run asks for it (HairSolver.frame_in_block), so a GPU's start does not
     # compile its six variants
@@ -2541,8 +2542,12 @@ def _frame_in_block(lanes, paths, loose=False):
         hold_stiffness: float,
         pull: GuidePull,
         window_size: int,
+        variant: int,
         passes: int,
         stiffness: float,
+        exact: int,
+        rotation_iterations: int,
+        rotations: wp.array(dtype=wp.quat),
         per: StrandSlots,
         contact: StrandContact,
         ftl_damping: float,
@@ -2590,14 +2595,18 @@ def _frame_in_block(lanes, paths, loose=False):
           hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
           pull (GuidePull): captured guides; pull.stiffness 0 for none
           window_size (int): particles per window
-          passes (int): simplified shape-matching passes, 0 for none
+          variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL (read only by the variants compiled for both)
+          passes (int): shape-matching passes a substep, 0 for none
           stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+          exact (int, flag): non-zero solves the first substep's first pass's rotations from scratch (full)
+          rotation_iterations (int): rotation refinement steps per pass otherwise (full)
           per (StrandSlots): the particles and windows in particle order (its scratch is not used)
           ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
           list_slack (float, m): the loose variant's slack of list_runs_short at the substep's start
               positions (hair_solver.FUSED_LIST_SLACK, as step_strands' walks queued ahead)
           first (int, index): the range's first strand; block b works on strand first + b
         In/out:
+          rotations (quat, per window): window rotations, refined from their last values (full)
           contact (StrandContact): the collider's settings and the contact bounds per particle (its
               shape's spheres and its motion replaced by each substep's rows of poses)
         Outputs:
@@ -2619,6 +2628,16 @@ def _frame_in_block(lanes, paths, loose=False):
         if here:
             w = per.window_at[i]
         wp.tile_scatter_masked(window_at, lane, w, True)
+        shapes = variant
+        if wp.static(simplified):
+            shapes = int(SHAPE_SIMPLIFIED)  # a constant: the full variant's code is not compiled in
+        # the full variant's windows: their goal maps, and the particles' rest positions from the root
+        frames = wp.tile_zeros(shape=wp.static(lanes if not simplified else 1), dtype=wp.mat33, storage="shared")
+        rest = wp.tile_zeros(shape=wp.static(lanes if not simplified else 1), dtype=wp.vec3, storage="shared")
+        rest_local = wp.vec3(0.0)
+        if wp.static(not simplified):
+            rest_local = per.rest_local[i]
+            wp.tile_scatter_masked(rest, lane, rest_local, here)
         p0 = x[i]
         vel = v[i]
         inv_mass = per.inv_mass[i]
@@ -2651,19 +2670,39 @@ def _frame_in_block(lanes, paths, loose=False):
                 root = placed[0]
                 if here and inv_mass != 0.0:
                     p = guided_position(pull, p, root, s, i, guide_frame, guide_next, guide_weight)
-            for _pass in range(passes):
+            for shape_pass in range(passes):
                 block_sync(placed)
                 wp.tile_scatter_masked(placed, lane, p, here)
                 c = wp.vec3(0.0)
                 u = wp.vec3(0.0)
-                if here and window_at[lane] >= 0:
-                    u, _straight = window_direction(placed, lane, 1, window_size)
-                    c = window_centroid(placed, lane, 1, window_size)
-                wp.tile_scatter_masked(centroids, lane, c, True)
-                wp.tile_scatter_masked(axes, lane, u, True)
-                if here and inv_mass != 0.0:
-                    p = simplified_shaped_position(p, lane, lane, 1, i, window_size, stiffness, window_at, centroids,
-                                                   axes, per.offsets, per.slots)
+                if shapes == SHAPE_SIMPLIFIED:
+                    if here and window_at[lane] >= 0:
+                        u, _straight = window_direction(placed, lane, 1, window_size)
+                        c = window_centroid(placed, lane, 1, window_size)
+                    wp.tile_scatter_masked(centroids, lane, c, True)
+                    wp.tile_scatter_masked(axes, lane, u, True)
+                    if here and inv_mass != 0.0:
+                        p = simplified_shaped_position(p, lane, lane, 1, i, window_size, stiffness, window_at,
+                                                       centroids, axes, per.offsets, per.slots)
+                if wp.static(not simplified):
+                    if shapes != SHAPE_SIMPLIFIED:
+                        # as update_window and shaped_position: the window at each lane solved, then every
+                        # particle moved toward the mean goal of the windows holding it
+                        solve = int(0)
+                        if j == 0 and shape_pass == 0:
+                            solve = exact
+                        R = wp.mat33(0.0)
+                        if here and window_at[lane] >= 0:
+                            rest_centroid = per.rest_centroid[i]
+                            q, c = window_rotation(placed, lane, 1, window_size, rest, rest_centroid, rotations[w],
+                                                   solve, rotation_iterations)
+                            rotations[w] = q
+                            R, c = window_frame(q, c, rest_centroid)
+                        wp.tile_scatter_masked(frames, lane, R, True)
+                        wp.tile_scatter_masked(centroids, lane, c, True)  # the goal translations, here
+                        if here and inv_mass != 0.0:
+                            p = full_shaped_position(p, lane, count, window_size, stiffness, frames, centroids, lane, 1,
+                                                     rest_local)
             touching = contact
             if contact.mode != 0:
                 shape = contact.shape
@@ -2705,12 +2744,15 @@ def _frame_in_block(lanes, paths, loose=False):
 
 
 # a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
-# keyed by (lanes, paths, loose): a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
 FRAME_LANES = (32, 64)
-FRAME_IN_BLOCK = {(lanes, paths, loose): _frame_in_block(lanes, paths, loose) for lanes in FRAME_LANES
-                  for paths, loose in ((PATHS_NONE, False), (PATHS_SPHERE_LISTS, False), (PATHS_SPHERE_LISTS, True),
-                                       (PATHS_QUERIES, False))}
-frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS, False)]
+# keyed by (lanes, paths, loose, simplified); the variants for full shape matching take either at run time
+FRAME_IN_BLOCK = {(lanes, paths, loose, simplified): _frame_in_block(lanes, paths, loose, simplified)
+                  for lanes in FRAME_LANES
+                  for paths, loose, simplified in ((PATHS_NONE, False, True), (PATHS_SPHERE_LISTS, False, True),
+                                                   (PATHS_SPHERE_LISTS, True, True), (PATHS_QUERIES, False, True),
+                                                   (PATHS_NONE, False, False), (PATHS_SPHERE_LISTS, False, False),
+                                                   (PATHS_QUERIES, False, False))}
+frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS, False, True)]
 
 
 @wp.func
