@@ -301,13 +301,15 @@ class HairSolver:
         self.strand_block = strand_block(model.num_strands, device)
         # whole frames in one launch each (step_frame, strands.frame_in_block): a block of lanes per strand,
         # a lane per particle, the state in registers across the frame's substeps and the collider posed
-        # for all of them ahead. Simplified shape matching (or none) against the sphere tree (or no
-        # collider), strands of up to 64 particles; it reads the strands in particle order, so setting it
-        # sets lanes off. With loose_lists (a GPU's default) each lane walks for its own short list ahead
-        # of the chain. Off by default until a GPU has timed it (the CPU runs a block's lanes as fibers,
-        # for its tests)
+        # for all of them ahead. Any shape matching against the sphere tree, the mesh (its BVH queried, as a
+        # GPU does) or no collider, strands of up to 64 particles; it reads the strands in particle order,
+        # so setting it sets lanes off. With loose_lists (a GPU's default) each lane walks for its own
+        # short list ahead of the chain. Off by default until a GPU has timed it (the CPU runs a block's
+        # lanes as fibers, for its tests)
         self._frame_in_block = False
-        self._frame_poses = None  # (key, FramePoses, per-substep ContactMotion rows) for step_frame
+        # (key, FramePoses, per-substep ContactMotion rows, the sphere trees' centres and radii per pose,
+        # a wp.Mesh per pose) for step_frame
+        self._frame_poses = None
         self._frame = None  # [the lanes' x, v, x', v'; which pair holds the state] for frame_lanes
         self._in_frame = False  # between begin_frame and end_frame with the state in the lanes
         self._no_shape = collision.ColliderShape()  # the length pass without a collider (mode 0)

@@ -20,7 +20,7 @@ included, a thread per strand (after anchor_frame and contact_motion, and the tr
 from the start positions), with the same strands bit for bit. frame_in_block is a whole frame of
 those substeps in one launch, a block of lanes per strand and a lane per particle, its state in
 registers from the frame's start to its end and the collider posed for every substep ahead of it
-(FramePoses; simplified shape matching against the sphere tree or no collider).
+(FramePoses), against the sphere tree, the mesh or no collider.
 
 Each launch reads and writes every particle once: work that used to round-trip through a buffer
 (window goals, root positions, FTL corrections) is recomputed or carried in registers instead,
@@ -2505,10 +2505,11 @@ def contact_motions(
 def _frame_in_block(lanes, paths, loose=False, simplified=True):
     """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand,
     its length pass compiled with the collision paths `paths` (PATHS_SPHERE_LISTS; PATHS_QUERIES for the
-    mesh, its BVH queried; or PATHS_NONE for no collider: no collision code); `loose`: the lists that would run short are
-    walked for by every lane before the chain, which walks only where a particle may be inside an
-    unlisted leaf (step_strands' loose variant, with the walks of find_short_lists and list_leaves_ahead);
-    `simplified`: simplified shape matching alone (variant read as SHAPE_SIMPLIFIED), else either."""
+    mesh, its BVH queried; or PATHS_NONE for no collider: no collision code); `loose`: the lists that
+    would run short are walked for by every lane before the chain, which walks only where a particle
+    may be inside an unlisted leaf (step_strands' loose variant, with the walks of find_short_lists and
+    list_leaves_ahead); `simplified`: simplified shape matching alone (variant read as SHAPE_SIMPLIFIED),
+    else either."""
     # the length pass's step with the contact bounds as values, which every lane reads before the chain
     # (its particle's, in parallel), so that no step of the chain waits on them
     follow = _follow_leader(paths, ahead=True, loose=loose)
@@ -2522,7 +2523,7 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
     cap = 96 if paths == PATHS_NONE and simplified else 128
 
     # opt in: launched only where a run asks for it (HairSolver.frame_in_block), so a GPU's start does not
-    # compile its six variants
+    # compile its variants
     @wp.kernel(module=deferred_module(f"{__name__}.{name}", block_dim=lanes, opt_in=True), cuda_max_registers=cap,
                name=name)
     def frame_in_block(
@@ -2559,11 +2560,14 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
         """A whole frame of hair substeps in one launch, a block of lanes per strand and a lane per
         particle: the state stays in the lanes' registers from the frame's start to its end, and what
         a particle needs of its neighbours (windows, parents, the FTL corrections) passes through the
-        block's shared memory, not through global memory. Each substep is step_strands' with
-        simplified shape matching (or none) against the sphere tree (or no collider): the same
-        strands, bit for bit.
+        block's shared memory, not through global memory. Each substep is step_strands' against the
+        sphere tree, the mesh (a BVH per substep's pose, queried) or no collider: the same strands,
+        bit for bit.
 
-        Prediction, the guides' pull and the shape passes run a lane per particle. The length pass is
+        Prediction, the guides' pull and the shape passes run a lane per particle: each lane solves
+        the window starting at its particle (simplified: its centroid and axis; full: its rotation,
+        warm-started per window, and goal map), and every particle then moves toward the mean goal of
+        the windows holding it. The length pass is
         a chain: lane k places its particle once lane k - 1 has placed its own (follow_leader, with
         its collisions and contact bounds, which every lane reads before the chain), a barrier a
         particle. The velocities then take each child's correction from shared memory. Compiled loose,
