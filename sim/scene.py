@@ -50,8 +50,13 @@ class TimingConfig:
     device: str = "cpu"  # "cpu" or "cuda" (or "cuda:N")
     stats: bool = True  # measure stretch, root drift and penetration every frame
     graphs: bool = True  # capture each solver's frame once (a CUDA graph, or a recorded CPU graph) and replay it
+    # "in_block": each hair frame in one launch, a block of lanes per strand (HairSolver.frame_in_block); a
+    # GPU's experiment, "substeps" the launches of each substep
+    hair_frames: str = "substeps"
 
     def __post_init__(self):
+        if self.hair_frames not in ("substeps", "in_block"):
+            raise ValueError('hair_frames must be "substeps" or "in_block"')
         if self.fps <= 0.0:
             raise ValueError("fps must be positive")
         if self.frames < 1:
@@ -382,6 +387,10 @@ class Scene:
             self.children = self._children()
             self.hair_template = self.model  # what a haircut's "initialise" returns to
             self.solver = HairSolver(self.model, config.solver)
+            self.solver.frame_in_block = config.timing.hair_frames == "in_block"
+            misfit = self.solver.frame_in_block_misfit(self.collider) if self.solver.frame_in_block else None
+            if misfit is not None:
+                raise InputError(config.source, "scene.hair_frames", misfit)
             self.state, self._scratch = self.model.state(), self.model.state()
             self.guides = None
             if config.hair.guides:

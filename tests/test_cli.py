@@ -145,6 +145,9 @@ def test_view_without_a_display_exits_2(tmp_path, monkeypatch, capsys):
     (SMALL.replace("[head]", '[head]\nmesh = "missing.obj"'), "head.mesh", "file not found"),
     (SMALL.replace("frames = 3", "frames = [3"), "", "not valid TOML"),
     (SMALL.replace("[solver]", "[solver]\ngravity = [0, -9.8]"), "solver.gravity", "list of 3"),
+    (SMALL.replace("preroll = 0.0", 'preroll = 0.0\nhair_frames = "blocks"'), "scene.hair_frames", "must be"),
+    (SMALL.replace("preroll = 0.0", 'preroll = 0.0\nhair_frames = "in_block"').replace("vertices = 8", "vertices = 70"),
+     "scene.hair_frames", "at most 64 particles"),
 ])
 def test_bad_scene_files_exit_2_naming_the_key(tmp_path, capsys, text, where, reason):
     scene = write(tmp_path, text)
@@ -155,6 +158,24 @@ def test_bad_scene_files_exit_2_naming_the_key(tmp_path, capsys, text, where, re
     assert scene in err and where in err and reason in err
     assert not out.exists()
 
+
+
+def test_hair_frames_in_block_write_the_cache_of_the_substeps(tmp_path):
+    """[scene] hair_frames = "in_block" (each hair frame one launch, a block of lanes per strand) writes
+    the cache the substeps write: the same curves, bit for bit on the CPU, on a turning head with the
+    sphere tree."""
+    text = SMALL.replace("[solver]", '[solver]\ncollision = "sphere_tree"\nshape_matching = "simplified"')
+    caches = []
+    for way in ("substeps", "in_block"):
+        scene = write(tmp_path, text.replace("preroll = 0.0", f'preroll = 0.0\nhair_frames = "{way}"'), f"{way}.toml")
+        out = str(tmp_path / f"{way}.usdc")
+        assert main(["run", scene, "-o", out, "-q"]) == 0
+        assert validation_errors(out) == []
+        caches.append(CacheReader(out))
+    for frame in (1, 3):
+        a, b = (cache.points("hair", frame) for cache in caches)
+        np.testing.assert_array_equal(b, a)
+    assert np.abs(caches[1].points("hair", 3) - caches[1].points("hair", 1)).max() > 1e-3
 
 def test_missing_scene_file_exits_2(tmp_path, capsys):
     assert main(["run", str(tmp_path / "nope.toml"), "-o", str(tmp_path / "x.usdc")]) == 2
