@@ -307,6 +307,7 @@ class HairSolver:
         # short list ahead of the chain. Off by default until a GPU has timed it (the CPU runs a block's
         # lanes as fibers, for its tests)
         self._frame_in_block = False
+        self._longest = int(np.diff(model.strand_start_np).max()) if model.num_strands else 0  # particles
         # (key, FramePoses, per-substep ContactMotion rows, the sphere trees' centres and radii per pose,
         # a wp.Mesh per pose) for step_frame
         self._frame_poses = None
@@ -689,8 +690,7 @@ class HairSolver:
 
     def frame_in_block_misfit(self, collider):
         """Why step_frame cannot step this solver's frames against `collider` (a line), or None."""
-        p, m = self.params, self.model
-        longest = int(np.diff(m.strand_start_np).max()) if m.num_strands else 0
+        p, longest = self.params, self._longest
         if self.comb is not None:
             return "frame_in_block does not step strands held by a comb"
         if p.substeps > strands.FRAME_SUBSTEPS:
@@ -724,8 +724,7 @@ class HairSolver:
         passes = p.shape_iterations if variant >= 0 and self.windows.count > 0 else 0
         if getattr(m, "root_local", None) is not self._slots_root_local:
             self.slots = self._strand_slots()  # bound to a mesh since the slots were made
-        longest = int(np.diff(m.strand_start_np).max())
-        lanes = min(n for n in strands.FRAME_LANES if n >= longest)
+        lanes = min(n for n in strands.FRAME_LANES if n >= self._longest)
         paths = {0: strands.PATHS_NONE, COLLISION["sphere_tree"]: strands.PATHS_SPHERE_LISTS,
                  COLLISION["mesh"]: strands.PATHS_QUERIES}[mode]
         # loose lists (loose_lists, a GPU's way): each lane walks for its own list ahead of the chain
