@@ -604,7 +604,8 @@ class Scene:
                                                 refit_in_step=mesh, listed=None if mesh else self._hair_root_vertices(),
                                                 around=(lambda: self.solver.begin_frame(self.state),
                                                         lambda: self.solver.end_frame(self.state)),
-                                                whole=self._step_hair_frame if self.solver.frame_in_block and not held else None))
+                                                whole=self._step_hair_frame if self.solver.frame_in_block and not held
+                                                else None))
             if self.cloth_model is not None:
                 body = self.cloth_body if self.cloth_body is not self.cloth_collider else None
                 # the cloth queries the body's triangle boxes, swept over the frame or refitted to each
@@ -656,8 +657,9 @@ class Scene:
         (HairSolver.step), so the poses leave it stale.
         around: (begin, end) called before the first substep and after the last (the hair's
         HairSolver.begin_frame and end_frame).
-        whole (with bvh=False): whole(dt, times, listed) steps every substep at once, posing the collider
-        itself (the hair's HairSolver.step_frame), in place of a step per substep."""
+        whole: whole(dt, times, listed) steps every substep at once, posing the collider itself and, with
+        bvh, leaving its BVH refitted at the last pose (the hair's HairSolver.step_frame), in place of a
+        step per substep."""
         times, poses = substep_poses
         substeps = len(times) - 1
         dt = frame_dt / substeps
