@@ -2713,12 +2713,7 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
                 shape.spheres = poses.spheres[j + 1]
                 shape.mesh = poses.meshes[j + 1]
                 touching.shape = shape
-                motion = contact.motion
-                motion.moved = poses.moved[j]
-                motion.rigid = poses.rigid[j]
-                motion.center = poses.center[j]
-                motion.cells = poses.cells[j]
-                touching.motion = motion
+                touching.motion = motion_row(poses.moved, poses.rigid, poses.center, poses.cells, j)
             if wp.static(loose):
                 if here and lane >= pinned_per_strand and touching.use_bounds != 0:
                     if list_runs_short(p0, p0, i, touching, list_slack):
