@@ -16,6 +16,8 @@ from .graphs import cpu_cores, refit_bvh, run_parallel
 
 SHAPE_MATCHING = {"simplified": 0, "full": 1, "none": -1}
 COLLISION = {"none": 0, "sphere_tree": 1, "mesh": 2}
+# the ways a scene steps its hair frames (step_frames_as, [scene] hair_frames)
+HAIR_FRAMES = ("substeps", "in_block", "in_warps")
 # radius [m] of the length pass's mesh queries for particles known to lie no deeper than this inside: a
 # mesh query's cost grows fast with its radius (1k strands on the CPU, full+mesh: 216 -> 186 ms/frame
 # against querying collision_search = 2 cm; 5 mm re-queries far particles too often to gain more)
@@ -307,6 +309,10 @@ class HairSolver:
         # short list ahead of the chain. Off by default until a GPU has timed it (the CPU runs a block's
         # lanes as fibers, for its tests)
         self._frame_in_block = False
+        # the frame's layout: a block per strand (a lane per particle), or with frame_warps 32 strands a block
+        # side by side (a lane per strand, each warp a run of 4 particles along them: strands.frame_in_warps),
+        # so that each step of the length pass's chain places a particle of 32 strands at once
+        self.frame_warps = False
         self._longest = int(np.diff(model.strand_start_np).max()) if model.num_strands else 0  # particles
         # (key, FramePoses, per-substep ContactMotion rows, the sphere trees' centres and radii per pose,
         # a wp.Mesh per pose) for step_frame
@@ -688,6 +694,15 @@ class HairSolver:
             self.set_lanes(False)
         self._frame_in_block = bool(on)
 
+    def step_frames_as(self, way):
+        """Step the scene's frames as `way` ([scene] hair_frames, one of HAIR_FRAMES) names: "substeps" a
+        substep at a time (step), "in_block" a launch a frame with a block per strand (step_frame), "in_warps"
+        a launch a frame with 32 strands a block (frame_warps)."""
+        if way not in HAIR_FRAMES:
+            raise ValueError(f"hair frames are stepped as one of {', '.join(HAIR_FRAMES)}, not {way!r}")
+        self.frame_in_block = way != "substeps"
+        self.frame_warps = way == "in_warps"
+
     def frame_in_block_misfit(self, collider):
         """Why step_frame cannot step this solver's frames against `collider` (a line), or None."""
         p, longest = self.params, self._longest
@@ -695,8 +710,10 @@ class HairSolver:
             return "frame_in_block does not step strands held by a comb"
         if p.substeps > strands.FRAME_SUBSTEPS:
             return f"frame_in_block takes at most {strands.FRAME_SUBSTEPS} substeps a frame, not {p.substeps}"
-        if longest > max(strands.FRAME_LANES):
-            return f"frame_in_block takes strands of at most {max(strands.FRAME_LANES)} particles, not {longest}"
+        most = strands.FRAME_STRANDS if self.frame_warps else max(strands.FRAME_LANES)
+        if longest > most:
+            return f"frame_in_block{' with frame_warps' if self.frame_warps else ''} takes strands of at most " \
+                f"{most} particles, not {longest}"
         if self.lanes:
             return "frame_in_block reads the strands in particle order: set lanes off"
         if self.loose_lists and not self.contact_bounds and collider is not None and p.collision == "sphere_tree":
@@ -734,9 +751,14 @@ class HairSolver:
 
         # one launch for every strand: the CPU's fibers share one arena for the blocks' memory, which
         # launches of the parts side by side on its cores overflow
-        kernel = strands.FRAME_IN_BLOCK[(lanes, paths, loose, variant != SHAPE_MATCHING["full"])]
+        simplified = variant != SHAPE_MATCHING["full"]
+        kernel, blocks = strands.FRAME_IN_BLOCK[(lanes, paths, loose, simplified)], m.num_strands
+        if self.frame_warps:
+            kernel = strands.FRAME_IN_WARPS[(paths, loose, simplified)]
+            lanes = strands.FRAME_STRANDS * strands.FRAME_WARPS
+            blocks = -(-m.num_strands // strands.FRAME_STRANDS)
         with cpu_blocks(dev):
-            wp.launch_tiled(kernel, dim=[m.num_strands], block_dim=lanes, device=dev,
+            wp.launch_tiled(kernel, dim=[blocks], block_dim=lanes, device=dev,
                             inputs=[state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(),
                                     self.clock, poses, substeps, dt, int(bound), skin,
                                     m.particle_binding if bound else None, m.root_binding if bound else None,

@@ -564,7 +564,7 @@ def _install(scene, model, x, v):
     scene.model = model
     scene.solver = HairSolver(model, scene.config.solver)
     scene.solver.contact_bounds = bounds
-    scene.solver.frame_in_block = scene.config.timing.hair_frames == "in_block"
+    scene.solver.step_frames_as(scene.config.timing.hair_frames)
     x, v = np.asarray(x, np.float32), np.asarray(v, np.float32)
     scene.state, scene._scratch = (HairState(wp.array(x, dtype=wp.vec3, device=scene.device),
                                              wp.array(v, dtype=wp.vec3, device=scene.device)) for _ in range(2))

@@ -29,7 +29,7 @@ from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
 from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
 from .hair_children import HairChildren
-from .hair_solver import HairParams, HairSolver, deferred_step_modules
+from .hair_solver import HAIR_FRAMES, HairParams, HairSolver, deferred_step_modules
 from .comb import before_frame as comb_before_frame
 from .haircut import parse_timeline, run_events
 from .hairstyle import HairstyleParams, check_color, grow_hairstyle, sample_scalp, scalp_area
@@ -50,13 +50,14 @@ class TimingConfig:
     device: str = "cpu"  # "cpu" or "cuda" (or "cuda:N")
     stats: bool = True  # measure stretch, root drift and penetration every frame
     graphs: bool = True  # capture each solver's frame once (a CUDA graph, or a recorded CPU graph) and replay it
-    # "in_block": each hair frame in one launch, a block of lanes per strand (HairSolver.frame_in_block); a
-    # GPU's experiment, "substeps" the launches of each substep
+    # "in_block": each hair frame in one launch, a block of lanes per strand (HairSolver.frame_in_block);
+    # "in_warps": the same with 32 strands a block side by side (HairSolver.frame_warps); GPU experiments,
+    # "substeps" the launches of each substep
     hair_frames: str = "substeps"
 
     def __post_init__(self):
-        if self.hair_frames not in ("substeps", "in_block"):
-            raise ValueError('hair_frames must be "substeps" or "in_block"')
+        if self.hair_frames not in HAIR_FRAMES:
+            raise ValueError('hair_frames must be "substeps", "in_block" or "in_warps"')
         if self.fps <= 0.0:
             raise ValueError("fps must be positive")
         if self.frames < 1:
@@ -387,7 +388,7 @@ class Scene:
             self.children = self._children()
             self.hair_template = self.model  # what a haircut's "initialise" returns to
             self.solver = HairSolver(self.model, config.solver)
-            self.solver.frame_in_block = config.timing.hair_frames == "in_block"
+            self.solver.step_frames_as(config.timing.hair_frames)
             misfit = self.solver.frame_in_block_misfit(self.collider) if self.solver.frame_in_block else None
             if misfit is not None:
                 raise InputError(config.source, "scene.hair_frames", misfit)

@@ -148,6 +148,8 @@ def test_view_without_a_display_exits_2(tmp_path, monkeypatch, capsys):
     (SMALL.replace("preroll = 0.0", 'preroll = 0.0\nhair_frames = "blocks"'), "scene.hair_frames", "must be"),
     (SMALL.replace("preroll = 0.0", 'preroll = 0.0\nhair_frames = "in_block"').replace("vertices = 8", "vertices = 70"),
      "scene.hair_frames", "at most 64 particles"),
+    (SMALL.replace("preroll = 0.0", 'preroll = 0.0\nhair_frames = "in_warps"').replace("vertices = 8", "vertices = 40"),
+     "scene.hair_frames", "at most 32 particles"),
 ])
 def test_bad_scene_files_exit_2_naming_the_key(tmp_path, capsys, text, where, reason):
     scene = write(tmp_path, text)
@@ -161,20 +163,21 @@ def test_bad_scene_files_exit_2_naming_the_key(tmp_path, capsys, text, where, re
 
 
 def test_hair_frames_in_block_write_the_cache_of_the_substeps(tmp_path):
-    """[scene] hair_frames = "in_block" (each hair frame one launch, a block of lanes per strand) writes
-    the cache the substeps write: the same curves, bit for bit on the CPU, on a turning head with the
-    sphere tree."""
+    """[scene] hair_frames = "in_block" (each hair frame one launch, a block of lanes per strand) and
+    "in_warps" (32 strands a block) write the cache the substeps write: the same curves, bit for bit on
+    the CPU, on a turning head with the sphere tree."""
     text = SMALL.replace("[solver]", '[solver]\ncollision = "sphere_tree"\nshape_matching = "simplified"')
     caches = []
-    for way in ("substeps", "in_block"):
+    for way in ("substeps", "in_block", "in_warps"):
         scene = write(tmp_path, text.replace("preroll = 0.0", f'preroll = 0.0\nhair_frames = "{way}"'), f"{way}.toml")
         out = str(tmp_path / f"{way}.usdc")
         assert main(["run", scene, "-o", out, "-q"]) == 0
         assert validation_errors(out) == []
         caches.append(CacheReader(out))
     for frame in (1, 3):
-        a, b = (cache.points("hair", frame) for cache in caches)
-        np.testing.assert_array_equal(b, a)
+        a, *others = (cache.points("hair", frame) for cache in caches)
+        for b in others:
+            np.testing.assert_array_equal(b, a)
     assert np.abs(caches[1].points("hair", 3) - caches[1].points("hair", 1)).max() > 1e-3
 
 def test_missing_scene_file_exits_2(tmp_path, capsys):

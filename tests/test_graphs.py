@@ -650,18 +650,22 @@ def _full_mesh_config(device):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("make", [_fast_hair_config, _free_hair_config, _long_hair_config, _mesh_hair_config,
-                                  _full_mesh_config],
-                         ids=["spheres", "no-collider", "64-lanes", "mesh", "full-mesh"])
-def test_frames_in_block_follow_the_substeps(make, device):
-    """A whole frame in one launch, a block of lanes per strand (HairSolver.frame_in_block,
-    strands.frame_in_block, the collider posed for every substep ahead, against the mesh a BVH for
-    each pose) captured in the frame's graph: the frames of the substeps one by one, to float32
-    rounding (bit for bit on the CPU)."""
+@pytest.mark.parametrize("make,warps", [(_fast_hair_config, False), (_free_hair_config, False),
+                                        (_long_hair_config, False), (_mesh_hair_config, False),
+                                        (_full_mesh_config, False), (_fast_hair_config, True),
+                                        (_free_hair_config, True), (_mesh_hair_config, True),
+                                        (_full_mesh_config, True)],
+                         ids=["spheres", "no-collider", "64-lanes", "mesh", "full-mesh", "spheres-in-warps",
+                              "no-collider-in-warps", "mesh-in-warps", "full-mesh-in-warps"])
+def test_frames_in_block_follow_the_substeps(make, warps, device):
+    """A whole frame in one launch (HairSolver.frame_in_block, the collider posed for every substep ahead,
+    against the mesh a BVH for each pose), a block of lanes per strand (strands.frame_in_block) or 32
+    strands a block side by side (frame_warps, strands.frame_in_warps), captured in the frame's graph:
+    the frames of the substeps one by one, to float32 rounding (bit for bit on the CPU)."""
     def configure(solver, whole):
         solver.loose_lists = False  # the loose lists' walks differ, within the margin
         solver.mesh_lists = False  # the frame queries the mesh's BVH, as a GPU does
-        solver.frame_in_block = whole
+        solver.step_frames_as(("in_warps" if warps else "in_block") if whole else "substeps")
         assert not (whole and solver.lanes)
 
     _same_hair_frames(make, device, configure)
@@ -689,7 +693,8 @@ def test_a_frame_in_block_poses_the_collider_at_once_as_the_substeps_do(monkeypa
         np.testing.assert_array_equal(b, a, err_msg=name)
 
 @pytest.mark.parametrize("device", DEVICES)
-def test_frames_in_block_with_loose_lists_follow_the_fused_substeps(device):
+@pytest.mark.parametrize("warps", [False, True], ids=["block-a-strand", "in-warps"])
+def test_frames_in_block_with_loose_lists_follow_the_fused_substeps(warps, device):
     """frame_in_block with loose lists (a GPU's way: every lane walks for its own list that would run
     short before the chain, the chain walks only inside unlisted leaves): the frames of the fused
     substeps with their walks queued ahead and loose lists, to float32 rounding (bit for bit on the
@@ -698,7 +703,7 @@ def test_frames_in_block_with_loose_lists_follow_the_fused_substeps(device):
 
     def configure(solver, whole):
         solver.fused, solver.leaves_ahead, solver.loose_lists = True, True, True
-        solver.frame_in_block = whole
+        solver.frame_in_block, solver.frame_warps = whole, warps
         solvers.append(solver)
 
     _same_hair_frames(_fast_hair_config, device, configure)
@@ -732,3 +737,10 @@ def test_a_frame_in_block_names_what_it_cannot_step():
     model = StrandBuilder().add_strands(points, [70], np.full(70, 1e-4)).finalize("cpu", pinned_per_strand=2)
     solver = hair_solver.HairSolver(model, hair_solver.HairParams(collision="none", shape_matching="none"))
     assert "70" in solver.frame_in_block_misfit(None)
+    model = StrandBuilder().add_strands(points[:40], [40], np.full(40, 1e-4)).finalize("cpu", pinned_per_strand=2)
+    solver = hair_solver.HairSolver(model, hair_solver.HairParams(collision="none", shape_matching="none"))
+    assert solver.frame_in_block_misfit(None) is None  # a block of 64 lanes per strand
+    solver.step_frames_as("in_warps")
+    assert "at most 32 particles, not 40" in solver.frame_in_block_misfit(None)
+    with pytest.raises(ValueError, match="in_warps"):
+        solver.step_frames_as("warps")

@@ -1873,8 +1873,8 @@ def shaped_position(
     if variant != SHAPE_SIMPLIFIED:
         return full_shaped_position(p, k, count, window_size, stiffness, per.frames, per.translations, slot, stride,
                                     per.rest_local[slot])
-    return simplified_shaped_position(p, k, slot, stride, slot, window_size, stiffness, per.window_at, per.centroids,
-                                      per.axes, per.offsets, per.slots)
+    return simplified_shaped_position(p, k, slot, stride, slot, stride, window_size, stiffness, per.window_at,
+                                      per.centroids, per.axes, per.offsets, per.slots)
 
 
 @wp.func(inline=True)
@@ -1884,6 +1884,7 @@ def simplified_shaped_position(
     at: int,
     stride: int,
     slot: int,
+    slot_stride: int,
     window_size: int,
     stiffness: float,
     window_at: Any,
@@ -1902,6 +1903,8 @@ def simplified_shaped_position(
       at (int, index): its element of window_at, centroids and axes
       stride (int): elements of those from one particle of the strand to the next
       slot (int, index): its slot of offsets (StrandSlots)
+      slot_stride (int): slots of offsets from one particle of the strand to the next (stride, unless
+          the tiles hold the strands side by side while the slots are in particle order: frame_in_warps)
       window_size (int): particles per window
       stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
       window_at (int32, per element): the window starting at the element's particle, -1 for none
@@ -1923,7 +1926,7 @@ def simplified_shaped_position(
                 if u == wp.vec3(0.0):
                     goal += p  # a degenerate window holds its particles where they are
                 else:
-                    goal += centroids[first] + offsets[j * slots + slot - j * stride] * u
+                    goal += centroids[first] + offsets[j * slots + slot - j * slot_stride] * u
                 held += 1.0
     if held > 0.0:
         p = p + stiffness * (goal / held - p)
@@ -2686,7 +2689,7 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
                     wp.tile_scatter_masked(centroids, lane, c, True)
                     wp.tile_scatter_masked(axes, lane, u, True)
                     if here and inv_mass != 0.0:
-                        p = simplified_shaped_position(p, lane, lane, 1, i, window_size, stiffness, window_at,
+                        p = simplified_shaped_position(p, lane, lane, 1, i, 1, window_size, stiffness, window_at,
                                                        centroids, axes, per.offsets, per.slots)
                 if wp.static(not simplified):
                     if shapes != SHAPE_SIMPLIFIED:
@@ -2752,6 +2755,295 @@ FRAME_IN_BLOCK = {(lanes, paths, loose, simplified): _frame_in_block(lanes, path
                                                    (PATHS_NONE, False, False), (PATHS_SPHERE_LISTS, False, False),
                                                    (PATHS_QUERIES, False, False))}
 frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS, False, True)]
+
+
+# a frame in warps: a block of 32 strands, a lane per strand and each of FRAME_WARPS warps a run of
+# FRAME_RUN particles along it, so that each step of the length pass's chain places a particle of 32
+# strands at once; a tile's element k * 32 + l holds particle k of lane l's strand
+FRAME_WARPS = 8
+FRAME_STRANDS = 32
+FRAME_RUN = FRAME_STRANDS // FRAME_WARPS
+FRAME_ELEMENTS = FRAME_STRANDS * FRAME_WARPS * FRAME_RUN
+frame_run = wp.types.matrix(shape=(FRAME_RUN, 3), dtype=float)  # a thread's particles' vec3s, a row each
+frame_run_masses = wp.types.vector(length=FRAME_RUN, dtype=float)
+
+
+def _frame_in_warps(paths, loose=False, simplified=True):
+    """frame_in_warps with the length pass compiled with the collision paths `paths`, `loose` and
+    `simplified` as _frame_in_block's."""
+    follow = _follow_leader(paths, ahead=True, loose=loose)
+    name = "frame_in_warps" + PATH_NAMES[paths] + ("_loose" if loose else "") + ("" if simplified else "_full")
+    lanes = FRAME_STRANDS
+    run = FRAME_RUN
+    elements = FRAME_ELEMENTS
+    collides = paths != PATHS_NONE
+    lists = paths == PATHS_SPHERE_LISTS
+
+    # the block's threads hold four particles each: registers for their state, the rest of what a step needs
+    # in the block's shared tiles (some 80 KB, 113 KB for full shape matching); untimed on a GPU
+    module = deferred_module(f"{__name__}.{name}", block_dim=lanes * FRAME_WARPS, opt_in=True)
+    # the loops over a thread's run unrolled (its registers indexed by constants), the chain's turns not:
+    # its walk, the length pass's step with its collisions, compiled once rather than once a warp
+    wp.set_module_options({"max_unroll": run}, module=module)
+
+    @wp.kernel(module=module, cuda_max_registers=128, name=name)
+    def frame_in_warps(
+        x: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        strand_start: wp.array(dtype=wp.int32),
+        pinned_per_strand: int,
+        forces: StrandForces,
+        clock: wp.array(dtype=float),
+        poses: FramePoses,
+        substeps: int,
+        dt: float,
+        bound: int,
+        skin: SkinBinding,
+        particle_binding: wp.array(dtype=wp.int32),
+        root_binding: wp.array(dtype=wp.int32),
+        hold_stiffness: float,
+        pull: GuidePull,
+        window_size: int,
+        variant: int,
+        passes: int,
+        stiffness: float,
+        exact: int,
+        rotation_iterations: int,
+        rotations: wp.array(dtype=wp.quat),
+        per: StrandSlots,
+        contact: StrandContact,
+        ftl_damping: float,
+        list_slack: float,
+        x_out: wp.array(dtype=wp.vec3),
+        v_out: wp.array(dtype=wp.vec3),
+        first: int,
+    ):
+        """frame_in_block's frame with the strands side by side: a block of 32 strands, a lane per strand,
+        and each of the block's 8 warps holding a run of 4 particles along its lanes' strands. Where
+        frame_in_block's chain places one particle a barrier with one lane of 32 working, this one places
+        a particle of 32 strands at each step: a warp walks its run in its registers and hands its last
+        two placements to the next warp through shared memory, a barrier a run. The chain's placements go
+        to x_out (the particles' final positions at the frame's end), which the block reads back after the
+        chain. The same strands as step_strands, bit for bit.
+
+        Launch: 256 threads a block, a block per 32 strands (dim = [ceil(strands / 32)], block_dim = 256)
+        with wp.launch_tiled, every strand of at most 32 particles; on the CPU with
+        wp.config.enable_cpu_blocks. The inputs, in/outs and outputs are frame_in_block's; first is the
+        first strand of block 0.
+        """
+        block, t = wp.tid()
+        lane = t % lanes
+        warp = t // lanes
+        strands_total = strand_start.shape[0] - 1
+        s = first + block * lanes + lane
+        live = s < strands_total
+        s = wp.min(s, strands_total - 1)  # lanes past the last strand shadow it and write nothing
+        start = strand_start[s]
+        count = strand_start[s + 1] - start
+        placed = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")  # predicted: the chain's input
+        starts = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")  # the substep's start positions
+        lengths = wp.tile_zeros(shape=elements, dtype=float, storage="shared")
+        centroids = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
+        axes = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
+        window_at = wp.tile_zeros(shape=elements, dtype=wp.int32, storage="shared")
+        parents = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")  # a run's last placement
+        befores = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")  # and the one before it
+        held_at = wp.tile_zeros(shape=wp.static(elements if collides else 1), dtype=float, storage="shared")
+        leaves_at = wp.tile_zeros(shape=wp.static(elements if lists else 1), dtype=wp.vec4i, storage="shared")
+        beyond_at = wp.tile_zeros(shape=wp.static(elements if lists else 1), dtype=float, storage="shared")
+        frames = wp.tile_zeros(shape=wp.static(elements if not simplified else 1), dtype=wp.mat33, storage="shared")
+        rest = wp.tile_zeros(shape=wp.static(elements if not simplified else 1), dtype=wp.vec3, storage="shared")
+        shapes = variant
+        if wp.static(simplified):
+            shapes = int(SHAPE_SIMPLIFIED)
+        p0 = frame_run()
+        vel = frame_run()
+        inv_mass = frame_run_masses()
+        for h in range(wp.static(run)):
+            k = warp * run + h
+            e = k * lanes + lane
+            here = live and k < count
+            i = start + wp.min(k, count - 1)  # particles past the tip shadow it and write nothing
+            w = int(-1)
+            if here:
+                w = per.window_at[i]
+            wp.tile_scatter_masked(window_at, e, w, True)
+            wp.tile_scatter_masked(lengths, e, per.rest_length[i], True)
+            if wp.static(not simplified):
+                wp.tile_scatter_masked(rest, e, per.rest_local[i], here)
+            p0[h] = x[i]
+            vel[h] = v[i]
+            inv_mass[h] = per.inv_mass[i]
+        rb = int(0)
+        if bound != 0:
+            rb = root_binding[s]
+        for j in range(substeps):
+            time = clock[0] + poses.offsets[j]
+            posed = skin
+            if bound != 0:
+                posed.mesh_points = poses.points[j + 1]
+            p = frame_run()
+            for h in range(wp.static(run)):
+                i = start + wp.min(warp * run + h, count - 1)
+                binding = int(-1)
+                weight = float(0.0)
+                target = wp.vec3(0.0)
+                if bound != 0:
+                    if inv_mass[h] == 0.0:
+                        binding = particle_binding[i]
+                    weight = per.hold[i] * hold_stiffness
+                    if weight > 0.0:
+                        origin = bound_position(posed, rb)
+                        target = origin + face_frame(posed.mesh_points, posed.mesh_indices, posed.triangle[rb]) * \
+                            per.root_local[i]
+                q, _vel = predicted_position(p0[h], vel[h], inv_mass[h], forces, time, dt, posed, binding, target,
+                                             weight)
+                p[h] = q
+            if pull.stiffness > 0.0:
+                guide_frame, guide_next, guide_weight = guide_frames(pull, time)
+                block_sync(placed)
+                for h in range(wp.static(run)):
+                    k = warp * run + h
+                    wp.tile_scatter_masked(placed, k * lanes + lane, p[h], live and k < count)
+                root = placed[lane]
+                for h in range(wp.static(run)):
+                    k = warp * run + h
+                    if live and k < count and inv_mass[h] != 0.0:
+                        p[h] = guided_position(pull, p[h], root, s, start + k, guide_frame, guide_next, guide_weight)
+            for shape_pass in range(passes):
+                block_sync(placed)
+                for h in range(wp.static(run)):
+                    k = warp * run + h
+                    wp.tile_scatter_masked(placed, k * lanes + lane, p[h], live and k < count)
+                if shapes == SHAPE_SIMPLIFIED:
+                    for h in range(wp.static(run)):
+                        k = warp * run + h
+                        e = k * lanes + lane
+                        c = wp.vec3(0.0)
+                        u = wp.vec3(0.0)
+                        if live and k < count and window_at[e] >= 0:
+                            u, _straight = window_direction(placed, e, lanes, window_size)
+                            c = window_centroid(placed, e, lanes, window_size)
+                        wp.tile_scatter_masked(centroids, e, c, True)
+                        wp.tile_scatter_masked(axes, e, u, True)
+                    for h in range(wp.static(run)):
+                        k = warp * run + h
+                        if live and k < count and inv_mass[h] != 0.0:
+                            p[h] = simplified_shaped_position(p[h], k, k * lanes + lane, lanes, start + k, 1, window_size,
+                                                              stiffness, window_at, centroids, axes, per.offsets,
+                                                              per.slots)
+                if wp.static(not simplified):
+                    if shapes != SHAPE_SIMPLIFIED:
+                        solve = int(0)
+                        if j == 0 and shape_pass == 0:
+                            solve = exact
+                        for h in range(wp.static(run)):
+                            k = warp * run + h
+                            e = k * lanes + lane
+                            R = wp.mat33(0.0)
+                            c = wp.vec3(0.0)
+                            w = window_at[e]
+                            if live and k < count and w >= 0:
+                                rest_centroid = per.rest_centroid[start + k]
+                                turned, c = window_rotation(placed, e, lanes, window_size, rest, rest_centroid,
+                                                            rotations[w], solve, rotation_iterations)
+                                rotations[w] = turned
+                                R, c = window_frame(turned, c, rest_centroid)
+                            wp.tile_scatter_masked(frames, e, R, True)
+                            wp.tile_scatter_masked(centroids, e, c, True)  # the goal translations, here
+                        for h in range(wp.static(run)):
+                            k = warp * run + h
+                            if live and k < count and inv_mass[h] != 0.0:
+                                p[h] = full_shaped_position(p[h], k, count, window_size, stiffness, frames, centroids,
+                                                            k * lanes + lane, lanes, per.rest_local[start + k])
+            touching = contact
+            if contact.mode != 0:
+                shape = contact.shape
+                shape.spheres = poses.spheres[j + 1]
+                shape.mesh = poses.meshes[j + 1]
+                touching.shape = shape
+                touching.motion = motion_row(poses.moved, poses.rigid, poses.center, poses.cells, j)
+            # what the chain reads of each particle, written where it reads it before the chain starts
+            block_sync(placed)
+            for h in range(wp.static(run)):
+                k = warp * run + h
+                e = k * lanes + lane
+                here = live and k < count
+                i = start + wp.min(k, count - 1)
+                if wp.static(loose):
+                    if here and k >= pinned_per_strand and touching.use_bounds != 0:
+                        if list_runs_short(p0[h], p0[h], i, touching, list_slack):
+                            list_leaves(i, p0[h], touching)
+                wp.tile_scatter_masked(placed, e, p[h], here)
+                wp.tile_scatter_masked(starts, e, p0[h], here)
+                if wp.static(collides):
+                    held, held_leaves, held_beyond = held_bounds(i, int(touching.mode == COLLIDE_SPHERE_TREE),
+                                                                 touching)
+                    wp.tile_scatter_masked(held_at, e, held, here)
+                    if wp.static(lists):
+                        wp.tile_scatter_masked(leaves_at, e, held_leaves, here)
+                        wp.tile_scatter_masked(beyond_at, e, held_beyond, here)
+                if here and k < pinned_per_strand:
+                    x_out[i] = p[h]  # a pinned particle stays where it was predicted
+            # the chain: each warp in turn walks its run of its lanes' strands, then hands over
+            parent = placed[lane]
+            before = parent
+            for turn in range(wp.static(FRAME_WARPS)):
+                if warp == turn:
+                    if turn > 0:
+                        parent = parents[lane]
+                        before = befores[lane]
+                    steps = wp.min(count - turn * run, run)
+                    if not live:
+                        steps = 0
+                    for h in range(steps):
+                        k = turn * run + h
+                        e = k * lanes + lane
+                        q = placed[e]
+                        if k >= pinned_per_strand:
+                            held = float(NO_BOUND)
+                            held_leaves = wp.vec4i(-1, -1, -1, -1)
+                            held_beyond = float(NO_BOUND)
+                            if wp.static(collides):
+                                held = held_at[e]
+                            if wp.static(lists):
+                                held_leaves = leaves_at[e]
+                                held_beyond = beyond_at[e]
+                            q = follow(parent, before, k, q, lengths[e], start + k, starts[e], touching, held,
+                                       held_leaves, held_beyond)
+                            x_out[start + k] = q
+                        before = parent
+                        parent = q
+                wp.tile_scatter_masked(parents, lane, parent, warp == turn)
+                wp.tile_scatter_masked(befores, lane, before, warp == turn)
+            # the velocities, with each child's correction, from the placements the chain left in x_out
+            for h in range(wp.static(run)):
+                k = warp * run + h
+                e = k * lanes + lane
+                q = p[h]
+                if live and k < count:
+                    q = x_out[start + k]
+                step_v = (q - p0[h]) / dt
+                if live and k + 1 < count and inv_mass[h] > 0.0:
+                    step_v = step_v - (ftl_damping / dt) * (x_out[start + k + 1] - placed[e + lanes])
+                p0[h] = q
+                vel[h] = step_v
+        for h in range(wp.static(run)):
+            k = warp * run + h
+            if live and k < count:
+                x_out[start + k] = p0[h]
+                v_out[start + k] = vel[h]
+
+    return frame_in_warps
+
+
+# keyed by (paths, loose, simplified), the variants of FRAME_IN_BLOCK
+FRAME_IN_WARPS = {(paths, loose, simplified): _frame_in_warps(paths, loose, simplified)
+                  for paths, loose, simplified in ((PATHS_NONE, False, True), (PATHS_SPHERE_LISTS, False, True),
+                                                   (PATHS_SPHERE_LISTS, True, True), (PATHS_QUERIES, False, True),
+                                                   (PATHS_NONE, False, False), (PATHS_SPHERE_LISTS, False, False),
+                                                   (PATHS_QUERIES, False, False))}
+frame_in_warps = FRAME_IN_WARPS[(PATHS_SPHERE_LISTS, False, True)]
 
 
 @wp.func
