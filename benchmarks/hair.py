@@ -31,7 +31,8 @@ frame_in_block=on steps each frame in one launch, a block of lanes per strand (s
     python benchmarks/hair.py --device cuda --lane-order both
     python benchmarks/hair.py --device cuda --fused both
     python benchmarks/hair.py --device cuda --cases full+mesh --try mesh_lists=on
-    python benchmarks/hair.py --device cuda --no-peer --cases simplified1+spheres --try frame_in_block=on
+    python benchmarks/hair.py --device cuda --no-peer --cases simplified1+spheres --try frame_in_block=on \
+        frame_in_block=on,frame_warps=on
 """
 
 import argparse
@@ -105,7 +106,7 @@ def solver_setting(text):
 
 # the HairSolver switches a --try may set
 SOLVER_ATTRS = {"mesh_lists", "contact_bounds", "leaves_ahead", "fused", "read_ahead", "frame_lanes", "loose_lists",
-                "strand_block", "frame_in_block"}
+                "strand_block", "frame_in_block", "frame_warps"}
 
 
 def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True, fused=None,

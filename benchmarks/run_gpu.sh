@@ -14,12 +14,13 @@
 #                                       # then cloth-block
 #   bash benchmarks/run_gpu.sh loose    # the sphere tree's length pass with loose lists (HairSolver.loose_lists:
 #                                       # walks only where a leaf may hold a particle), apart and fused in lanes
-#   bash benchmarks/run_gpu.sh in-block # a frame in one launch, a block of lanes per strand (HairSolver.frame_in_block):
-#                                       # its CUDA graph tests, then against the device's way at 1k to 100k strands
-#                                       # with and without the sphere tree, profiled
+#   bash benchmarks/run_gpu.sh in-block-tests # the CUDA graph tests of a frame in one launch (HairSolver.frame_in_block),
+#                                       # a block of lanes per strand and 32 strands a block (frame_warps)
+#   bash benchmarks/run_gpu.sh in-block # both layouts against the device's way at 1k to 100k strands with and
+#                                       # without the sphere tree, profiled
 #   bash benchmarks/run_gpu.sh in-block-mesh # the same against the mesh (a BVH per substep's pose), simplified and
 #                                       # full shape matching (the default model), 1k to 100k strands
-#   bash benchmarks/run_gpu.sh in-block-ncu # Nsight Compute on its launch at 100k strands on the sphere tree
+#   bash benchmarks/run_gpu.sh in-block-ncu # Nsight Compute on each layout's launch at 100k strands on the sphere tree
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh ncu      # Nsight Compute's counters (occupancy, warp states, memory) for one
 #                                       # launch of the length pass at 1k strands on the mesh and of the fused
@@ -66,18 +67,22 @@ for part in "$@"; do
           --cases simplified1+spheres \
           --try loose_lists=on fused=on,frame_lanes=on fused=on,frame_lanes=on,loose_lists=on \
           --profile 2>&1 | tee "$out/loose-hair.log" ;;
-    in-block) timeout 200 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py -k in_block 2>&1 |
-          tee "$out/in-block-tests.log"
-        timeout 380 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
-          --cases simplified1 simplified1+spheres --try frame_in_block=on --profile 2>&1 | tee "$out/in-block-hair.log" ;;
-    in-block-mesh) timeout 540 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
-          --cases full+mesh simplified+mesh --try frame_in_block=on --profile 2>&1 | tee "$out/in-block-mesh-hair.log" ;;
+    in-block-tests) timeout 560 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py -k in_block 2>&1 |
+          tee "$out/in-block-tests.log" ;;
+    in-block) timeout 560 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
+          --cases simplified1 simplified1+spheres --try frame_in_block=on frame_in_block=on,frame_warps=on --profile \
+          2>&1 | tee "$out/in-block-hair.log" ;;
+    in-block-mesh) timeout 560 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
+          --cases full+mesh simplified+mesh --try frame_in_block=on frame_in_block=on,frame_warps=on --profile 2>&1 |
+          tee "$out/in-block-mesh-hair.log" ;;
     in-block-ncu) ncu=$(command -v ncu || ls /opt/nvidia/nsight-compute/*/ncu 2>/dev/null | head -1)
-        timeout 200 "$ncu" --clock-control none --kernel-name regex:frame_in_block --launch-skip 3 --launch-count 1 \
-          --section SpeedOfLight --section WarpStateStats --section Occupancy --section LaunchStats \
-          --section MemoryWorkloadAnalysis python3 benchmarks/hair.py --device cuda --no-peer --strands 100000 \
-          --cases simplified1+spheres --frames 2 --try frame_in_block=on 2>&1 | tee "$out/ncu-100k-in-block.txt" |
-          grep -v "^|" ;;
+        for way in frame_in_block frame_in_warps; do
+          try=frame_in_block=on; [[ $way == frame_in_warps ]] && try=frame_in_block=on,frame_warps=on
+          timeout 270 "$ncu" --clock-control none --kernel-name regex:$way --launch-skip 3 --launch-count 1 \
+            --section SpeedOfLight --section WarpStateStats --section Occupancy --section LaunchStats \
+            --section MemoryWorkloadAnalysis python3 benchmarks/hair.py --device cuda --no-peer --strands 100000 \
+            --cases simplified1+spheres --frames 2 --try $try 2>&1 | tee "$out/ncu-100k-$way.txt" | grep -v "^|"
+        done ;;
     realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;
     hair-ab) ab benchmarks/hair.py 250 --device cuda --no-peer ${HAIR_AB_ARGS:---strands 1000 100000 --cases simplified1+spheres full+mesh} 2>&1 |
         tee "$out/hair-ab.log" ;;

@@ -2505,6 +2505,45 @@ def contact_motions(
     raise_motion(t, points[r], points[r + 1], centers[r], centers[r + 1], radii[r + 1], is_leaf, neighbor_start,
                  neighbors, local, vertices, reach, search, motion_row(moved, rigid, center, cells, r))
 
+# the arguments of a hair frame in one launch, documented once for both layouts (frame_in_block's, frame_in_warps')
+_FRAME_ARGUMENTS = """
+        Inputs:
+          x (vec3, per particle, m): positions at the start of the frame
+          v (vec3, per particle, m/s): velocities at the start of the frame
+          strand_start (int32, num_strands + 1): first particle of each strand, then the total count
+          pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
+          forces (StrandForces): gravity, wind with its gusts, drag and damping
+          clock (float, 1 element, s): device clock
+          poses (FramePoses): the collider for each substep and the substeps' times
+          substeps (int): substeps of the frame, at most FRAME_SUBSTEPS
+          dt (float, s): substep length
+          bound (int, flag): non-zero when the strands are bound to the collider
+          skin (SkinBinding): the bindings (its points replaced by each substep's row of poses.points)
+          particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
+          root_binding (int32, per strand): binding of the strand's root particle
+          hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
+          pull (GuidePull): captured guides; pull.stiffness 0 for none
+          window_size (int): particles per window
+          variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL (read only by the variants compiled for both)
+          passes (int): shape-matching passes a substep, 0 for none
+          stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
+          exact (int, flag): non-zero solves the first substep's first pass's rotations from scratch (full)
+          rotation_iterations (int): rotation refinement steps per pass otherwise (full)
+          per (StrandSlots): the particles and windows in particle order (its scratch is not used)
+          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+          list_slack (float, m): the loose variant's slack of list_runs_short at the substep's start
+              positions (hair_solver.FUSED_LIST_SLACK, as step_strands' walks queued ahead)
+          first (int, index): the range's first strand, block 0's first
+        In/out:
+          rotations (quat, per window): window rotations, refined from their last values (full)
+          contact (StrandContact): the collider's settings and the contact bounds per particle (its
+              shape's spheres and its motion replaced by each substep's rows of poses)
+        Outputs:
+          x_out (vec3, per particle, m): positions at the end of the frame
+          v_out (vec3, per particle, m/s): velocities at the end of the frame
+"""
+
+
 def _frame_in_block(lanes, paths, loose=False, simplified=True):
     """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand,
     its length pass compiled with the collision paths `paths` (PATHS_SPHERE_LISTS; PATHS_QUERIES for the
@@ -2584,41 +2623,7 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
 
         Launch: one thread per lane, a block of `lanes` per strand (dim = [strands], block_dim = lanes)
         with wp.launch_tiled, every strand of at most `lanes` particles; on the CPU with
-        wp.config.enable_cpu_blocks (a block's lanes as fibers).
-        Inputs:
-          x (vec3, per particle, m): positions at the start of the frame
-          v (vec3, per particle, m/s): velocities at the start of the frame
-          strand_start (int32, num_strands + 1): first particle of each strand, then the total count
-          pinned_per_strand (int): leading particles of each strand the length pass leaves alone (>= 1)
-          forces (StrandForces): gravity, wind with its gusts, drag and damping
-          clock (float, 1 element, s): device clock
-          poses (FramePoses): the collider for each substep and the substeps' times
-          substeps (int): substeps of the frame, at most FRAME_SUBSTEPS
-          dt (float, s): substep length
-          bound (int, flag): non-zero when the strands are bound to the collider
-          skin (SkinBinding): the bindings (its points replaced by each substep's row of poses.points)
-          particle_binding (int32, per particle): binding index of each pinned particle, -1 when unbound
-          root_binding (int32, per strand): binding of the strand's root particle
-          hold_stiffness (float, fraction per substep): share of the way to the groomed position moved
-          pull (GuidePull): captured guides; pull.stiffness 0 for none
-          window_size (int): particles per window
-          variant (int): SHAPE_SIMPLIFIED or SHAPE_FULL (read only by the variants compiled for both)
-          passes (int): shape-matching passes a substep, 0 for none
-          stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
-          exact (int, flag): non-zero solves the first substep's first pass's rotations from scratch (full)
-          rotation_iterations (int): rotation refinement steps per pass otherwise (full)
-          per (StrandSlots): the particles and windows in particle order (its scratch is not used)
-          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
-          list_slack (float, m): the loose variant's slack of list_runs_short at the substep's start
-              positions (hair_solver.FUSED_LIST_SLACK, as step_strands' walks queued ahead)
-          first (int, index): the range's first strand; block b works on strand first + b
-        In/out:
-          rotations (quat, per window): window rotations, refined from their last values (full)
-          contact (StrandContact): the collider's settings and the contact bounds per particle (its
-              shape's spheres and its motion replaced by each substep's rows of poses)
-        Outputs:
-          x_out (vec3, per particle, m): positions at the end of the frame
-          v_out (vec3, per particle, m/s): velocities at the end of the frame
+        wp.config.enable_cpu_blocks (a block's lanes as fibers); first: block b works on strand first + b.
         """
         block, lane = wp.tid()
         s = block + first
@@ -2742,6 +2747,7 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
             x_out[i] = p0
             v_out[i] = vel
 
+    frame_in_block.func.__doc__ += _FRAME_ARGUMENTS
     return frame_in_block
 
 
@@ -2826,10 +2832,9 @@ def _frame_in_warps(paths, loose=False, simplified=True):
         to x_out (the particles' final positions at the frame's end), which the block reads back after the
         chain. The same strands as step_strands, bit for bit.
 
-        Launch: 256 threads a block, a block per 32 strands (dim = [ceil(strands / 32)], block_dim = 256)
-        with wp.launch_tiled, every strand of at most 32 particles; on the CPU with
-        wp.config.enable_cpu_blocks. The inputs, in/outs and outputs are frame_in_block's; first is the
-        first strand of block 0.
+        Launch: one thread per run of 4 particles (dim = [ceil(strands / 32)], block_dim = 256), a block
+        per 32 strands with wp.launch_tiled, every strand of at most 32 particles; on the CPU with
+        wp.config.enable_cpu_blocks; first: block b works on strands first + 32 b ... first + 32 b + 31.
         """
         block, t = wp.tid()
         lane = t % lanes
@@ -2841,7 +2846,9 @@ def _frame_in_warps(paths, loose=False, simplified=True):
         start = strand_start[s]
         count = strand_start[s + 1] - start
         placed = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")  # predicted: the chain's input
-        starts = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")  # the substep's start positions
+        # the substep's start positions: the thread's own in the tile rather than its registers (12 fewer), where
+        # the chain reads them too
+        starts = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
         lengths = wp.tile_zeros(shape=elements, dtype=float, storage="shared")
         centroids = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
         axes = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
@@ -2856,7 +2863,6 @@ def _frame_in_warps(paths, loose=False, simplified=True):
         shapes = variant
         if wp.static(simplified):
             shapes = int(SHAPE_SIMPLIFIED)
-        p0 = frame_run()
         vel = frame_run()
         inv_mass = frame_run_masses()
         for h in range(wp.static(run)):
@@ -2871,7 +2877,7 @@ def _frame_in_warps(paths, loose=False, simplified=True):
             wp.tile_scatter_masked(lengths, e, per.rest_length[i], True)
             if wp.static(not simplified):
                 wp.tile_scatter_masked(rest, e, per.rest_local[i], here)
-            p0[h] = x[i]
+            wp.tile_scatter_masked(starts, e, x[i], True)
             vel[h] = v[i]
             inv_mass[h] = per.inv_mass[i]
         rb = int(0)
@@ -2896,8 +2902,8 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                         origin = bound_position(posed, rb)
                         target = origin + face_frame(posed.mesh_points, posed.mesh_indices, posed.triangle[rb]) * \
                             per.root_local[i]
-                q, _vel = predicted_position(p0[h], vel[h], inv_mass[h], forces, time, dt, posed, binding, target,
-                                             weight)
+                q, _vel = predicted_position(starts[(warp * run + h) * lanes + lane], vel[h], inv_mass[h], forces, time,
+                                             dt, posed, binding, target, weight)
                 p[h] = q
             if pull.stiffness > 0.0:
                 guide_frame, guide_next, guide_weight = guide_frames(pull, time)
@@ -2929,9 +2935,9 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                     for h in range(wp.static(run)):
                         k = warp * run + h
                         if live and k < count and inv_mass[h] != 0.0:
-                            p[h] = simplified_shaped_position(p[h], k, k * lanes + lane, lanes, start + k, 1, window_size,
-                                                              stiffness, window_at, centroids, axes, per.offsets,
-                                                              per.slots)
+                            p[h] = simplified_shaped_position(p[h], k, k * lanes + lane, lanes, start + k, 1,
+                                                              window_size, stiffness, window_at, centroids, axes,
+                                                              per.offsets, per.slots)
                 if wp.static(not simplified):
                     if shapes != SHAPE_SIMPLIFIED:
                         solve = int(0)
@@ -2972,10 +2978,10 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                 i = start + wp.min(k, count - 1)
                 if wp.static(loose):
                     if here and k >= pinned_per_strand and touching.use_bounds != 0:
-                        if list_runs_short(p0[h], p0[h], i, touching, list_slack):
-                            list_leaves(i, p0[h], touching)
+                        p0 = starts[e]
+                        if list_runs_short(p0, p0, i, touching, list_slack):
+                            list_leaves(i, p0, touching)
                 wp.tile_scatter_masked(placed, e, p[h], here)
-                wp.tile_scatter_masked(starts, e, p0[h], here)
                 if wp.static(collides):
                     held, held_leaves, held_beyond = held_bounds(i, int(touching.mode == COLLIDE_SPHERE_TREE),
                                                                  touching)
@@ -3023,17 +3029,18 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                 q = p[h]
                 if live and k < count:
                     q = x_out[start + k]
-                step_v = (q - p0[h]) / dt
+                step_v = (q - starts[e]) / dt
                 if live and k + 1 < count and inv_mass[h] > 0.0:
                     step_v = step_v - (ftl_damping / dt) * (x_out[start + k + 1] - placed[e + lanes])
-                p0[h] = q
                 vel[h] = step_v
+                wp.tile_scatter_masked(starts, e, q, True)  # read above by this thread alone
         for h in range(wp.static(run)):
             k = warp * run + h
             if live and k < count:
-                x_out[start + k] = p0[h]
+                x_out[start + k] = starts[k * lanes + lane]
                 v_out[start + k] = vel[h]
 
+    frame_in_warps.func.__doc__ += _FRAME_ARGUMENTS
     return frame_in_warps
 
 
