@@ -2785,8 +2785,9 @@ def _frame_in_warps(paths, loose=False, simplified=True):
     collides = paths != PATHS_NONE
     lists = paths == PATHS_SPHERE_LISTS
 
-    # the block's threads hold four particles each: registers for their state, the rest of what a step needs
-    # in the block's shared tiles (some 80 KB, 113 KB for full shape matching); untimed on a GPU
+    # the block's threads hold four particles each: registers for their velocities, the rest of what a step
+    # needs in the block's shared tiles (58 KB without a collider, 83 KB with the sphere tree, 111 KB for full
+    # shape matching on the mesh: two blocks an SM, as the registers allow); untimed on a GPU
     module = deferred_module(f"{__name__}.{name}", block_dim=lanes * FRAME_WARPS, opt_in=True)
     # the loops over a thread's run unrolled (its registers indexed by constants), the chain's turns not:
     # its walk, the length pass's step with its collisions, compiled once rather than once a warp
