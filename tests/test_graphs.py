@@ -744,3 +744,29 @@ def test_a_frame_in_block_names_what_it_cannot_step():
     assert "at most 32 particles, not 40" in solver.frame_in_block_misfit(None)
     with pytest.raises(ValueError, match="in_warps"):
         solver.step_frames_as("warps")
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_frames_in_warps_step_strands_of_mixed_lengths(device):
+    """frame_in_warps after a blunt cut (strands of 3 to 16 particles side by side in a block, each lane's
+    chain ending at its own tip, windows only inside each strand): the frames of the substeps, to float32
+    rounding (bit for bit on the CPU)."""
+    from sim import haircut
+
+    out = []
+    for way in ("substeps", "in_warps"):
+        scene = Scene(_fast_hair_config(device))
+        scene.solver.loose_lists = False
+        scene.advance(1.0 / scene.config.timing.fps)
+        haircut.blunt_cut(scene, haircut.Plane(point=(0.0, 0.3, 0.0), normal=(0.0, 1.0, 0.25)))
+        counts = np.diff(scene.model.strand_start_np)
+        assert counts.min() < 8 and counts.max() == 16 and len(np.unique(counts)) > 5
+        scene.solver.loose_lists = False
+        scene.solver.step_frames_as(way)
+        for _ in range(3):
+            scene.advance(1.0 / scene.config.timing.fps)
+        out.append(scene.state.x.numpy())
+    assert np.isfinite(out[1]).all()
+    np.testing.assert_allclose(out[1], out[0], atol=1e-4)
+    if device == "cpu":
+        np.testing.assert_array_equal(out[1], out[0])
