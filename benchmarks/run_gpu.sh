@@ -67,7 +67,7 @@ for part in "$@"; do
           --cases simplified1+spheres \
           --try loose_lists=on fused=on,frame_lanes=on fused=on,frame_lanes=on,loose_lists=on \
           --profile 2>&1 | tee "$out/loose-hair.log" ;;
-    in-block-tests) timeout 560 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py -k in_block 2>&1 |
+    in-block-tests) timeout 560 python3 -m pytest -q -p no:cacheprovider tests/test_graphs.py -k "in_block or in_warps" 2>&1 |
           tee "$out/in-block-tests.log" ;;
     in-block) timeout 560 python3 benchmarks/hair.py --device cuda --no-peer --strands 1000 10000 100000 \
           --cases simplified1 simplified1+spheres --try frame_in_block=on frame_in_block=on,frame_warps=on --profile \
