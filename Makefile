@@ -26,7 +26,9 @@ test: $(BIN)/.installed
 test-numpy1:
 	$(PYTHON) -m venv .venv-numpy1
 	.venv-numpy1/bin/python -m pip install -q -e ".[test]" "numpy<2"
-	.venv-numpy1/bin/python -m pytest -q
+	# the sm_90 compile of every kernel (minutes) does not read numpy: `make test` checks it
+	.venv-numpy1/bin/python -m pytest -q \
+		--deselect tests/test_benchmarks.py::test_no_cuda_kernel_spills_more_than_its_recorded_baseline
 
 bench: $(BIN)/.installed
 	$(BIN)/python benchmarks/hair.py

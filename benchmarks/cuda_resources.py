@@ -138,16 +138,23 @@ def warp_modules(module):
     return [module.__name__] + [name for name in DEFERRED if name.startswith(module.__name__ + ".")]
 
 
-def module_resources(module, arch, ptxas, isa, workdir):
-    """(KernelResources list, note) for one imported warp_kernels module compiled for sm_<arch>: the
-    kernels of each of its Warp modules (warp_modules)."""
-    found, notes = [], []
-    for name in warp_modules(module):
-        kernels, note = warp_module_resources(name, arch, ptxas, isa, workdir)
+def modules_resources(modules, arch, ptxas, isa, workdir, workers=None):
+    """{module name: (KernelResources list, note)} for imported warp_kernels modules compiled for
+    sm_<arch>, their Warp modules compiled and assembled side by side in `workers` threads (default:
+    one per core; NVRTC and ptxas run outside the interpreter's lock, as in Warp's own loader)."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    names = [(module.__name__, name) for module in modules for name in warp_modules(module)]
+    with ThreadPoolExecutor(max_workers=max(1, workers or os.cpu_count() or 1)) as pool:
+        results = list(pool.map(lambda pair: warp_module_resources(pair[1], arch, ptxas, isa, workdir), names))
+    out = {module.__name__: ([], []) for module in modules}
+    for (owner, _name), (kernels, note) in zip(names, results, strict=True):
+        found, notes = out[owner]
         found += kernels
         if note and note not in notes:
             notes.append(note)
-    return found, "; ".join(notes)
+    return {owner: (found, "; ".join(notes)) for owner, (found, notes) in out.items()}
 
 
 def warp_module_resources(name, arch, ptxas, isa, workdir):
@@ -219,10 +226,11 @@ def main():
     print(f"# CUDA kernel resources for sm_{args.arch}, commit {commit()}, Warp {wp.config.version}, {ptxas} "
           f"(PTX ISA {isa})")
     rows, by_module = [], {}
+    modules = [importlib.import_module(f"warp_kernels.{name}") for name in args.modules]
     with tempfile.TemporaryDirectory(prefix="cfx_ptx_") as workdir:
-        for name in args.modules:
-            module = importlib.import_module(f"warp_kernels.{name}")
-            found, note = module_resources(module, args.arch, ptxas, isa, workdir)
+        compiled = modules_resources(modules, args.arch, ptxas, isa, workdir)
+        for name, module in zip(args.modules, modules, strict=True):
+            found, note = compiled[module.__name__]
             by_module[name] = found
             if note:
                 print(f"# {name}: {note}")

@@ -135,11 +135,10 @@ def test_no_cuda_kernel_spills_more_than_its_recorded_baseline():
     isa = cuda_resources.ptxas_isa(ptxas)
     if baseline["ptx_isa"] != isa:
         pytest.skip(f"the baseline was assembled as PTX ISA {baseline['ptx_isa']}, this ptxas takes {isa}")
-    found = {}
+    modules = [importlib.import_module(f"warp_kernels.{name}") for name in cuda_resources.MODULES]
     with tempfile.TemporaryDirectory() as workdir:
-        for name in cuda_resources.MODULES:
-            module = importlib.import_module(f"warp_kernels.{name}")
-            found[name], _note = cuda_resources.module_resources(module, 90, ptxas, isa, workdir)
+        compiled = cuda_resources.modules_resources(modules, 90, ptxas, isa, workdir)
+    found = {name: compiled[module.__name__][0] for name, module in zip(cuda_resources.MODULES, modules, strict=True)}
     assert cuda_resources.spill_regressions(found, baseline) == []
     # each module compiled at the block size it is launched with: a block that asks for more static
     # shared memory than a block has fails to build on the device (step_in_block at 384 lanes, session 41)
