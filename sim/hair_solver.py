@@ -721,9 +721,9 @@ class HairSolver:
         return None
 
     def step_frame(self, state_in, state_out, collider, dt, times, guides=None, listed=None):
-        """A whole frame of len(times) - 1 substeps of dt in one launch per part (strands.frame_in_block),
-        the same strands bit for bit as step() at each substep (times: the substeps' ends, after the
-        frame's start). The collider is posed here for the end of
+        """A whole frame of len(times) - 1 substeps of dt in one launch (strands.frame_in_block; with
+        frame_warps strands.frame_in_warps), the same strands bit for bit as step() at each substep
+        (times: the substeps' ends, after the frame's start). The collider is posed here for the end of
         every substep, Collider.apply_pose(k) for k = 1, 2, ... without refits (the sphere tree and the
         skin only), listed vertices only (an int32 array, or None for all) at every pose but the last;
         it must be at the frame's first pose (times[0]) on entry and is left at its last.
