@@ -2772,6 +2772,7 @@ FRAME_RUN = FRAME_STRANDS // FRAME_WARPS
 FRAME_ELEMENTS = FRAME_STRANDS * FRAME_WARPS * FRAME_RUN
 frame_run = wp.types.matrix(shape=(FRAME_RUN, 3), dtype=float)  # a thread's particles' vec3s, a row each
 frame_run_masses = wp.types.vector(length=FRAME_RUN, dtype=float)
+frame_handover = wp.types.matrix(shape=(2, 3), dtype=float)
 
 
 def _frame_in_warps(paths, loose=False, simplified=True):
@@ -2854,8 +2855,8 @@ def _frame_in_warps(paths, loose=False, simplified=True):
         centroids = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
         axes = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
         window_at = wp.tile_zeros(shape=elements, dtype=wp.int32, storage="shared")
-        parents = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")  # a run's last placement
-        befores = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")  # and the one before it
+        # a run's last two placements (rows: the last, the one before it), handed to the next warp at one barrier
+        handovers = wp.tile_zeros(shape=lanes, dtype=frame_handover, storage="shared")
         held_at = wp.tile_zeros(shape=wp.static(elements if collides else 1), dtype=float, storage="shared")
         leaves_at = wp.tile_zeros(shape=wp.static(elements if lists else 1), dtype=wp.vec4i, storage="shared")
         beyond_at = wp.tile_zeros(shape=wp.static(elements if lists else 1), dtype=float, storage="shared")
@@ -2998,8 +2999,9 @@ def _frame_in_warps(paths, loose=False, simplified=True):
             for turn in range(wp.static(FRAME_WARPS)):
                 if warp == turn:
                     if turn > 0:
-                        parent = parents[lane]
-                        before = befores[lane]
+                        handover = handovers[lane]
+                        parent = handover[0]
+                        before = handover[1]
                     steps = wp.min(count - turn * run, run)
                     if not live:
                         steps = 0
@@ -3021,8 +3023,7 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                             x_out[start + k] = q
                         before = parent
                         parent = q
-                wp.tile_scatter_masked(parents, lane, parent, warp == turn)
-                wp.tile_scatter_masked(befores, lane, before, warp == turn)
+                wp.tile_scatter_masked(handovers, lane, wp.matrix_from_rows(parent, before), warp == turn)
             # the velocities, with each child's correction, from the placements the chain left in x_out
             for h in range(wp.static(run)):
                 k = warp * run + h
