@@ -2326,6 +2326,42 @@ def motion_row(moved: wp.array2d(dtype=wp.int32), rigid: wp.array2d(dtype=wp.mat
     return motion
 
 
+@wp.func
+def substep_contact(contact: StrandContact, poses: FramePoses, j: int):
+    """The strands' contact for substep j of a frame in one launch: its collider shape's spheres and
+    mesh those of pose j + 1, its motion row j (motion_row); contact itself without a collider.
+
+    Inputs:
+      contact (StrandContact): the collider's settings and the contact bounds
+      poses (FramePoses): the collider for each substep
+      j (int, index): the substep
+    Returns:
+      StrandContact: contact with the substep's shape and motion
+    """
+    touching = contact
+    if contact.mode != 0:
+        shape = contact.shape
+        shape.spheres = poses.spheres[j + 1]
+        shape.mesh = poses.meshes[j + 1]
+        touching.shape = shape
+        touching.motion = motion_row(poses.moved, poses.rigid, poses.center, poses.cells, j)
+    return touching
+
+
+@wp.func
+def held_target(posed: SkinBinding, rb: int, local: wp.vec3):
+    """Where the root hold pulls a particle: its groomed position carried by its root's frame.
+
+    Inputs:
+      posed (SkinBinding): the bindings at the substep's pose
+      rb (int, index): the binding of the particle's strand's root
+      local (vec3, m): the particle's groomed position in its root's frame (StrandSlots.root_local)
+    Returns:
+      vec3 (m): the target
+    """
+    return bound_position(posed, rb) + face_frame(posed.mesh_points, posed.mesh_indices, posed.triangle[rb]) * local
+
+
 @wp.kernel(module=FRAME_POSES)
 def skin_listed_poses(
     rest_points: wp.array(dtype=wp.vec3),
@@ -2672,8 +2708,7 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
             if bound != 0:
                 posed.mesh_points = poses.points[j + 1]
                 if weight > 0.0:
-                    origin = bound_position(posed, rb)
-                    target = origin + face_frame(posed.mesh_points, posed.mesh_indices, posed.triangle[rb]) * local
+                    target = held_target(posed, rb, local)
             p, _vel = predicted_position(p0, vel, inv_mass, forces, time, dt, posed, binding, target, weight)
             if pull.stiffness > 0.0:
                 guide_frame, guide_next, guide_weight = guide_frames(pull, time)
@@ -2715,13 +2750,7 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
                         if here and inv_mass != 0.0:
                             p = full_shaped_position(p, lane, count, window_size, stiffness, frames, centroids, lane, 1,
                                                      rest_local)
-            touching = contact
-            if contact.mode != 0:
-                shape = contact.shape
-                shape.spheres = poses.spheres[j + 1]
-                shape.mesh = poses.meshes[j + 1]
-                touching.shape = shape
-                touching.motion = motion_row(poses.moved, poses.rigid, poses.center, poses.cells, j)
+            touching = substep_contact(contact, poses, j)
             if wp.static(loose):
                 if here and lane >= pinned_per_strand and touching.use_bounds != 0:
                     if list_runs_short(p0, p0, i, touching, list_slack):
@@ -2905,9 +2934,7 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                         binding = particle_binding[i]
                     weight = per.hold[i] * hold_stiffness
                     if weight > 0.0:
-                        origin = bound_position(posed, rb)
-                        target = origin + face_frame(posed.mesh_points, posed.mesh_indices, posed.triangle[rb]) * \
-                            per.root_local[i]
+                        target = held_target(posed, rb, per.root_local[i])
                 q, _vel = predicted_position(starts[(warp * run + h) * lanes + lane], vel[h], inv_mass[h], forces, time,
                                              dt, posed, binding, target, weight)
                 p[h] = q
@@ -2968,13 +2995,7 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                             if live and k < count and inv_mass[h] != 0.0:
                                 p[h] = full_shaped_position(p[h], k, count, window_size, stiffness, frames, centroids,
                                                             k * lanes + lane, lanes, per.rest_local[start + k])
-            touching = contact
-            if contact.mode != 0:
-                shape = contact.shape
-                shape.spheres = poses.spheres[j + 1]
-                shape.mesh = poses.meshes[j + 1]
-                touching.shape = shape
-                touching.motion = motion_row(poses.moved, poses.rigid, poses.center, poses.cells, j)
+            touching = substep_contact(contact, poses, j)
             # what the chain reads of each particle, written where it reads it before the chain starts
             block_sync(placed)
             for h in range(wp.static(run)):
