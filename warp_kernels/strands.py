@@ -525,6 +525,33 @@ def window_frame(q: wp.quat, centroid: wp.vec3, rest_centroid: wp.vec3):
 
 
 @wp.func
+def solved_window(x: Any, first: int, stride: int, size: int, rest_local: Any, rest_centroid: wp.vec3,
+                  rotations: wp.array(dtype=wp.quat), w: int, exact: int, iterations: int):
+    """A full window solved (window_rotation) and its goal map (window_frame); its rotation kept.
+
+    Inputs:
+      x (vec3, per particle or lane slot, m): current positions, an array or a block's shared tile
+      first (int, index): element of the window's first particle
+      stride (int): elements from one particle to the next (window_centroid)
+      size (int): particles in the window
+      rest_local (vec3, per particle or lane slot, m): rest positions from the strand's root, in the
+          order of x
+      rest_centroid (vec3, m): the window's rest centroid from the strand's root
+      w (int, index): the window
+      exact (int, flag): non-zero solves from scratch
+      iterations (int): refinement steps when exact == 0
+    In/out:
+      rotations (quat, per window): the window's last rotation in, its new one out
+    Returns:
+      mat33: the goal map's rotation R
+      vec3 (m): its translation t
+    """
+    q, c = window_rotation(x, first, stride, size, rest_local, rest_centroid, rotations[w], exact, iterations)
+    rotations[w] = q
+    return window_frame(q, c, rest_centroid)
+
+
+@wp.func
 def full_shaped_position(p: wp.vec3, k: int, count: int, window_size: int, stiffness: float, frames: Any,
                          translations: Any, at: int, stride: int, rest_local: wp.vec3):
     """A free particle moved toward the mean goal of the full windows holding it (window_frame).
@@ -1831,11 +1858,8 @@ def update_window(
             per.centroids[slot] = window_centroid(x, slot, stride, window_size)
             per.axes[slot] = u
         else:
-            rest_centroid = per.rest_centroid[slot]
-            q, c = window_rotation(x, slot, stride, window_size, per.rest_local, rest_centroid, rotations[w], exact,
-                                   iterations)
-            rotations[w] = q
-            R, t = window_frame(q, c, rest_centroid)
+            R, t = solved_window(x, slot, stride, window_size, per.rest_local, per.rest_centroid[slot], rotations, w,
+                                 exact, iterations)
             per.frames[slot] = R
             per.translations[slot] = t
 
@@ -2740,11 +2764,8 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
                             solve = exact
                         R = wp.mat33(0.0)
                         if here and window_at[lane] >= 0:
-                            rest_centroid = per.rest_centroid[i]
-                            q, c = window_rotation(placed, lane, 1, window_size, rest, rest_centroid, rotations[w],
-                                                   solve, rotation_iterations)
-                            rotations[w] = q
-                            R, c = window_frame(q, c, rest_centroid)
+                            R, c = solved_window(placed, lane, 1, window_size, rest, per.rest_centroid[i], rotations, w,
+                                                 solve, rotation_iterations)
                         wp.tile_scatter_masked(frames, lane, R, True)
                         wp.tile_scatter_masked(centroids, lane, c, True)  # the goal translations, here
                         if here and inv_mass != 0.0:
@@ -2983,11 +3004,8 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                             c = wp.vec3(0.0)
                             w = window_at[e]
                             if live and k < count and w >= 0:
-                                rest_centroid = per.rest_centroid[start + k]
-                                turned, c = window_rotation(placed, e, lanes, window_size, rest, rest_centroid,
-                                                            rotations[w], solve, rotation_iterations)
-                                rotations[w] = turned
-                                R, c = window_frame(turned, c, rest_centroid)
+                                R, c = solved_window(placed, e, lanes, window_size, rest, per.rest_centroid[start + k],
+                                                     rotations, w, solve, rotation_iterations)
                             wp.tile_scatter_masked(frames, e, R, True)
                             wp.tile_scatter_masked(centroids, e, c, True)  # the goal translations, here
                         for h in range(wp.static(run)):
