@@ -704,20 +704,21 @@ class HairSolver:
         self.frame_warps = way == "in_warps"
 
     def frame_in_block_misfit(self, collider):
-        """Why step_frame cannot step this solver's frames against `collider` (a line), or None."""
+        """Why step_frame cannot step this solver's frames against `collider` (a line naming the way they
+        are stepped, as [scene] hair_frames does), or None."""
         p, longest = self.params, self._longest
+        way = f"hair frames {'in_warps' if self.frame_warps else 'in_block'}"
         if self.comb is not None:
-            return "frame_in_block does not step strands held by a comb"
+            return f"{way} do not step strands held by a comb"
         if p.substeps > strands.FRAME_SUBSTEPS:
-            return f"frame_in_block takes at most {strands.FRAME_SUBSTEPS} substeps a frame, not {p.substeps}"
+            return f"{way} take at most {strands.FRAME_SUBSTEPS} substeps a frame, not {p.substeps}"
         most = strands.FRAME_STRANDS if self.frame_warps else max(strands.FRAME_LANES)
         if longest > most:
-            return f"frame_in_block{' with frame_warps' if self.frame_warps else ''} takes strands of at most " \
-                f"{most} particles, not {longest}"
+            return f"{way} take strands of at most {most} particles, not {longest}"
         if self.lanes:
-            return "frame_in_block reads the strands in particle order: set lanes off"
+            return f"{way} read the strands in particle order: set lanes off"
         if self.loose_lists and not self.contact_bounds and collider is not None and p.collision == "sphere_tree":
-            return "frame_in_block's loose lists are kept with the contact bounds: set contact_bounds on"
+            return f"{way} keep the loose lists with the contact bounds: set contact_bounds on"
         return None
 
     def step_frame(self, state_in, state_out, collider, dt, times, guides=None, listed=None):

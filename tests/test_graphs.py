@@ -741,7 +741,7 @@ def test_a_frame_in_block_names_what_it_cannot_step():
     solver = hair_solver.HairSolver(model, hair_solver.HairParams(collision="none", shape_matching="none"))
     assert solver.frame_in_block_misfit(None) is None  # a block of 64 lanes per strand
     solver.step_frames_as("in_warps")
-    assert "at most 32 particles, not 40" in solver.frame_in_block_misfit(None)
+    assert "hair frames in_warps take strands of at most 32 particles, not 40" in solver.frame_in_block_misfit(None)
     with pytest.raises(ValueError, match="in_warps"):
         solver.step_frames_as("warps")
 
