@@ -23,7 +23,9 @@ on by default on the CPU, and on a GPU for simplified shape matching from 65k st
 kept in lane order, HairSolver.frame_lanes; the sphere tree's walks are then queued ahead from the
 start positions); --fused both marks the rows with it "fused". --try times each case once more for each
 setting of HairSolver attributes given (e.g. --try mesh_lists=on), the rows marked with it: --try
-frame_in_block=on steps each frame in one launch, a block of lanes per strand (strands.frame_in_block).
+frame_in_block=on steps each frame in one launch, a block of lanes per strand (strands.frame_in_block), with
+frame_warps=on 32 strands a block, with frame_layout=SIDExGROUPSxRUN any layout (strands.frame_variant: SIDE
+strands a block, GROUPS threads along each, RUN particles a thread).
 
     python benchmarks/hair.py                        # 1k, 10k, 100k strands on cpu (and cuda if present)
     python benchmarks/hair.py --strands 1000 --device cuda --cases full+mesh
@@ -32,7 +34,7 @@ frame_in_block=on steps each frame in one launch, a block of lanes per strand (s
     python benchmarks/hair.py --device cuda --fused both
     python benchmarks/hair.py --device cuda --cases full+mesh --try mesh_lists=on
     python benchmarks/hair.py --device cuda --no-peer --cases simplified1+spheres --try frame_in_block=on \
-        frame_in_block=on,frame_warps=on
+        frame_in_block=on,frame_warps=on frame_in_block=on,frame_layout=16x8x4
 """
 
 import argparse
@@ -87,7 +89,8 @@ def settle(scene, seconds=0.5):
 
 
 def solver_setting(text):
-    """'attr=value[,attr=value...]' as {attr: value}: on/off as booleans, numbers as numbers."""
+    """'attr=value[,attr=value...]' as {attr: value}: on/off as booleans, numbers as numbers, AxBxC (a frame's
+    layout: frame_layout=32x8x4) as a tuple of ints."""
     setting = {}
     for item in text.split(","):
         attr, sep, value = item.partition("=")
@@ -96,6 +99,11 @@ def solver_setting(text):
         words = {"on": True, "off": False, "true": True, "false": False}
         if value.lower() in words:
             setting[attr] = words[value.lower()]
+        elif "x" in value:
+            try:
+                setting[attr] = tuple(int(n) for n in value.split("x"))
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"{item!r}: expected a layout SIDExGROUPSxRUN") from None
         else:
             try:
                 setting[attr] = int(value)
@@ -106,7 +114,7 @@ def solver_setting(text):
 
 # the HairSolver switches a --try may set
 SOLVER_ATTRS = {"mesh_lists", "contact_bounds", "leaves_ahead", "fused", "read_ahead", "frame_lanes", "loose_lists",
-                "strand_block", "frame_in_block", "frame_warps"}
+                "strand_block", "frame_in_block", "frame_warps", "frame_layout"}
 
 
 def run_ours(scene, params, frames, settled, profile=False, ahead=None, lanes=None, by_root=True, fused=None,
@@ -214,7 +222,8 @@ def main():
                          + (" lanes" if lanes and args.lanes == "both" else "")
                          + (" grown" if not by_root and args.lane_order != "root" else "")
                          + (" fused" if fused and args.fused == "both" else "")
-                         + "".join(f" {attr}={value}" for attr, value in setting.items()))
+                         + "".join(f" {attr}={'x'.join(map(str, value)) if isinstance(value, tuple) else value}"
+                                   for attr, value in setting.items()))
                 rows.append([label, strands, scene.model.num_particles, device, fmt(ms, 4), fmt(rate),
                              fmt(moved / 1e6), f"{gbs:.0f} ({100 * gbs / ceiling:.0f}%)", fmt(stretch, 2),
                              fmt(peer_ms, 4), fmt(peer_stretch, 2),

@@ -21,6 +21,8 @@
 #   bash benchmarks/run_gpu.sh in-block-mesh # the same against the mesh (a BVH per substep's pose), simplified and
 #                                       # full shape matching (the default model), 1k to 100k strands
 #   bash benchmarks/run_gpu.sh in-block-ncu # Nsight Compute on each layout's launch at 100k strands on the sphere tree
+#   bash benchmarks/run_gpu.sh frame-layouts # other layouts of the frame (HairSolver.frame_layout, SIDExGROUPSxRUN)
+#                                       # at 100k strands on the sphere tree: strands a block against runs a thread
 #   bash benchmarks/run_gpu.sh realtime # benchmarks/realtime.py on cuda (the CPU real-time case, for comparison)
 #   bash benchmarks/run_gpu.sh ncu      # Nsight Compute's counters (occupancy, warp states, memory) for one
 #                                       # launch of the length pass at 1k strands on the mesh and of the fused
@@ -83,6 +85,9 @@ for part in "$@"; do
             --section MemoryWorkloadAnalysis python3 benchmarks/hair.py --device cuda --no-peer --strands 100000 \
             --cases simplified1+spheres --frames 2 --try $try 2>&1 | tee "$out/ncu-100k-$way.txt" | grep -v "^|"
         done ;;
+    frame-layouts) layouts=(32x8x4 16x8x4 32x16x2 8x8x4 1x8x4 64x4x8)
+        timeout 560 python3 benchmarks/hair.py --device cuda --no-peer --strands 100000 --cases simplified1+spheres \
+          --try "${layouts[@]/#/frame_in_block=on,frame_layout=}" 2>&1 | tee "$out/frame-layouts-hair.log" ;;
     realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;
     hair-ab) ab benchmarks/hair.py 250 --device cuda --no-peer ${HAIR_AB_ARGS:---strands 1000 100000 --cases simplified1+spheres full+mesh} 2>&1 |
         tee "$out/hair-ab.log" ;;

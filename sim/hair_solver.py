@@ -310,9 +310,12 @@ class HairSolver:
         # lanes as fibers, for its tests)
         self._frame_in_block = False
         # the frame's layout: a block per strand (a lane per particle), or with frame_warps 32 strands a block
-        # side by side (a lane per strand, each warp a run of 4 particles along them: strands.frame_in_warps),
-        # so that each step of the length pass's chain places a particle of 32 strands at once
+        # side by side (a lane per strand, each warp a run of 4 particles along them: strands.FRAME_IN_WARPS),
+        # so that each step of the length pass's chain places a particle of 32 strands at once; frame_layout,
+        # a (side, groups, run) of strands.frame_variant, sets any other (a GPU's timings choose), None leaves
+        # frame_warps to choose
         self.frame_warps = False
+        self.frame_layout = None
         self._longest = int(np.diff(model.strand_start_np).max()) if model.num_strands else 0  # particles
         # (key, FramePoses, per-substep ContactMotion rows, the sphere trees' centres and radii per pose,
         # a wp.Mesh per pose) for step_frame
@@ -703,18 +706,33 @@ class HairSolver:
         self.frame_in_block = way != "substeps"
         self.frame_warps = way == "in_warps"
 
+    def frame_layout_used(self):
+        """The (side, groups, run) layout step_frame launches (strands.frame_variant): frame_layout where set,
+        else FRAME_IN_WARPS' with frame_warps, else a block per strand of the fewest lanes that hold the
+        longest strand (the most lanes where none does)."""
+        if self.frame_layout is not None:
+            return tuple(int(n) for n in self.frame_layout)
+        if self.frame_warps:
+            return strands.FRAME_IN_WARPS_LAYOUT
+        return 1, min([n for n in strands.FRAME_LANES if n >= self._longest] or [max(strands.FRAME_LANES)]), 1
+
     def frame_in_block_misfit(self, collider):
         """Why step_frame cannot step this solver's frames against `collider` (a line naming the way they
         are stepped, as [scene] hair_frames does), or None."""
         p, longest = self.params, self._longest
-        way = f"hair frames {'in_warps' if self.frame_warps else 'in_block'}"
+        side, groups, run = layout = self.frame_layout_used()
+        if self.frame_layout is not None:
+            way = f"hair frames in layout {side}x{groups}x{run}"
+        else:
+            way = f"hair frames {'in_warps' if self.frame_warps else 'in_block'}"
         if self.comb is not None:
             return f"{way} do not step strands held by a comb"
         if p.substeps > strands.FRAME_SUBSTEPS:
             return f"{way} take at most {strands.FRAME_SUBSTEPS} substeps a frame, not {p.substeps}"
-        most = strands.FRAME_STRANDS if self.frame_warps else max(strands.FRAME_LANES)
-        if longest > most:
-            return f"{way} take strands of at most {most} particles, not {longest}"
+        if min(layout) < 1 or side * groups > 1024:
+            return f"{way}: a layout takes side, groups and run >= 1 and at most 1024 threads a block"
+        if longest > groups * run:
+            return f"{way} take strands of at most {groups * run} particles, not {longest}"
         if self.lanes:
             return f"{way} read the strands in particle order: set lanes off"
         if self.loose_lists and not self.contact_bounds and collider is not None and p.collision == "sphere_tree":
@@ -722,8 +740,8 @@ class HairSolver:
         return None
 
     def step_frame(self, state_in, state_out, collider, dt, times, guides=None, listed=None):
-        """A whole frame of len(times) - 1 substeps of dt in one launch (strands.frame_in_block; with
-        frame_warps strands.frame_in_warps), the same strands bit for bit as step() at each substep
+        """A whole frame of len(times) - 1 substeps of dt in one launch (strands.frame_in_block, laid out as
+        frame_layout_used says), the same strands bit for bit as step() at each substep
         (times: the substeps' ends, after the frame's start). The collider is posed here for the end of
         every substep, Collider.apply_pose(k) for k = 1, 2, ... without refits (the sphere tree and the
         skin only), listed vertices only (an int32 array, or None for all) at every pose but the last;
@@ -742,7 +760,6 @@ class HairSolver:
         passes = p.shape_iterations if variant >= 0 and self.windows.count > 0 else 0
         if getattr(m, "root_local", None) is not self._slots_root_local:
             self.slots = self._strand_slots()  # bound to a mesh since the slots were made
-        lanes = min(n for n in strands.FRAME_LANES if n >= self._longest)
         paths = {0: strands.PATHS_NONE, COLLISION["sphere_tree"]: strands.PATHS_SPHERE_LISTS,
                  COLLISION["mesh"]: strands.PATHS_QUERIES}[mode]
         # loose lists (loose_lists, a GPU's way): each lane walks for its own list ahead of the chain
@@ -753,13 +770,11 @@ class HairSolver:
         # one launch for every strand: the CPU's fibers share one arena for the blocks' memory, which
         # launches of the parts side by side on its cores overflow
         simplified = variant != SHAPE_MATCHING["full"]
-        kernel, blocks = strands.FRAME_IN_BLOCK[(lanes, paths, loose, simplified)], m.num_strands
-        if self.frame_warps:
-            kernel = strands.FRAME_IN_WARPS[(paths, loose, simplified)]
-            lanes = strands.FRAME_STRANDS * strands.FRAME_WARPS
-            blocks = -(-m.num_strands // strands.FRAME_STRANDS)
+        layout = self.frame_layout_used()
+        side, groups, _run = layout
+        kernel = strands.frame_variant(layout, paths, loose, simplified)
         with cpu_blocks(dev):
-            wp.launch_tiled(kernel, dim=[blocks], block_dim=lanes, device=dev,
+            wp.launch_tiled(kernel, dim=[-(-m.num_strands // side)], block_dim=side * groups, device=dev,
                             inputs=[state_in.x, state_in.v, m.strand_start, m.pinned_per_strand, self._forces(),
                                     self.clock, poses, substeps, dt, int(bound), skin,
                                     m.particle_binding if bound else None, m.root_binding if bound else None,

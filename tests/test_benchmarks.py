@@ -170,6 +170,21 @@ def test_each_frame_is_timed_after_the_warm_up_frames():
     assert max(times) == times[1] and times[1] >= 20.0 and sum(t > 20.0 for t in times) == 1
 
 
+def test_hair_benchmark_reads_the_solver_settings_it_tries():
+    """benchmarks/hair.py --try: on/off, numbers and a frame's layout (SIDExGROUPSxRUN) as a HairSolver takes
+    them; an attribute it does not know or a layout not of integers is refused, naming the item."""
+    import argparse
+
+    import hair
+
+    assert hair.solver_setting("frame_in_block=on,frame_layout=16x8x4,strand_block=64") == {
+        "frame_in_block": True, "frame_layout": (16, 8, 4), "strand_block": 64}
+    with pytest.raises(argparse.ArgumentTypeError, match="frame_layout=16x8xa"):
+        hair.solver_setting("frame_layout=16x8xa")
+    with pytest.raises(argparse.ArgumentTypeError, match="lanes=on"):
+        hair.solver_setting("lanes=on")
+
+
 @pytest.mark.parametrize("run", [1, 2])
 def test_two_checkouts_take_turns_frame_by_frame(run):
     """benchmarks/turns.py: the two sides build the same case in processes of their own and step in

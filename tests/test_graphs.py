@@ -12,6 +12,7 @@ import warp as wp
 from sim import hair_solver
 from sim.graphs import AsyncReadback, FrameGraphs
 from sim.scene import Scene, demo_scene, hair_demo_scene, quiet_warp, run_scene
+from warp_kernels import strands
 
 quiet_warp()
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="needs CUDA"))]
@@ -650,27 +651,30 @@ def _full_mesh_config(device):
 
 
 @pytest.mark.parametrize("device", DEVICES)
-@pytest.mark.parametrize("make,warps", [(_fast_hair_config, False), (_free_hair_config, False),
-                                        (_long_hair_config, False), (_mesh_hair_config, False),
-                                        (_full_mesh_config, False), (_fast_hair_config, True),
-                                        (_free_hair_config, True), (_mesh_hair_config, True),
-                                        (_full_mesh_config, True)],
+@pytest.mark.parametrize("make,way", [(_fast_hair_config, "in_block"), (_free_hair_config, "in_block"),
+                                      (_long_hair_config, "in_block"), (_mesh_hair_config, "in_block"),
+                                      (_full_mesh_config, "in_block"), (_fast_hair_config, "in_warps"),
+                                      (_free_hair_config, "in_warps"), (_mesh_hair_config, "in_warps"),
+                                      (_full_mesh_config, "in_warps"), (_fast_hair_config, (8, 4, 4)),
+                                      (_full_mesh_config, (1, 8, 2))],
                          ids=["spheres", "no-collider", "64-lanes", "mesh", "full-mesh", "spheres-in-warps",
-                              "no-collider-in-warps", "mesh-in-warps", "full-mesh-in-warps"])
-def test_frames_in_block_follow_the_substeps(make, warps, device):
+                              "no-collider-in-warps", "mesh-in-warps", "full-mesh-in-warps", "spheres-8x4x4",
+                              "full-mesh-1x8x2"])
+def test_frames_in_block_follow_the_substeps(make, way, device):
     """A whole frame in one launch (HairSolver.frame_in_block, the collider posed for every substep ahead,
-    against the mesh a BVH for each pose), a block of lanes per strand (strands.frame_in_block) or 32
-    strands a block side by side (frame_warps, strands.frame_in_warps), captured in the frame's graph:
-    the frames of the substeps one by one, to float32 rounding (bit for bit on the CPU)."""
+    against the mesh a BVH for each pose), a block of lanes per strand (strands.FRAME_IN_BLOCK), 32
+    strands a block side by side (frame_warps, strands.FRAME_IN_WARPS) or another layout (frame_layout:
+    8 strands a block in 4 runs of 4 particles; a block per strand in 8 runs of 2), captured in the frame's
+    graph: the frames of the substeps one by one, to float32 rounding (bit for bit on the CPU)."""
     def configure(solver, whole):
         solver.loose_lists = False  # the loose lists' walks differ, within the margin
         solver.mesh_lists = False  # the frame queries the mesh's BVH, as a GPU does
-        solver.step_frames_as(("in_warps" if warps else "in_block") if whole else "substeps")
+        solver.step_frames_as((way if isinstance(way, str) else "in_block") if whole else "substeps")
+        if whole and not isinstance(way, str):
+            solver.frame_layout = way
         assert not (whole and solver.lanes)
 
     _same_hair_frames(make, device, configure)
-
-
 
 
 def test_a_frame_in_block_poses_the_collider_at_once_as_the_substeps_do(monkeypatch):
@@ -742,13 +746,21 @@ def test_a_frame_in_block_names_what_it_cannot_step():
     assert solver.frame_in_block_misfit(None) is None  # a block of 64 lanes per strand
     solver.step_frames_as("in_warps")
     assert "hair frames in_warps take strands of at most 32 particles, not 40" in solver.frame_in_block_misfit(None)
+    solver.frame_layout = (16, 8, 5)  # runs of 5: 40 particles
+    assert solver.frame_layout_used() == (16, 8, 5) and solver.frame_in_block_misfit(None) is None
+    solver.frame_layout = (16, 8, 4)
+    assert "hair frames in layout 16x8x4 take strands of at most 32 particles" in solver.frame_in_block_misfit(None)
+    solver.frame_layout = (64, 32, 2)
+    assert "at most 1024 threads a block" in solver.frame_in_block_misfit(None)
+    with pytest.raises(ValueError, match="64x32x2"):
+        strands.frame_variant((64, 32, 2), strands.PATHS_NONE)
     with pytest.raises(ValueError, match="in_warps"):
         solver.step_frames_as("warps")
 
 
 @pytest.mark.parametrize("device", DEVICES)
 def test_frames_in_warps_step_strands_of_mixed_lengths(device):
-    """frame_in_warps after a blunt cut (strands of 3 to 16 particles side by side in a block, each lane's
+    """FRAME_IN_WARPS' layout after a blunt cut (strands of 3 to 16 particles side by side in a block, each lane's
     chain ending at its own tip, windows only inside each strand): the frames of the substeps, to float32
     rounding (bit for bit on the CPU)."""
     from sim import haircut

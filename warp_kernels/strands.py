@@ -1928,7 +1928,7 @@ def simplified_shaped_position(
       stride (int): elements of those from one particle of the strand to the next
       slot (int, index): its slot of offsets (StrandSlots)
       slot_stride (int): slots of offsets from one particle of the strand to the next (stride, unless
-          the tiles hold the strands side by side while the slots are in particle order: frame_in_warps)
+          the tiles hold the strands side by side while the slots are in particle order: FRAME_IN_WARPS)
       window_size (int): particles per window
       stiffness (float, fraction): share of the way to the goal moved, in (0, 1]
       window_at (int32, per element): the window starting at the element's particle, -1 for none
@@ -2565,7 +2565,7 @@ def contact_motions(
     raise_motion(t, points[r], points[r + 1], centers[r], centers[r + 1], radii[r + 1], is_leaf, neighbor_start,
                  neighbors, local, vertices, reach, search, motion_row(moved, rigid, center, cells, r))
 
-# the arguments of a hair frame in one launch, documented once for both layouts (frame_in_block's, frame_in_warps')
+# the arguments of a hair frame in one launch (frame_in_block, every layout), documented apart from its story
 _FRAME_ARGUMENTS = """
         Inputs:
           x (vec3, per particle, m): positions at the start of the frame
@@ -2604,30 +2604,51 @@ _FRAME_ARGUMENTS = """
 """
 
 
-def _frame_in_block(lanes, paths, loose=False, simplified=True):
-    """frame_in_block for strands of up to `lanes` particles, a block of that many lanes per strand,
-    its length pass compiled with the collision paths `paths` (PATHS_SPHERE_LISTS; PATHS_QUERIES for the
-    mesh, its BVH queried; or PATHS_NONE for no collider: no collision code); `loose`: the lists that
-    would run short are walked for by every lane before the chain, which walks only where a particle
-    may be inside an unlisted leaf (step_strands' loose variant, with the walks of find_short_lists and
-    list_leaves_ahead); `simplified`: simplified shape matching alone (variant read as SHAPE_SIMPLIFIED),
-    else either."""
-    # the length pass's step with the contact bounds as values, which every lane reads before the chain
-    # (its particle's, in parallel), so that no step of the chain waits on them
-    follow = _follow_leader(paths, ahead=True, loose=loose)
-    name = f"frame_in_block_{lanes}" + PATH_NAMES[paths] + ("_loose" if loose else "") + \
-        ("" if simplified else "_full")
+# the layouts of a hair frame in one launch, (side, groups, run): a block holds `side` strands side by side (a
+# lane each) and `groups` threads along every one of them, each thread a run of `run` particles; thread t works
+# on lane t % side's particles (t // side) * run ... (t // side) * run + run - 1, and a shared tile's element
+# k * side + l holds particle k of lane l's strand. FRAME_IN_BLOCK's: a block per strand, a thread per particle
+# (1, 32, 1) for strands of up to 32 particles, (1, 64, 1) up to 64; FRAME_IN_WARPS': 32 strands a block and
+# FRAME_WARPS warps along them, each a run of FRAME_RUN particles, so that each step of the length pass's chain
+# places a particle of 32 strands at once
+FRAME_LANES = (32, 64)
+FRAME_WARPS = 8
+FRAME_STRANDS = 32
+FRAME_RUN = FRAME_STRANDS // FRAME_WARPS
+FRAME_IN_WARPS_LAYOUT = (FRAME_STRANDS, FRAME_WARPS, FRAME_RUN)
+frame_handover = wp.types.matrix(shape=(2, 3), dtype=float)
+# the variants each layout compiles: (paths, loose, simplified); those for full shape matching take either at
+# run time
+FRAME_VARIANTS = ((PATHS_NONE, False, True), (PATHS_SPHERE_LISTS, False, True), (PATHS_SPHERE_LISTS, True, True),
+                  (PATHS_QUERIES, False, True), (PATHS_NONE, False, False), (PATHS_SPHERE_LISTS, False, False),
+                  (PATHS_QUERIES, False, False))
 
-    # sm_90: the sphere tree's takes 191 registers uncapped (10 one-warp blocks an SM), at 128 16 blocks with
-    # 380/348 bytes of spills (at 96 about 1 KB); without a collider 115, at 96 21 blocks with 56/48 bytes
-    # (at 64, 32 blocks: 260/296). Untimed on a GPU: capped where spills stay near 100 bytes or less; the
-    # full variants at 128 (without a collider 412/324 bytes at 96)
-    cap = 96 if paths == PATHS_NONE and simplified else 128
+
+def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap):
+    """A hair frame in one launch laid out as `side` strands a block, `groups` threads along each and
+    `run` particles a thread (see FRAME_LANES), its length pass compiled with the collision paths `paths`
+    (PATHS_SPHERE_LISTS; PATHS_QUERIES for the mesh, its BVH queried; or PATHS_NONE for no collider: no
+    collision code); `loose`: the lists that would run short are walked for before the chain, which walks
+    only where a particle may be inside an unlisted leaf (step_strands' loose variant, with the walks of
+    find_short_lists and list_leaves_ahead); `simplified`: simplified shape matching alone (variant read as
+    SHAPE_SIMPLIFIED), else either; `cap`: its registers on CUDA."""
+    # the length pass's step with the contact bounds as values, read for every particle before the chain
+    follow = _follow_leader(paths, ahead=True, loose=loose)
+    elements = side * groups * run
+    collides = paths != PATHS_NONE
+    lists = paths == PATHS_SPHERE_LISTS
+    run_rows = wp.types.matrix(shape=(run, 3), dtype=float)  # a thread's particles' vec3s, a row each
+    run_masses = wp.types.vector(length=run, dtype=float)
 
     # opt in: launched only where a run asks for it (HairSolver.frame_in_block), so a GPU's start does not
     # compile its variants
-    @wp.kernel(module=deferred_module(f"{__name__}.{name}", block_dim=lanes, opt_in=True), cuda_max_registers=cap,
-               name=name)
+    module = deferred_module(f"{__name__}.{name}", block_dim=side * groups, opt_in=True)
+    if run > 1:
+        # the loops over a thread's run unrolled (its registers indexed by constants), the chain's turns not:
+        # its walk, the length pass's step with its collisions, compiled once rather than once a group
+        wp.set_module_options({"max_unroll": run}, module=module)
+
+    @wp.kernel(module=module, cuda_max_registers=cap, name=name)
     def frame_in_block(
         x: wp.array(dtype=wp.vec3),
         v: wp.array(dtype=wp.vec3),
@@ -2659,267 +2680,69 @@ def _frame_in_block(lanes, paths, loose=False, simplified=True):
         v_out: wp.array(dtype=wp.vec3),
         first: int,
     ):
-        """A whole frame of hair substeps in one launch, a block of lanes per strand and a lane per
-        particle: the state stays in the lanes' registers from the frame's start to its end, and what
-        a particle needs of its neighbours (windows, parents, the FTL corrections) passes through the
-        block's shared memory, not through global memory. Each substep is step_strands' against the
-        sphere tree, the mesh (a BVH per substep's pose, queried) or no collider: the same strands,
-        bit for bit.
+        """A whole frame of hair substeps in one launch: the state stays on chip (registers and the block's
+        shared tiles) from the frame's start to its end, and what a particle needs of its neighbours
+        (windows, parents, the FTL corrections) passes through shared memory, not global memory. Compiled
+        per layout (side, groups, run): a block holds `side` strands side by side, a lane each, and `groups`
+        threads along every one of them, each thread a run of `run` consecutive particles. FRAME_IN_BLOCK's
+        layouts are a block per strand and a thread per particle, (1, 32, 1) and (1, 64, 1), whose chain
+        places a particle a barrier with one lane working; FRAME_IN_WARPS' is (32, 8, 4), 8 warps of runs of
+        4 along 32 strands, whose chain places a particle of 32 strands at each step, a barrier a run.
 
-        Prediction, the guides' pull and the shape passes run a lane per particle: each lane solves
-        the window starting at its particle (simplified: its centroid and axis; full: its rotation,
-        warm-started per window, and goal map), and every particle then moves toward the mean goal of
-        the windows holding it. The length pass is
-        a chain: lane k places its particle once lane k - 1 has placed its own (follow_leader, with
-        its collisions and contact bounds, which every lane reads before the chain), a barrier a
-        particle. The velocities then take each child's correction from shared memory. Compiled loose,
-        every lane first walks the sphere tree for its own list where step_strands' walks queued ahead
-        would (list_runs_short at the substep's start, list_leaves), all lanes at once, and the chain
-        walks only where a particle may be inside an unlisted leaf: the strands of step_strands' loose
-        variant with those walks.
+        Each substep is step_strands' against the sphere tree, the mesh (a BVH per substep's pose, queried)
+        or no collider: the same strands, bit for bit. Prediction, the guides' pull and the shape passes run
+        a thread per run: it solves the window starting at each of its particles (simplified: its centroid
+        and axis; full: its rotation, warm-started per window, and goal map), and every particle then moves
+        toward the mean goal of the windows holding it. The contact bounds are read before the length pass's
+        chain, for every particle at once, so that no step of the chain waits on them; compiled loose, every
+        thread first walks the sphere tree for its particles' lists where step_strands' walks queued ahead
+        would (list_runs_short at the substep's start, list_leaves), and the chain walks only where a
+        particle may be inside an unlisted leaf. The chain: the threads along a strand in turn each place
+        their run (follow_leader, with its collisions and contact bounds) and hand the last two placements
+        to the next; the placements go to x_out (the particles' final positions at the frame's end), which
+        the block reads back after the chain for the velocities with each child's correction.
 
         The collider is posed for every substep ahead of the frame (FramePoses): the launches between
         substeps that step_strands needs (apply_pose, contact_motion) are all made before this one.
 
-        Launch: one thread per lane, a block of `lanes` per strand (dim = [strands], block_dim = lanes)
-        with wp.launch_tiled, every strand of at most `lanes` particles; on the CPU with
-        wp.config.enable_cpu_blocks (a block's lanes as fibers); first: block b works on strand first + b.
-        """
-        block, lane = wp.tid()
-        s = block + first
-        start = strand_start[s]
-        count = strand_start[s + 1] - start
-        here = lane < count
-        i = start + wp.min(lane, count - 1)  # lanes past the tip shadow it and write nothing
-        placed = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")
-        centroids = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")
-        axes = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")
-        corrections = wp.tile_zeros(shape=lanes, dtype=wp.vec3, storage="shared")
-        window_at = wp.tile_zeros(shape=lanes, dtype=wp.int32, storage="shared")
-        w = int(-1)
-        if here:
-            w = per.window_at[i]
-        wp.tile_scatter_masked(window_at, lane, w, True)
-        shapes = variant
-        if wp.static(simplified):
-            shapes = int(SHAPE_SIMPLIFIED)  # a constant: the full variant's code is not compiled in
-        # the full variant's windows: their goal maps, and the particles' rest positions from the root
-        frames = wp.tile_zeros(shape=wp.static(lanes if not simplified else 1), dtype=wp.mat33, storage="shared")
-        rest = wp.tile_zeros(shape=wp.static(lanes if not simplified else 1), dtype=wp.vec3, storage="shared")
-        rest_local = wp.vec3(0.0)
-        if wp.static(not simplified):
-            rest_local = per.rest_local[i]
-            wp.tile_scatter_masked(rest, lane, rest_local, here)
-        p0 = x[i]
-        vel = v[i]
-        inv_mass = per.inv_mass[i]
-        length = per.rest_length[i]
-        binding = int(-1)
-        weight = float(0.0)
-        local = wp.vec3(0.0)
-        rb = int(0)
-        if bound != 0:
-            if inv_mass == 0.0:
-                binding = particle_binding[i]
-            weight = per.hold[i] * hold_stiffness
-            if weight > 0.0:
-                local = per.root_local[i]
-                rb = root_binding[s]
-        for j in range(substeps):
-            time = clock[0] + poses.offsets[j]
-            posed = skin
-            target = wp.vec3(0.0)
-            if bound != 0:
-                posed.mesh_points = poses.points[j + 1]
-                if weight > 0.0:
-                    target = held_target(posed, rb, local)
-            p, _vel = predicted_position(p0, vel, inv_mass, forces, time, dt, posed, binding, target, weight)
-            if pull.stiffness > 0.0:
-                guide_frame, guide_next, guide_weight = guide_frames(pull, time)
-                block_sync(placed)
-                wp.tile_scatter_masked(placed, lane, p, here)
-                root = placed[0]
-                if here and inv_mass != 0.0:
-                    p = guided_position(pull, p, root, s, i, guide_frame, guide_next, guide_weight)
-            for shape_pass in range(passes):
-                block_sync(placed)
-                wp.tile_scatter_masked(placed, lane, p, here)
-                c = wp.vec3(0.0)
-                u = wp.vec3(0.0)
-                if shapes == SHAPE_SIMPLIFIED:
-                    if here and window_at[lane] >= 0:
-                        u, _straight = window_direction(placed, lane, 1, window_size)
-                        c = window_centroid(placed, lane, 1, window_size)
-                    wp.tile_scatter_masked(centroids, lane, c, True)
-                    wp.tile_scatter_masked(axes, lane, u, True)
-                    if here and inv_mass != 0.0:
-                        p = simplified_shaped_position(p, lane, lane, 1, i, 1, window_size, stiffness, window_at,
-                                                       centroids, axes, per.offsets, per.slots)
-                if wp.static(not simplified):
-                    if shapes != SHAPE_SIMPLIFIED:
-                        # as update_window and shaped_position: the window at each lane solved, then every
-                        # particle moved toward the mean goal of the windows holding it
-                        solve = int(0)
-                        if j == 0 and shape_pass == 0:
-                            solve = exact
-                        R = wp.mat33(0.0)
-                        if here and window_at[lane] >= 0:
-                            R, c = solved_window(placed, lane, 1, window_size, rest, per.rest_centroid[i], rotations, w,
-                                                 solve, rotation_iterations)
-                        wp.tile_scatter_masked(frames, lane, R, True)
-                        wp.tile_scatter_masked(centroids, lane, c, True)  # the goal translations, here
-                        if here and inv_mass != 0.0:
-                            p = full_shaped_position(p, lane, count, window_size, stiffness, frames, centroids, lane, 1,
-                                                     rest_local)
-            touching = substep_contact(contact, poses, j)
-            if wp.static(loose):
-                if here and lane >= pinned_per_strand and touching.use_bounds != 0:
-                    if list_runs_short(p0, p0, i, touching, list_slack):
-                        list_leaves(i, p0, touching)
-            held, held_leaves, held_beyond = held_bounds(i, int(touching.mode == COLLIDE_SPHERE_TREE), touching)
-            block_sync(placed)
-            wp.tile_scatter_masked(placed, lane, p, here)
-            correction = wp.vec3(0.0)
-            for k in range(pinned_per_strand, count):
-                if lane == k:
-                    predicted = p
-                    p = follow(placed[k - 1], placed[wp.max(k - 2, 0)], k, predicted, length, i, p0, touching, held,
-                               held_leaves, held_beyond)
-                    correction = p - predicted
-                wp.tile_scatter_masked(placed, k, p, lane == k)
-            wp.tile_scatter_masked(corrections, lane, correction, True)
-            step_v = (p - p0) / dt
-            if lane + 1 < count and inv_mass > 0.0:
-                step_v = step_v - (ftl_damping / dt) * corrections[lane + 1]
-            p0 = p
-            vel = step_v
-        if here:
-            x_out[i] = p0
-            v_out[i] = vel
-
-    frame_in_block.func.__doc__ += _FRAME_ARGUMENTS
-    return frame_in_block
-
-
-# a block of 32 lanes (one warp) for strands of up to 32 particles, 64 up to 64
-FRAME_LANES = (32, 64)
-# keyed by (lanes, paths, loose, simplified); the variants for full shape matching take either at run time
-FRAME_IN_BLOCK = {(lanes, paths, loose, simplified): _frame_in_block(lanes, paths, loose, simplified)
-                  for lanes in FRAME_LANES
-                  for paths, loose, simplified in ((PATHS_NONE, False, True), (PATHS_SPHERE_LISTS, False, True),
-                                                   (PATHS_SPHERE_LISTS, True, True), (PATHS_QUERIES, False, True),
-                                                   (PATHS_NONE, False, False), (PATHS_SPHERE_LISTS, False, False),
-                                                   (PATHS_QUERIES, False, False))}
-frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS, False, True)]
-
-
-# a frame in warps: a block of 32 strands, a lane per strand and each of FRAME_WARPS warps a run of
-# FRAME_RUN particles along it, so that each step of the length pass's chain places a particle of 32
-# strands at once; a tile's element k * 32 + l holds particle k of lane l's strand
-FRAME_WARPS = 8
-FRAME_STRANDS = 32
-FRAME_RUN = FRAME_STRANDS // FRAME_WARPS
-FRAME_ELEMENTS = FRAME_STRANDS * FRAME_WARPS * FRAME_RUN
-frame_run = wp.types.matrix(shape=(FRAME_RUN, 3), dtype=float)  # a thread's particles' vec3s, a row each
-frame_run_masses = wp.types.vector(length=FRAME_RUN, dtype=float)
-frame_handover = wp.types.matrix(shape=(2, 3), dtype=float)
-
-
-def _frame_in_warps(paths, loose=False, simplified=True):
-    """frame_in_warps with the length pass compiled with the collision paths `paths`, `loose` and
-    `simplified` as _frame_in_block's."""
-    follow = _follow_leader(paths, ahead=True, loose=loose)
-    name = "frame_in_warps" + PATH_NAMES[paths] + ("_loose" if loose else "") + ("" if simplified else "_full")
-    lanes = FRAME_STRANDS
-    run = FRAME_RUN
-    elements = FRAME_ELEMENTS
-    collides = paths != PATHS_NONE
-    lists = paths == PATHS_SPHERE_LISTS
-
-    # the block's threads hold four particles each: registers for their velocities, the rest of what a step
-    # needs in the block's shared tiles (58 KB without a collider, 83 KB with the sphere tree, 111 KB for full
-    # shape matching on the mesh: two blocks an SM, as the registers allow); untimed on a GPU
-    module = deferred_module(f"{__name__}.{name}", block_dim=lanes * FRAME_WARPS, opt_in=True)
-    # the loops over a thread's run unrolled (its registers indexed by constants), the chain's turns not:
-    # its walk, the length pass's step with its collisions, compiled once rather than once a warp
-    wp.set_module_options({"max_unroll": run}, module=module)
-
-    @wp.kernel(module=module, cuda_max_registers=128, name=name)
-    def frame_in_warps(
-        x: wp.array(dtype=wp.vec3),
-        v: wp.array(dtype=wp.vec3),
-        strand_start: wp.array(dtype=wp.int32),
-        pinned_per_strand: int,
-        forces: StrandForces,
-        clock: wp.array(dtype=float),
-        poses: FramePoses,
-        substeps: int,
-        dt: float,
-        bound: int,
-        skin: SkinBinding,
-        particle_binding: wp.array(dtype=wp.int32),
-        root_binding: wp.array(dtype=wp.int32),
-        hold_stiffness: float,
-        pull: GuidePull,
-        window_size: int,
-        variant: int,
-        passes: int,
-        stiffness: float,
-        exact: int,
-        rotation_iterations: int,
-        rotations: wp.array(dtype=wp.quat),
-        per: StrandSlots,
-        contact: StrandContact,
-        ftl_damping: float,
-        list_slack: float,
-        x_out: wp.array(dtype=wp.vec3),
-        v_out: wp.array(dtype=wp.vec3),
-        first: int,
-    ):
-        """frame_in_block's frame with the strands side by side: a block of 32 strands, a lane per strand,
-        and each of the block's 8 warps holding a run of 4 particles along its lanes' strands. Where
-        frame_in_block's chain places one particle a barrier with one lane of 32 working, this one places
-        a particle of 32 strands at each step: a warp walks its run in its registers and hands its last
-        two placements to the next warp through shared memory, a barrier a run. The chain's placements go
-        to x_out (the particles' final positions at the frame's end), which the block reads back after the
-        chain. The same strands as step_strands, bit for bit.
-
-        Launch: one thread per run of 4 particles (dim = [ceil(strands / 32)], block_dim = 256), a block
-        per 32 strands with wp.launch_tiled, every strand of at most 32 particles; on the CPU with
-        wp.config.enable_cpu_blocks; first: block b works on strands first + 32 b ... first + 32 b + 31.
+        Launch: one thread per run (dim = [ceil(strands / side)], block_dim = side * groups) with
+        wp.launch_tiled, every strand of at most groups * run particles; on the CPU with
+        wp.config.enable_cpu_blocks (a block's threads as fibers); first: block b works on strands
+        first + side * b ... first + side * b + side - 1.
         """
         block, t = wp.tid()
-        lane = t % lanes
-        warp = t // lanes
+        lane = t % side
+        group = t // side
         strands_total = strand_start.shape[0] - 1
-        s = first + block * lanes + lane
+        s = first + block * side + lane
         live = s < strands_total
         s = wp.min(s, strands_total - 1)  # lanes past the last strand shadow it and write nothing
         start = strand_start[s]
         count = strand_start[s + 1] - start
         placed = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")  # predicted: the chain's input
-        # the substep's start positions: the thread's own in the tile rather than its registers (12 fewer), where
-        # the chain reads them too
+        # the substep's start positions: a thread's own in the tile rather than its registers, where the chain
+        # reads them too
         starts = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
         lengths = wp.tile_zeros(shape=elements, dtype=float, storage="shared")
         centroids = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
         axes = wp.tile_zeros(shape=elements, dtype=wp.vec3, storage="shared")
         window_at = wp.tile_zeros(shape=elements, dtype=wp.int32, storage="shared")
-        # a run's last two placements (rows: the last, the one before it), handed to the next warp at one barrier
-        handovers = wp.tile_zeros(shape=lanes, dtype=frame_handover, storage="shared")
+        # a turn's last two placements (rows: the last, the one before it), handed to the next at one barrier
+        handovers = wp.tile_zeros(shape=side, dtype=frame_handover, storage="shared")
         held_at = wp.tile_zeros(shape=wp.static(elements if collides else 1), dtype=float, storage="shared")
         leaves_at = wp.tile_zeros(shape=wp.static(elements if lists else 1), dtype=wp.vec4i, storage="shared")
         beyond_at = wp.tile_zeros(shape=wp.static(elements if lists else 1), dtype=float, storage="shared")
+        # the full variant's windows: their goal maps, and the particles' rest positions from the root
         frames = wp.tile_zeros(shape=wp.static(elements if not simplified else 1), dtype=wp.mat33, storage="shared")
         rest = wp.tile_zeros(shape=wp.static(elements if not simplified else 1), dtype=wp.vec3, storage="shared")
         shapes = variant
         if wp.static(simplified):
-            shapes = int(SHAPE_SIMPLIFIED)
-        vel = frame_run()
-        inv_mass = frame_run_masses()
+            shapes = int(SHAPE_SIMPLIFIED)  # a constant: the full variant's code is not compiled in
+        vel = run_rows()
+        inv_mass = run_masses()
         for h in range(wp.static(run)):
-            k = warp * run + h
-            e = k * lanes + lane
+            k = group * run + h
+            e = k * side + lane
             here = live and k < count
             i = start + wp.min(k, count - 1)  # particles past the tip shadow it and write nothing
             w = int(-1)
@@ -2936,17 +2759,21 @@ def _frame_in_warps(paths, loose=False, simplified=True):
         if bound != 0:
             rb = root_binding[s]
         # a bound that is not a constant to Warp: loops over a run that index no registers by it are not
-        # unrolled, so their heavy code (the windows' solves, the tree walks) is compiled once, not 4 times:
-        # the loose variant's spills fall by a third
+        # unrolled, so their heavy code (the windows' solves, the tree walks) is compiled once, not `run` times
         each = int(run)
+        # the chain's turns (runs): every group's where strands lie side by side; a block per strand takes as
+        # many as its particles need (the same in every lane, so all of them meet each turn's barrier)
+        turns = int(groups)
+        if wp.static(side == 1):
+            turns = wp.min(turns, (count + run - 1) // run)
         for j in range(substeps):
             time = clock[0] + poses.offsets[j]
             posed = skin
             if bound != 0:
                 posed.mesh_points = poses.points[j + 1]
-            p = frame_run()
+            p = run_rows()
             for h in range(wp.static(run)):
-                i = start + wp.min(warp * run + h, count - 1)
+                i = start + wp.min(group * run + h, count - 1)
                 binding = int(-1)
                 weight = float(0.0)
                 target = wp.vec3(0.0)
@@ -2956,75 +2783,77 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                     weight = per.hold[i] * hold_stiffness
                     if weight > 0.0:
                         target = held_target(posed, rb, per.root_local[i])
-                q, _vel = predicted_position(starts[(warp * run + h) * lanes + lane], vel[h], inv_mass[h], forces, time,
-                                             dt, posed, binding, target, weight)
+                q, _vel = predicted_position(starts[(group * run + h) * side + lane], vel[h], inv_mass[h], forces,
+                                             time, dt, posed, binding, target, weight)
                 p[h] = q
             if pull.stiffness > 0.0:
                 guide_frame, guide_next, guide_weight = guide_frames(pull, time)
                 block_sync(placed)
                 for h in range(wp.static(run)):
-                    k = warp * run + h
-                    wp.tile_scatter_masked(placed, k * lanes + lane, p[h], live and k < count)
+                    k = group * run + h
+                    wp.tile_scatter_masked(placed, k * side + lane, p[h], live and k < count)
                 root = placed[lane]
                 for h in range(wp.static(run)):
-                    k = warp * run + h
+                    k = group * run + h
                     if live and k < count and inv_mass[h] != 0.0:
                         p[h] = guided_position(pull, p[h], root, s, start + k, guide_frame, guide_next, guide_weight)
             for shape_pass in range(passes):
                 block_sync(placed)
                 for h in range(wp.static(run)):
-                    k = warp * run + h
-                    wp.tile_scatter_masked(placed, k * lanes + lane, p[h], live and k < count)
+                    k = group * run + h
+                    wp.tile_scatter_masked(placed, k * side + lane, p[h], live and k < count)
                 if shapes == SHAPE_SIMPLIFIED:
                     for h in range(each):
-                        k = warp * run + h
-                        e = k * lanes + lane
+                        k = group * run + h
+                        e = k * side + lane
                         c = wp.vec3(0.0)
                         u = wp.vec3(0.0)
                         if live and k < count and window_at[e] >= 0:
-                            u, _straight = window_direction(placed, e, lanes, window_size)
-                            c = window_centroid(placed, e, lanes, window_size)
+                            u, _straight = window_direction(placed, e, side, window_size)
+                            c = window_centroid(placed, e, side, window_size)
                         wp.tile_scatter_masked(centroids, e, c, True)
                         wp.tile_scatter_masked(axes, e, u, True)
                     for h in range(wp.static(run)):
-                        k = warp * run + h
+                        k = group * run + h
                         if live and k < count and inv_mass[h] != 0.0:
-                            p[h] = simplified_shaped_position(p[h], k, k * lanes + lane, lanes, start + k, 1,
+                            p[h] = simplified_shaped_position(p[h], k, k * side + lane, side, start + k, 1,
                                                               window_size, stiffness, window_at, centroids, axes,
                                                               per.offsets, per.slots)
                 if wp.static(not simplified):
                     if shapes != SHAPE_SIMPLIFIED:
+                        # as update_window and shaped_position: the window at each particle solved, then every
+                        # particle moved toward the mean goal of the windows holding it
                         solve = int(0)
                         if j == 0 and shape_pass == 0:
                             solve = exact
                         for h in range(each):
-                            k = warp * run + h
-                            e = k * lanes + lane
+                            k = group * run + h
+                            e = k * side + lane
                             R = wp.mat33(0.0)
                             c = wp.vec3(0.0)
                             w = window_at[e]
                             if live and k < count and w >= 0:
-                                R, c = solved_window(placed, e, lanes, window_size, rest, per.rest_centroid[start + k],
+                                R, c = solved_window(placed, e, side, window_size, rest, per.rest_centroid[start + k],
                                                      rotations, w, solve, rotation_iterations)
                             wp.tile_scatter_masked(frames, e, R, True)
                             wp.tile_scatter_masked(centroids, e, c, True)  # the goal translations, here
                         for h in range(wp.static(run)):
-                            k = warp * run + h
+                            k = group * run + h
                             if live and k < count and inv_mass[h] != 0.0:
                                 p[h] = full_shaped_position(p[h], k, count, window_size, stiffness, frames, centroids,
-                                                            k * lanes + lane, lanes, per.rest_local[start + k])
+                                                            k * side + lane, side, per.rest_local[start + k])
             touching = substep_contact(contact, poses, j)
             # what the chain reads of each particle, written where it reads it before the chain starts
             block_sync(placed)
             for h in range(wp.static(run)):
-                k = warp * run + h
+                k = group * run + h
                 here = live and k < count
-                wp.tile_scatter_masked(placed, k * lanes + lane, p[h], here)
+                wp.tile_scatter_masked(placed, k * side + lane, p[h], here)
                 if here and k < pinned_per_strand:
                     x_out[start + k] = p[h]  # a pinned particle stays where it was predicted
             for h in range(each):
-                k = warp * run + h
-                e = k * lanes + lane
+                k = group * run + h
+                e = k * side + lane
                 here = live and k < count
                 i = start + wp.min(k, count - 1)
                 if wp.static(loose):
@@ -3039,66 +2868,96 @@ def _frame_in_warps(paths, loose=False, simplified=True):
                     if wp.static(lists):
                         wp.tile_scatter_masked(leaves_at, e, held_leaves, here)
                         wp.tile_scatter_masked(beyond_at, e, held_beyond, here)
-            # the chain: each warp in turn walks its run of its lanes' strands, then hands over
+            # the chain, one loop of steps: step k is group k // run's, which takes the last two placements from
+            # the group before it at its first step and hands its own to the next at its last, a barrier a run
             parent = placed[lane]
             before = parent
-            for turn in range(wp.static(FRAME_WARPS)):
-                if warp == turn:
-                    if turn > 0:
-                        handover = handovers[lane]
-                        parent = handover[0]
-                        before = handover[1]
-                    steps = wp.min(count - turn * run, run)
-                    if not live:
-                        steps = 0
-                    for h in range(steps):
-                        k = turn * run + h
-                        e = k * lanes + lane
-                        q = placed[e]
-                        if k >= pinned_per_strand:
-                            held = float(NO_BOUND)
-                            held_leaves = wp.vec4i(-1, -1, -1, -1)
-                            held_beyond = float(NO_BOUND)
-                            if wp.static(collides):
-                                held = held_at[e]
-                            if wp.static(lists):
-                                held_leaves = leaves_at[e]
-                                held_beyond = beyond_at[e]
-                            q = follow(parent, before, k, q, lengths[e], start + k, starts[e], touching, held,
-                                       held_leaves, held_beyond)
-                            x_out[start + k] = q
-                        before = parent
-                        parent = q
-                wp.tile_scatter_masked(handovers, lane, wp.matrix_from_rows(parent, before), warp == turn)
+            for k in range(turns * run):
+                h = k % run
+                mine = group == k // run
+                if mine and h == 0 and k > 0:
+                    handover = handovers[lane]
+                    parent = handover[0]
+                    before = handover[1]
+                if mine and live and k < count:
+                    e = k * side + lane
+                    q = placed[e]
+                    if k >= pinned_per_strand:
+                        held = float(NO_BOUND)
+                        held_leaves = wp.vec4i(-1, -1, -1, -1)
+                        held_beyond = float(NO_BOUND)
+                        if wp.static(collides):
+                            held = held_at[e]
+                        if wp.static(lists):
+                            held_leaves = leaves_at[e]
+                            held_beyond = beyond_at[e]
+                        q = follow(parent, before, k, q, lengths[e], start + k, starts[e], touching, held,
+                                   held_leaves, held_beyond)
+                        x_out[start + k] = q
+                    before = parent
+                    parent = q
+                if h == run - 1:
+                    wp.tile_scatter_masked(handovers, lane, wp.matrix_from_rows(parent, before), mine)
             # the velocities, with each child's correction, from the placements the chain left in x_out
             for h in range(wp.static(run)):
-                k = warp * run + h
-                e = k * lanes + lane
+                k = group * run + h
+                e = k * side + lane
                 q = p[h]
                 if live and k < count:
                     q = x_out[start + k]
                 step_v = (q - starts[e]) / dt
                 if live and k + 1 < count and inv_mass[h] > 0.0:
-                    step_v = step_v - (ftl_damping / dt) * (x_out[start + k + 1] - placed[e + lanes])
+                    step_v = step_v - (ftl_damping / dt) * (x_out[start + k + 1] - placed[e + side])
                 vel[h] = step_v
                 wp.tile_scatter_masked(starts, e, q, True)  # read above by this thread alone
         for h in range(wp.static(run)):
-            k = warp * run + h
+            k = group * run + h
             if live and k < count:
-                x_out[start + k] = starts[k * lanes + lane]
+                x_out[start + k] = starts[k * side + lane]
                 v_out[start + k] = vel[h]
 
-    frame_in_warps.func.__doc__ += _FRAME_ARGUMENTS
-    return frame_in_warps
+    frame_in_block.func.__doc__ += _FRAME_ARGUMENTS
+    return frame_in_block
 
 
-# keyed by (paths, loose, simplified), the variants of FRAME_IN_BLOCK
-FRAME_IN_WARPS = {(paths, loose, simplified): _frame_in_warps(paths, loose, simplified)
-                  for paths, loose, simplified in ((PATHS_NONE, False, True), (PATHS_SPHERE_LISTS, False, True),
-                                                   (PATHS_SPHERE_LISTS, True, True), (PATHS_QUERIES, False, True),
-                                                   (PATHS_NONE, False, False), (PATHS_SPHERE_LISTS, False, False),
-                                                   (PATHS_QUERIES, False, False))}
-frame_in_warps = FRAME_IN_WARPS[(PATHS_SPHERE_LISTS, False, True)]
+_FRAME_KERNELS = {}
+
+
+def frame_variant(layout, paths, loose=False, simplified=True):
+    """The frame_in_block kernel for `layout` (side, groups, run: see FRAME_LANES) and its length pass's
+    collision paths `paths`, `loose` and `simplified` (_frame_kernel), compiled in a module of its own at
+    its first launch: FRAME_IN_BLOCK's and FRAME_IN_WARPS' layouts, or any other a GPU is to time
+    (HairSolver.frame_layout). Raises ValueError for a layout no block holds."""
+    side, groups, run = (int(n) for n in layout)
+    if min(side, groups, run) < 1 or side * groups > 1024:
+        raise ValueError(f"a frame's layout takes side, groups and run >= 1 and at most 1024 threads a block "
+                         f"(side x groups), not {side}x{groups}x{run}")
+    key = (side, groups, run, paths, loose, simplified)
+    if key not in _FRAME_KERNELS:
+        suffix = PATH_NAMES[paths] + ("_loose" if loose else "") + ("" if simplified else "_full")
+        if side == 1 and run == 1 and groups in FRAME_LANES:
+            name = f"frame_in_block_{groups}"
+        elif (side, groups, run) == FRAME_IN_WARPS_LAYOUT:
+            name = "frame_in_warps"
+        else:
+            name = f"frame_{side}x{groups}x{run}"
+        # sm_90, a block per strand: the sphere tree's takes 191 registers uncapped (10 one-warp blocks an SM),
+        # at 128 16 blocks with 380/348 bytes of spills (at 96 about 1 KB); without a collider 115, at 96 21
+        # blocks with 56/48 bytes (at 64, 32 blocks: 260/296). Untimed on a GPU: capped where spills stay near
+        # 100 bytes or less; the full variants at 128 (without a collider 412/324 bytes at 96). 32 strands a
+        # block: 128 (uncapped 237-255), two blocks an SM; a block of more threads as the SM's 64k registers allow
+        cap = 96 if side == 1 and paths == PATHS_NONE and simplified else min(128, 65536 // (side * groups))
+        _FRAME_KERNELS[key] = _frame_kernel(name + suffix, side, groups, run, paths, loose, simplified, cap)
+    return _FRAME_KERNELS[key]
+
+
+# keyed by (lanes, paths, loose, simplified): a block per strand
+FRAME_IN_BLOCK = {(lanes, *variant): frame_variant((1, lanes, 1), *variant)
+                  for lanes in FRAME_LANES for variant in FRAME_VARIANTS}
+# keyed by (paths, loose, simplified): 32 strands a block; its tiles take 58 KB of shared memory without a
+# collider, 83 KB with the sphere tree, 111 KB for full shape matching on the mesh (two blocks an SM)
+FRAME_IN_WARPS = {variant: frame_variant(FRAME_IN_WARPS_LAYOUT, *variant) for variant in FRAME_VARIANTS}
+frame_in_block = FRAME_IN_BLOCK[(32, PATHS_SPHERE_LISTS, False, True)]
 
 
 @wp.func
