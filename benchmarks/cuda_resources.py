@@ -38,9 +38,13 @@ from common import commit, table  # noqa: E402
 
 MODULES = ["strands", "cloth", "collision", "detail", "skinning"]
 BASELINE = Path(__file__).resolve().parent / "cuda_resources_sm90.json"
-HEADER = ["module", "kernel", "registers", "cap", "stack B", "spill stores B", "spill loads B", "shared B"]
+HEADER = ["module", "kernel", "registers", "cap", "stack B", "spill stores B", "spill loads B", "shared B", "tiles B",
+          "block", "blocks an SM (limit)"]
 # a block's static shared memory on every architecture since sm_70 (more is an opt-in Warp does not take)
 STATIC_SHARED_LIMIT = 48 * 1024
+# what an SM of sm_90 (H100, H200) holds: CUDA's occupancy rules for compute capability 9.0
+SM90 = {"registers": 65536, "register_unit": 256, "warps": 64, "blocks": 32, "shared": 233472, "block_shared": 232448,
+        "reserved_shared": 1024}
 
 
 @dataclass
@@ -52,6 +56,22 @@ class KernelResources:
     spill_stores: int
     spill_loads: int
     shared: int = 0  # bytes of static shared memory a block of the module's block_dim lanes takes
+    tiles: int = 0  # bytes of dynamic shared memory its tiles take a block (Warp's launch asks for them)
+    block: int = 256  # the lanes of a block its module is compiled (and launched) with
+
+
+def blocks_per_sm(k, sm=SM90):
+    """(blocks of kernel k an SM holds at once, what limits it: registers, shared, threads or blocks) by
+    CUDA's occupancy rules: registers are given a warp in units of register_unit, and each block's shared
+    memory is its static and dynamic bytes plus what the system reserves. 0 where a block does not fit."""
+    warps = -(-k.block // 32)
+    per_warp = -(-k.registers * 32 // sm["register_unit"]) * sm["register_unit"]
+    shared = k.shared + k.tiles + sm["reserved_shared"]
+    limits = {"registers": sm["registers"] // per_warp // warps if per_warp else sm["blocks"],
+              "shared": sm["shared"] // shared if k.shared + k.tiles <= sm["block_shared"] else 0,
+              "threads": sm["warps"] // warps, "blocks": sm["blocks"]}
+    limit = min(limits, key=limits.get)
+    return limits[limit], limit
 
 
 def find_ptxas():
@@ -174,7 +194,16 @@ def warp_module_resources(name, arch, ptxas, isa, workdir):
                          capture_output=True, text=True)
     if out.returncode != 0:
         raise RuntimeError(f"ptxas failed on {name}: {(out.stderr or out.stdout).strip()[:300]}")
-    return parse_ptxas(out.stderr + out.stdout, register_caps(ptx)), note
+    found = parse_ptxas(out.stderr + out.stdout, register_caps(ptx))
+    # the tiles' bytes Warp's build wrote beside the PTX ({entry}_smem_bytes), and the block it compiled for
+    tiles = {}
+    for meta in Path(ptx_path).parent.glob(f"wp_{name}_*.meta"):
+        for key, value in json.loads(meta.read_text()).items():
+            tiles[kernel_name(key.removesuffix("_smem_bytes"))] = int(value)
+    block = wp.get_module(name).options.get("block_dim", 256)
+    for k in found:
+        k.tiles, k.block = tiles.get(k.kernel, 0), block
+    return found, note
 
 
 def baseline_record(found, warp_version, isa):
@@ -199,10 +228,46 @@ def spill_regressions(found, baseline):
     return worse
 
 
+# the layouts benchmarks/run_gpu.sh frame-layouts times: (side, groups, run) of strands.frame_variant
+FRAME_LAYOUTS = ["32x8x4", "16x8x4", "8x8x4", "4x8x4", "1x8x4", "64x4x8"]
+FRAME_HEADER = ["layout", "collider", "registers", "spill stores / loads B", "tiles B", "block", "blocks an SM (limit)",
+                "strands an SM", "chain warps an SM", "barriers a substep's chain"]
+
+
+def frame_layouts_table(layouts, arch, ptxas, isa):
+    """A table of what an SM of sm_90 holds of the hair frame in each layout ('SIDExGROUPSxRUN'), simplified
+    shape matching on the sphere tree and with no collider: its registers, spills and tiles, blocks an SM,
+    the strands those hold (their chains walk side by side) and the warps their chains keep busy at each
+    step (a warp per 32 strands of a block, or part of one); the barriers of a substep's chain are its
+    turns, one per group."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    from warp_kernels import strands
+
+    variants = [(tuple(int(n) for n in text.split("x")), paths) for text in layouts
+                for paths in (strands.PATHS_SPHERE_LISTS, strands.PATHS_NONE)]
+    kernels = [strands.frame_variant(layout, paths) for layout, paths in variants]
+    with tempfile.TemporaryDirectory(prefix="cfx_ptx_") as workdir, \
+            ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        found = list(pool.map(lambda k: warp_module_resources(k.module.name, arch, ptxas, isa, workdir)[0][0], kernels))
+    rows = []
+    for ((side, groups, run), paths), k in zip(variants, found, strict=True):
+        blocks, limit = blocks_per_sm(k)
+        rows.append([f"{side}x{groups}x{run}", "sphere tree" if paths == strands.PATHS_SPHERE_LISTS else "none",
+                     k.registers, f"{k.spill_stores} / {k.spill_loads}", k.tiles, k.block, f"{blocks} ({limit})",
+                     blocks * side, blocks * -(-side // 32), groups])
+    return table(FRAME_HEADER, rows)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--modules", nargs="*", default=MODULES, choices=MODULES)
     parser.add_argument("--arch", type=int, default=90, help="SM architecture (90: H100 and H200)")
+    parser.add_argument("--frame-layouts", nargs="*", default=None, metavar="SIDExGROUPSxRUN",
+                        help="also compile the hair frame (strands.frame_variant, simplified shape matching on the "
+                             "sphere tree and with no collider) in these layouts and say what an SM holds of each "
+                             "(none given: the six of run_gpu.sh frame-layouts)")
     parser.add_argument("--record", action="store_true",
                         help=f"write the result as the recorded baseline ({BASELINE.name}; every module, sm_90)")
     args = parser.parse_args()
@@ -235,9 +300,13 @@ def main():
             if note:
                 print(f"# {name}: {note}")
             for k in sorted(found, key=lambda k: k.kernel):
+                blocks, limit = blocks_per_sm(k)
                 rows.append([name, k.kernel, k.registers, k.cap or "-", k.stack, k.spill_stores, k.spill_loads,
-                             k.shared])
+                             k.shared, k.tiles, k.block, f"{blocks} ({limit})"])
     print(table(HEADER, rows))
+    if args.frame_layouts is not None:
+        print()
+        print(frame_layouts_table(args.frame_layouts or FRAME_LAYOUTS, args.arch, ptxas, isa))
     if args.arch == 90 and BASELINE.exists():
         worse = spill_regressions(by_module, json.loads(BASELINE.read_text()))
         print("# spills against the recorded baseline: " + ("; ".join(worse) if worse else "none above it"))

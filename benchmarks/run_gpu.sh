@@ -85,7 +85,7 @@ for part in "$@"; do
             --section MemoryWorkloadAnalysis python3 benchmarks/hair.py --device cuda --no-peer --strands 100000 \
             --cases simplified1+spheres --frames 2 --try $try 2>&1 | tee "$out/ncu-100k-$way.txt" | grep -v "^|"
         done ;;
-    frame-layouts) layouts=(32x8x4 16x8x4 32x16x2 8x8x4 1x8x4 64x4x8)
+    frame-layouts) layouts=(32x8x4 16x8x4 8x8x4 4x8x4 1x8x4 64x4x8)  # cuda_resources.FRAME_LAYOUTS
         timeout 560 python3 benchmarks/hair.py --device cuda --no-peer --strands 100000 --cases simplified1+spheres \
           --try "${layouts[@]/#/frame_in_block=on,frame_layout=}" 2>&1 | tee "$out/frame-layouts-hair.log" ;;
     realtime) timeout 540 python3 benchmarks/realtime.py --device cuda 2>&1 | tee "$out/realtime.log" ;;

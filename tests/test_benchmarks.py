@@ -113,6 +113,42 @@ def test_cuda_resources_reads_each_kernels_registers_spills_and_cap():
         "strands.follow_the_leader: spills 112/136 B, recorded 112/100 B"]
 
 
+def test_cuda_resources_counts_the_blocks_an_sm_holds():
+    """blocks_per_sm: CUDA's occupancy rules for sm_90 (registers given a warp 256 at a time, 1 KB of
+    shared memory reserved a block), checked against the H100's figures: 96 registers on one-warp blocks
+    give 21 blocks, 128 on 256-lane blocks 2; 131 KB of tiles leave room for one block, 240 KB for none."""
+    from cuda_resources import KernelResources, blocks_per_sm
+
+    def kernel(registers, block, tiles=0, shared=1024):
+        return KernelResources("k", registers, 128, 0, 0, 0, shared, tiles, block)
+
+    assert blocks_per_sm(kernel(96, 32, 1936, 128)) == (21, "registers")
+    assert blocks_per_sm(kernel(96, 8)) == (21, "registers")  # a block of 8 lanes still takes a warp's registers
+    assert blocks_per_sm(kernel(128, 256, 82752)) == (2, "registers")
+    assert blocks_per_sm(kernel(128, 256, 131840)) == (1, "shared")
+    assert blocks_per_sm(kernel(128, 256, 240000)) == (0, "shared")
+    assert blocks_per_sm(kernel(24, 256)) == (8, "threads")
+    assert blocks_per_sm(kernel(16, 32)) == (32, "blocks")
+
+
+@pytest.mark.slow
+def test_frame_layouts_say_what_an_sm_holds_of_each():
+    """cuda_resources --frame-layouts: the hair frame compiled for sm_90 in a layout of 2 strands a block,
+    4 threads along each with runs of 2, on the sphere tree and with no collider: a row each, with the
+    strands its blocks hold an SM and its chain's barriers (one a group)."""
+    import cuda_resources
+
+    ptxas = cuda_resources.find_ptxas()
+    if ptxas is None or 90 not in cuda_resources.nvrtc_archs():
+        pytest.skip("needs a CUDA toolkit's ptxas and a Warp whose NVRTC compiles for sm_90")
+    text = cuda_resources.frame_layouts_table(["2x4x2"], 90, ptxas, cuda_resources.ptxas_isa(ptxas))
+    rows = [line.split(" | ") for line in text.splitlines()[2:]]
+    assert [(r[0].strip("| "), r[1]) for r in rows] == [("2x4x2", "sphere tree"), ("2x4x2", "none")]
+    for r in rows:
+        blocks = int(r[6].split()[0])
+        assert r[5] == "8" and blocks >= 1 and int(r[7]) == 2 * blocks and r[9].strip(" |") == "4"
+
+
 @pytest.mark.slow
 def test_no_cuda_kernel_spills_more_than_its_recorded_baseline():
     """Every kernel of warp_kernels compiled for sm_90 (Warp's NVRTC and a CUDA toolkit's ptxas, no GPU

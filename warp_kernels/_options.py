@@ -14,7 +14,7 @@ DEFERRED = []
 OPT_IN = []
 
 
-def deferred_module(name, block_dim=None, opt_in=False):
+def deferred_module(name, block_dim=None, opt_in=False, listed=True):
     """The name of a Warp module of its own, with MODULE_OPTIONS, for kernels only some runs launch
     (a GPU's way of stepping, a variant for one collision path): pass it as @wp.kernel(module=...).
     block_dim: the lanes of a block its kernels are launched with, where not Warp's default (256).
@@ -28,9 +28,13 @@ def deferred_module(name, block_dim=None, opt_in=False):
     with its GPU ways and variants, 5.4 s without). warp_kernels.load compiles these modules too
     where asked (on CUDA devices by default); with opt_in only where named, for kernels that a run
     launches only when asked to (their first frame runs eager, outside a graph capture, and loads them).
+    listed=False leaves a module made at run time for a timing (a frame layout of strands.frame_variant)
+    out of both lists: its first launch compiles it, and the resources recorded for sm_90 do not hold it.
     """
     wp.set_module_options(MODULE_OPTIONS if block_dim is None else {**MODULE_OPTIONS, "block_dim": block_dim},
                           module=name)
+    if not listed:
+        return name
     if name not in DEFERRED:
         DEFERRED.append(name)
     if opt_in and name not in OPT_IN:

@@ -2624,14 +2624,15 @@ FRAME_VARIANTS = ((PATHS_NONE, False, True), (PATHS_SPHERE_LISTS, False, True), 
                   (PATHS_QUERIES, False, False))
 
 
-def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap):
+def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap, listed=True):
     """A hair frame in one launch laid out as `side` strands a block, `groups` threads along each and
     `run` particles a thread (see FRAME_LANES), its length pass compiled with the collision paths `paths`
     (PATHS_SPHERE_LISTS; PATHS_QUERIES for the mesh, its BVH queried; or PATHS_NONE for no collider: no
     collision code); `loose`: the lists that would run short are walked for before the chain, which walks
     only where a particle may be inside an unlisted leaf (step_strands' loose variant, with the walks of
     find_short_lists and list_leaves_ahead); `simplified`: simplified shape matching alone (variant read as
-    SHAPE_SIMPLIFIED), else either; `cap`: its registers on CUDA."""
+    SHAPE_SIMPLIFIED), else either; `cap`: its registers on CUDA; `listed`: its module among the deferred
+    ones (warp_kernels._options.deferred_module), False for a layout built at run time for a timing."""
     # the length pass's step with the contact bounds as values, read for every particle before the chain
     follow = _follow_leader(paths, ahead=True, loose=loose)
     elements = side * groups * run
@@ -2642,7 +2643,7 @@ def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap):
 
     # opt in: launched only where a run asks for it (HairSolver.frame_in_block), so a GPU's start does not
     # compile its variants
-    module = deferred_module(f"{__name__}.{name}", block_dim=side * groups, opt_in=True)
+    module = deferred_module(f"{__name__}.{name}", block_dim=side * groups, opt_in=True, listed=listed)
     if run > 1:
         # the loops over a thread's run unrolled (its registers indexed by constants), the chain's turns not:
         # its walk, the length pass's step with its collisions, compiled once rather than once a group
@@ -2935,19 +2936,20 @@ def frame_variant(layout, paths, loose=False, simplified=True):
     key = (side, groups, run, paths, loose, simplified)
     if key not in _FRAME_KERNELS:
         suffix = PATH_NAMES[paths] + ("_loose" if loose else "") + ("" if simplified else "_full")
+        listed = True
         if side == 1 and run == 1 and groups in FRAME_LANES:
             name = f"frame_in_block_{groups}"
         elif (side, groups, run) == FRAME_IN_WARPS_LAYOUT:
             name = "frame_in_warps"
         else:
-            name = f"frame_{side}x{groups}x{run}"
+            name, listed = f"frame_{side}x{groups}x{run}", False
         # sm_90, a block per strand: the sphere tree's takes 191 registers uncapped (10 one-warp blocks an SM),
         # at 128 16 blocks with 380/348 bytes of spills (at 96 about 1 KB); without a collider 115, at 96 21
         # blocks with 56/48 bytes (at 64, 32 blocks: 260/296). Untimed on a GPU: capped where spills stay near
         # 100 bytes or less; the full variants at 128 (without a collider 412/324 bytes at 96). 32 strands a
         # block: 128 (uncapped 237-255), two blocks an SM; a block of more threads as the SM's 64k registers allow
         cap = 96 if side == 1 and paths == PATHS_NONE and simplified else min(128, 65536 // (side * groups))
-        _FRAME_KERNELS[key] = _frame_kernel(name + suffix, side, groups, run, paths, loose, simplified, cap)
+        _FRAME_KERNELS[key] = _frame_kernel(name + suffix, side, groups, run, paths, loose, simplified, cap, listed)
     return _FRAME_KERNELS[key]
 
 
