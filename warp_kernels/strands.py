@@ -137,13 +137,40 @@ class StrandForces:
     turbulence_rate: float
 
 
+@wp.func
+def gusting_wind(forces: StrandForces, p: wp.vec3, time: float):
+    """The air's velocity at p: the mean wind, with gusts where forces.turbulence > 0 (smooth noise in
+    space and time scaled by the mean wind speed).
+
+    Inputs:
+      forces (StrandForces): the wind and its gusts
+      p (vec3, m): where
+      time (float, s): the gusts' time
+    Returns:
+      vec3 (m/s): the air's velocity
+    """
+    air = forces.wind
+    if forces.turbulence > 0.0:
+        q = p * forces.turbulence_scale
+        t = time * forces.turbulence_rate
+        speed = wp.length(forces.wind)
+        state = wp.rand_init(7)
+        gust = wp.vec3(
+            wp.noise(state, wp.vec4(q[0], q[1], q[2], t)),
+            wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], t)),
+            wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], t)),
+        )
+        air = forces.wind + gust * (forces.turbulence * speed)
+    return air
+
+
 @wp.func(inline=True)
 def predicted_position(
     p: wp.vec3,
     vel: wp.vec3,
     inv_mass: float,
     forces: StrandForces,
-    time: float,
+    air: wp.vec3,
     dt: float,
     skin: SkinBinding,
     binding: int,
@@ -151,15 +178,15 @@ def predicted_position(
     weight: float,
 ):
     """One particle's prediction (predict_positions): a pinned particle with a binding is put on the
-    skin, a free one integrates gravity, drag toward the gusting wind and damping, and either is
+    skin, a free one integrates gravity, drag toward the air's velocity and damping, and either is
     then pulled `weight` of the way to its groomed position carried by its root's frame.
 
     Inputs:
       p (vec3, m): position at the start of the substep
       vel (vec3, m/s): velocity at the start of the substep
       inv_mass (float): 0 marks a pinned particle
-      forces (StrandForces): gravity, wind with its gusts, drag and damping
-      time (float, s): the gusts' time
+      forces (StrandForces): gravity, drag and damping
+      air (vec3, m/s): the air's velocity at p (gusting_wind); read only for a free particle
       dt (float, s): substep length
       skin (SkinBinding): the bindings on the collider posed for the end of the substep; read only
           with a binding
@@ -175,19 +202,6 @@ def predicted_position(
         if binding >= 0:
             p = bound_position(skin, binding)
     else:
-        air = forces.wind
-        if forces.turbulence > 0.0:
-            # gusts: smooth noise in space and time scaled by the mean wind speed
-            q = p * forces.turbulence_scale
-            t = time * forces.turbulence_rate
-            speed = wp.length(forces.wind)
-            state = wp.rand_init(7)
-            gust = wp.vec3(
-                wp.noise(state, wp.vec4(q[0], q[1], q[2], t)),
-                wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], t)),
-                wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], t)),
-            )
-            air = forces.wind + gust * (forces.turbulence * speed)
         vel = vel + dt * (forces.gravity + forces.air_drag * (air - vel))
         vel = vel * wp.max(0.0, 1.0 - forces.damping * dt)
         p = p + dt * vel
@@ -266,7 +280,8 @@ def predict_positions(
         if weight > 0.0:
             s = particle_strand[i]
             target = root_origin[s] + root_frame[s] * root_local[i]
-    p, vel = predicted_position(p, v[i], inv_mass[i], forces, clock[0] + time_offset, dt, skin, binding, target, weight)
+    air = gusting_wind(forces, p, clock[0] + time_offset)
+    p, vel = predicted_position(p, v[i], inv_mass[i], forces, air, dt, skin, binding, target, weight)
     x_out[i] = p
     v_out[i] = vel
 
@@ -2071,7 +2086,9 @@ def predict_strand(
             weight = per.hold[slot] * hold_stiffness
             if weight > 0.0:
                 target = origin + frame * per.root_local[slot]
-        p, _vel = predicted_position(x[at], v[at], inv_mass, forces, time, dt, skin, binding, target, weight)
+        p = x[at]
+        p, _vel = predicted_position(p, v[at], inv_mass, forces, gusting_wind(forces, p, time), dt, skin, binding,
+                                     target, weight)
         if k == 0:
             root = p
         if pull.stiffness > 0.0:
@@ -2772,6 +2789,12 @@ def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap, listed
             posed = skin
             if bound != 0:
                 posed.mesh_points = poses.points[j + 1]
+            if forces.turbulence > 0.0:
+                # the gusts' noise at each particle, in the axes tile until the shape passes: in a loop the
+                # compiler does not unroll, its code (most of the prediction's) is compiled once, not `run` times
+                for h in range(each):
+                    e = (group * run + h) * side + lane
+                    wp.tile_scatter_masked(axes, e, gusting_wind(forces, starts[e], time), True)
             p = run_rows()
             for h in range(wp.static(run)):
                 i = start + wp.min(group * run + h, count - 1)
@@ -2784,8 +2807,12 @@ def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap, listed
                     weight = per.hold[i] * hold_stiffness
                     if weight > 0.0:
                         target = held_target(posed, rb, per.root_local[i])
-                q, _vel = predicted_position(starts[(group * run + h) * side + lane], vel[h], inv_mass[h], forces,
-                                             time, dt, posed, binding, target, weight)
+                e = (group * run + h) * side + lane
+                air = forces.wind
+                if forces.turbulence > 0.0:
+                    air = axes[e]
+                q, _vel = predicted_position(starts[e], vel[h], inv_mass[h], forces, air, dt, posed, binding, target,
+                                             weight)
                 p[h] = q
             if pull.stiffness > 0.0:
                 guide_frame, guide_next, guide_weight = guide_frames(pull, time)
