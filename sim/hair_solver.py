@@ -720,17 +720,18 @@ class HairSolver:
         """Why step_frame cannot step this solver's frames against `collider` (a line naming the way they
         are stepped, as [scene] hair_frames does), or None."""
         p, longest = self.params, self._longest
-        side, groups, run = layout = self.frame_layout_used()
+        layout = self.frame_layout_used()
         if self.frame_layout is not None:
-            way = f"hair frames in layout {side}x{groups}x{run}"
+            way = f"hair frames in layout {'x'.join(map(str, layout))}"
         else:
             way = f"hair frames {'in_warps' if self.frame_warps else 'in_block'}"
+        if strands.frame_layout_misfit(layout) is not None:
+            return f"{way}: {strands.frame_layout_misfit(layout)}"
+        _side, groups, run = layout
         if self.comb is not None:
             return f"{way} do not step strands held by a comb"
         if p.substeps > strands.FRAME_SUBSTEPS:
             return f"{way} take at most {strands.FRAME_SUBSTEPS} substeps a frame, not {p.substeps}"
-        if min(layout) < 1 or side * groups > 1024:
-            return f"{way}: a layout takes side, groups and run >= 1 and at most 1024 threads a block"
         if longest > groups * run:
             return f"{way} take strands of at most {groups * run} particles, not {longest}"
         if self.lanes:

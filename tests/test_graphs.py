@@ -751,7 +751,9 @@ def test_a_frame_in_block_names_what_it_cannot_step():
     solver.frame_layout = (16, 8, 4)
     assert "hair frames in layout 16x8x4 take strands of at most 32 particles" in solver.frame_in_block_misfit(None)
     solver.frame_layout = (64, 32, 2)
-    assert "at most 1024 threads a block" in solver.frame_in_block_misfit(None)
+    assert "at most 1024 threads a block (side x groups), not 64x32x2" in solver.frame_in_block_misfit(None)
+    solver.frame_layout = (16, 8)
+    assert "not 16x8" in solver.frame_in_block_misfit(None)
     with pytest.raises(ValueError, match="64x32x2"):
         strands.frame_variant((64, 32, 2), strands.PATHS_NONE)
     with pytest.raises(ValueError, match="in_warps"):

@@ -2951,15 +2951,24 @@ def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap, listed
 _FRAME_KERNELS = {}
 
 
+def frame_layout_misfit(layout):
+    """Why no block holds `layout` (side, groups, run: see FRAME_LANES), a line, or None."""
+    if len(layout) != 3 or min(layout) < 1 or layout[0] * layout[1] > 1024:
+        return (f"a frame's layout takes side, groups and run >= 1 and at most 1024 threads a block "
+                f"(side x groups), not {'x'.join(map(str, layout))}")
+    return None
+
+
 def frame_variant(layout, paths, loose=False, simplified=True):
     """The frame_in_block kernel for `layout` (side, groups, run: see FRAME_LANES) and its length pass's
     collision paths `paths`, `loose` and `simplified` (_frame_kernel), compiled in a module of its own at
     its first launch: FRAME_IN_BLOCK's and FRAME_IN_WARPS' layouts, or any other a GPU is to time
-    (HairSolver.frame_layout). Raises ValueError for a layout no block holds."""
-    side, groups, run = (int(n) for n in layout)
-    if min(side, groups, run) < 1 or side * groups > 1024:
-        raise ValueError(f"a frame's layout takes side, groups and run >= 1 and at most 1024 threads a block "
-                         f"(side x groups), not {side}x{groups}x{run}")
+    (HairSolver.frame_layout). Raises ValueError for a layout no block holds (frame_layout_misfit)."""
+    layout = tuple(int(n) for n in layout)
+    misfit = frame_layout_misfit(layout)
+    if misfit is not None:
+        raise ValueError(misfit)
+    side, groups, run = layout
     key = (side, groups, run, paths, loose, simplified)
     if key not in _FRAME_KERNELS:
         suffix = PATH_NAMES[paths] + ("_loose" if loose else "") + ("" if simplified else "_full")
