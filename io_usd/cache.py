@@ -12,8 +12,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from pxr import Gf, Sdf, Tf, Usd, UsdGeom, UsdSkel, Vt
 
+from sim.errors import InputError
+
+from .output_file import check_output_path, discard, publish, temporary_beside
+
 ROLES = ("hair", "cloth", "cloth_detail", "collider", "face", "hair_card")
 ROOT = "/World"
+DEFAULT_CURVE_WIDTH = 1e-4  # m, a hair's width where a scene's curves give none
 # on curves drawn from other curves each frame (render children): the path of those curves
 INTERPOLATED_FROM = "cfx:interpolatedFrom"
 
@@ -34,8 +39,6 @@ ENGINE = "warp-cfx"  # the root layer's cfx:engine in every cache written here
 
 def open_stage(path, source=None, key=None):
     """A user's USD file opened, or InputError(source or path, key, reason): missing, unreadable, not USD."""
-    from sim.errors import InputError
-
     path = os.fspath(path)
     source = path if source is None else source
     if os.path.isdir(path):
@@ -57,14 +60,9 @@ def open_stage(path, source=None, key=None):
 
 
 def check_cache_path(path):
-    """Raise ValueError unless `path` names a USD file we can write (.usd, .usdc, .usda)."""
-    path = os.fspath(path)
-    if os.path.splitext(path)[1].lower() not in (".usd", ".usdc", ".usda"):
-        raise ValueError(f"{path}: output must end in .usd, .usdc or .usda")
-    folder = os.path.dirname(os.path.abspath(path))
-    if os.path.exists(folder) and not os.path.isdir(folder):
-        raise ValueError(f"{path}: {folder} is not a folder")
-    return path
+    """Raise InputError (a ValueError) unless `path` names a USD file we can write (.usd, .usdc,
+    .usda): see output_file.check_output_path."""
+    return check_output_path(path, (".usd", ".usdc", ".usda"), "the cache")
 
 
 class CacheWriter:
@@ -80,12 +78,12 @@ class CacheWriter:
         self.path = check_cache_path(path)
         self._ascii = self.path.lower().endswith(".usda")
         folder = os.path.dirname(os.path.abspath(self.path))
-        os.makedirs(folder, exist_ok=True)
-        base = os.path.basename(self.path)
-        self._tmp = os.path.join(folder, f".{base}.partial-{os.getpid()}.usdc")
-        if os.path.exists(self._tmp):
-            os.remove(self._tmp)
-        self.stage = Usd.Stage.CreateNew(self._tmp)
+        self._tmp = temporary_beside(self.path, ".usdc")
+        try:
+            self.stage = Usd.Stage.CreateNew(self._tmp)
+        except Tf.ErrorException as err:
+            discard(self._tmp)
+            raise InputError(self.path, None, f"cannot write it: {str(err).strip().splitlines()[-1]}") from None
         self.flush_every = max(1, int(flush_every))
         self._since_flush = 0
         self._prims = {}
@@ -134,7 +132,11 @@ class CacheWriter:
             count = len(geom.GetPointsAttr().Get(Usd.TimeCode.EarliestTime()) or [])
             values = np.asarray(geom.GetWidthsAttr().Get(Usd.TimeCode.EarliestTime()) or [], np.float32)
             widths = Vt.FloatArray.FromNumpy(values if len(values) == count else np.full(count, values[0] if len(
-                values) else 1e-4, np.float32))
+                values) else DEFAULT_CURVE_WIDTH, np.float32))
+            if not len(values):  # renderers draw curves without widths a unit wide: the cache gives them the hair's
+                over = UsdGeom.BasisCurves(self.stage.GetPrimAtPath(path))
+                over.CreateWidthsAttr(widths)
+                over.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
         kind = "curves" if widths is not None else "mesh"
         tag = prim.GetAttribute("cfx:role")
         if tag and tag.HasAuthoredValue() and str(tag.Get()) == role:  # tagged in the scene already
@@ -316,14 +318,20 @@ class CacheWriter:
             return
         self.set_metadata("cfx:complete", True)
         layer = self.stage.GetRootLayer()
-        layer.Save()
-        if self._ascii:
-            layer.Export(self.path)
-            os.remove(self._tmp)
-        else:
-            os.replace(self._tmp, self.path)
-        self._closed = True
-        self.stage = None
+        try:
+            layer.Save()
+            if self._ascii:
+                if not layer.Export(self.path):
+                    raise InputError(self.path, None, "cannot write it")
+                discard(self._tmp)
+            else:
+                publish(self._tmp, self.path)
+        except (Tf.ErrorException, OSError) as err:
+            raise InputError(self.path, None, f"cannot write it: {str(err).strip().splitlines()[-1]}") from None
+        finally:
+            self._closed = True
+            self.stage = None
+            discard(self._tmp)
 
     def abort(self):
         """Drop the partial cache; the output path is left untouched."""

@@ -18,6 +18,7 @@ import sys
 import numpy as np
 
 from .cache import CacheReader, fan_triangles
+from .output_file import check_output_path, discard, publish, temporary_beside
 
 # Background is written by glClear, so it is a display (sRGB) value; material colours are linear.
 BACKGROUND = (0.86, 0.86, 0.85)
@@ -177,9 +178,9 @@ class Camera:
 def _per_vertex(values, counts, default=0.0):
     """Per-vertex values from vertex, per-curve or constant USD interpolation."""
     n = int(np.sum(counts))
-    if values is None:
+    values = None if values is None else np.asarray(values, np.float64).reshape(-1)
+    if values is None or values.size == 0:  # none authored
         return np.full(n, default, np.float64)
-    values = np.asarray(values, np.float64).reshape(-1)
     if values.size == n:
         return values
     if values.size == len(counts):
@@ -688,6 +689,7 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     ext = os.path.splitext(out_path)[1].lower()
     if ext not in EXTENSIONS:
         raise ValueError(f"{out_path}: unknown output type {ext or '(none)'!r}; use .png, .mp4 or .gif")
+    check_output_path(out_path, EXTENSIONS, "the preview")
     if camera is not None and views:
         raise ValueError(f"{out_path}: pass a camera or views, not both")
     try:
@@ -714,9 +716,7 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
 
     from tqdm import tqdm
 
-    folder = os.path.dirname(os.path.abspath(out_path))
-    os.makedirs(folder, exist_ok=True)
-    tmp = os.path.join(folder, f".{os.path.basename(out_path)}.partial-{os.getpid()}{ext}")
+    tmp = temporary_beside(out_path)
     bar = tqdm(total=len(chosen), desc=f"preview {os.path.basename(out_path)}", unit="frame", file=sys.stderr,
                disable=not progress or len(chosen) < 2, leave=False)
     view_labels = [label for label, _, _ in angles]
@@ -750,9 +750,8 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
                     row = []
 
             write_images(images(), labels, tmp, ext, reader.fps or 24.0, len(angles) if several else columns)
-        os.replace(tmp, out_path)
+        publish(tmp, out_path)
     finally:
         bar.close()
-        if os.path.exists(tmp):
-            os.remove(tmp)
+        discard(tmp)
     return out_path

@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .cache import CacheReader
+from .output_file import check_output_path, write_whole
 from .preview import (
     BACKGROUND,
     Camera,
@@ -397,21 +398,15 @@ def _iou_colour(value):
 
 def write_report(report, path):
     """Write the report PNG to `path` (the file appears only once fully written); returns path."""
-    path = os.fspath(path)
-    if os.path.splitext(path)[1].lower() != ".png":
-        raise ValueError(f"{path}: the score report is a PNG; name it .png")
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    tmp = os.path.join(folder, f".{os.path.basename(path)}.partial-{os.getpid()}.png")
-    try:
-        report_image(report).save(tmp, format="PNG")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    return path
+    path = check_report_path(path)
+    return write_whole(path, lambda tmp: report_image(report).save(tmp, format="PNG"))
 
 
-__all__ = ["ROOT_TOLERANCE", "VIEWS", "ScoreReport", "ViewScore", "close_mask", "difference_image", "iou",
-           "length_agreement", "report_image", "score_caches", "strand_roots_and_lengths", "view_cameras",
-           "write_report"]
+def check_report_path(path):
+    """InputError unless a report PNG may be written at `path` (output_file.check_output_path)."""
+    return check_output_path(path, (".png",), "the score report")
+
+
+__all__ = ["ROOT_TOLERANCE", "VIEWS", "ScoreReport", "ViewScore", "check_report_path", "close_mask",
+           "difference_image", "iou", "length_agreement", "report_image", "score_caches", "strand_roots_and_lengths",
+           "view_cameras", "write_report"]

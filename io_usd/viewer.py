@@ -39,8 +39,17 @@ def play(viewer, builder, nodes, frames, fps, loop=True, clock=time.monotonic, s
 
     Ribbons are rebuilt to face the viewer's current camera every tick, also once playback has
     stopped on the last frame, so orbiting never shows strands edge-on. `nodes` maps prim name to
-    its scene node and is updated in place.
+    its scene node and is updated in place. Ctrl-C (KeyboardInterrupt) closes the window before it
+    propagates: the window's thread would otherwise keep the process alive.
     """
+    try:
+        _play(viewer, builder, nodes, frames, fps, loop, clock, sleep)
+    except KeyboardInterrupt:
+        viewer.close_external()
+        raise
+
+
+def _play(viewer, builder, nodes, frames, fps, loop, clock, sleep):
     scene = viewer.scene
     period = 1.0 / fps
     i, deadline = 0, clock()

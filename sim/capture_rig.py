@@ -704,9 +704,10 @@ def _write_json(path, data):
 
 
 def _check_output(out_dir):
+    from io_usd.output_file import check_output_folder
+
+    check_output_folder(out_dir)
     if os.path.exists(out_dir):
-        if not os.path.isdir(out_dir):
-            raise InputError(out_dir, None, "exists and is not a folder")
         if os.listdir(out_dir) and not os.path.isfile(os.path.join(out_dir, "capture.json")):
             raise InputError(out_dir, None, "is a non-empty folder that is not a capture; refusing to overwrite it")
 

@@ -1523,17 +1523,14 @@ def _flat_stats(report):
 
 
 def _write_json_atomically(path, data):
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    tmp = os.path.join(folder, f".{os.path.basename(path)}.partial-{os.getpid()}")
-    try:
+    from io_usd.output_file import write_whole
+
+    def write(tmp):
         with open(tmp, "w", encoding="utf-8") as f:
             json.dump(data, f, indent=1)
             f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+
+    write_whole(path, write, suffix="")
 
 
 def _progress(total, enabled, desc):

@@ -118,9 +118,19 @@ def _sampling_hint(config):
               f"{hair.vertices_for_smooth_curves()})", file=sys.stderr)
 
 
+def _check_preview(path):
+    """The --preview path checked before the run, so a bad one costs no simulation."""
+    if path:
+        from io_usd.output_file import check_output_path
+        from io_usd.preview import EXTENSIONS
+
+        check_output_path(path, EXTENSIONS, "the preview")
+
+
 def cmd_run(args, config=None):
     import sim
 
+    _check_preview(args.preview)
     stage = None
     if config is None:
         from io_usd.scene_input import is_usd_scene, read_usd_scene
@@ -146,6 +156,12 @@ def cmd_demo(args):
     return cmd_run(args, config)
 
 
+LIPSYNC_SOURCE = "<lipsync>"
+# the scene keys cmd_lipsync sets from its options
+LIPSYNC_OPTIONS = {"face.voice": "--voice", "scene.device": "--device", "face.expressions[0].weight": "--intensity",
+                   "scene.fps": "--fps"}
+
+
 def cmd_lipsync(args):
     """Speak a WAV with the built-in head: lip sync from the audio, an optional expression, no hair
     unless asked, the head still unless asked."""
@@ -155,6 +171,13 @@ def cmd_lipsync(args):
     from sim import lipsync
     from sim.scene import _build_config
 
+    from .errors import InputError
+
+    if not (math.isfinite(args.fps) and args.fps > 0.0):
+        raise InputError("--fps", None, f"must be a positive number of frames a second, got {args.fps:g}")
+    if not 0.0 <= args.intensity <= 1.0:
+        raise InputError("--intensity", None, f"must be from 0 to 1, got {args.intensity:g}")
+    _check_preview(args.preview)
     samples = lipsync.load_audio(args.audio)
     seconds = len(samples) / lipsync.SAMPLE_RATE
     start = 1.0
@@ -166,8 +189,13 @@ def cmd_lipsync(args):
             "head": {"animation": args.head_motion}, "hair": {"enabled": bool(args.hair)}, "face": face}
     if args.device:
         data["scene"]["device"] = args.device
-    config = _build_config("<lipsync>", data, None)
-    result = sim.run_scene(config, args.output, progress=not args.quiet)
+    try:
+        config = _build_config(LIPSYNC_SOURCE, data, None)
+        result = sim.run_scene(config, args.output, progress=not args.quiet)
+    except InputError as err:  # the scene is built from the options: name the option, not the scene key
+        if err.source != LIPSYNC_SOURCE or err.key not in LIPSYNC_OPTIONS:
+            raise
+        raise InputError(LIPSYNC_OPTIONS[err.key], None, err.reason) from None
     _report(result, config)
     if args.preview:
         _preview(result.path, args.preview, frames=None, quiet=args.quiet, focus="face")
@@ -203,6 +231,13 @@ def cmd_studio(args):
     for path in (args.cache, args.script):
         if path and os.path.abspath(path) == os.path.abspath(args.scene):
             return _fail(f"{path}: would overwrite the scene file", EXIT_INPUT)
+    from io_usd.cache import check_cache_path
+    from io_usd.output_file import check_output_path
+
+    if args.cache:
+        check_cache_path(args.cache)
+    if args.script:
+        check_output_path(args.script, (".toml",), "the saved scene")
     width, height = _size(args.size)
     session = Session(sim.load_scene(args.scene, _overrides(args)), width, height)
     try:
@@ -218,10 +253,10 @@ def cmd_studio(args):
 
 def cmd_score(args):
     """Score a haircut against a target hairstyle: four-view hair silhouettes and strand lengths."""
-    from io_usd.score import score_caches, write_report
+    from io_usd.score import check_report_path, score_caches, write_report
 
-    if args.output and os.path.splitext(args.output)[1].lower() != ".png":
-        return _fail(f"{args.output}: the score report is a PNG; name it .png", EXIT_INPUT)
+    if args.output:
+        check_report_path(args.output)
     size = _size(args.size, example="480x480")
     report = score_caches(args.result, args.target, frame=args.frame, size=size, images=bool(args.output))
     print(report.table())
@@ -237,7 +272,10 @@ def cmd_view(args):
 
     if not has_display():
         return _fail("cfx view needs a display (set DISPLAY); use cfx preview for images and movies", EXIT_INPUT)
-    view(args.cache)
+    try:
+        view(args.cache)
+    except KeyboardInterrupt:
+        return _fail("interrupted", 130)
     return 0
 
 
@@ -420,6 +458,8 @@ def main(argv=None):
     except (FileNotFoundError, IsADirectoryError) as err:
         return _fail(str(err), EXIT_INPUT)
     except ValueError as err:
+        return _fail(str(err), EXIT_INPUT)
+    except OSError as err:  # the file system refused a read or write the checks before the work could not foresee
         return _fail(str(err), EXIT_INPUT)
     except SimulationError as err:
         return _fail(f"simulation failed: {err}", EXIT_SIMULATION)

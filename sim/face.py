@@ -636,8 +636,8 @@ def parse_expressions(entries, source):
         if emotion not in EMOTIONS:
             raise InputError(source, f"{where}.emotion", f"unknown emotion {emotion!r} (known: {', '.join(EMOTIONS)})")
         weight = entry.get("weight", 1.0)
-        if isinstance(weight, bool) or not isinstance(weight, (int, float)):
-            raise InputError(source, f"{where}.weight", f"expected a number, got {weight!r}")
+        if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not 0.0 <= weight <= 1.0:
+            raise InputError(source, f"{where}.weight", f"expected a number from 0 to 1, got {weight!r}")
         aus = entry.get("aus", {})
         if not isinstance(aus, dict):
             raise InputError(source, f"{where}.aus", "expected a table of AU number = intensity")
@@ -646,8 +646,8 @@ def parse_expressions(entries, source):
             if not str(k).isdigit() or int(k) not in ACTION_UNITS:
                 raise InputError(source, f"{where}.aus.{k}",
                                  f"unknown action unit (known: {', '.join(str(a) for a in ACTION_UNITS)})")
-            if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise InputError(source, f"{where}.aus.{k}", f"expected a number, got {v!r}")
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
+                raise InputError(source, f"{where}.aus.{k}", f"expected an intensity from 0 to 1, got {v!r}")
             pairs.append((int(k), float(v)))
         keys.append(ExpressionKey(float(frame), emotion, float(weight), tuple(pairs)))
     return tuple(keys)

@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from io_usd.output_file import check_output_path, write_whole
+
 from .errors import InputError
 
 NUM_LEDS = 5  # four corners and the labelling LED
@@ -904,29 +906,12 @@ def _options(args):
         raise InputError("--frames", None, f"must be at least 1, got {args.frames}")
     if not (math.isfinite(args.fps) and args.fps > 0.0):
         raise InputError("--fps", None, f"must be positive, got {args.fps}")
-    if os.path.splitext(args.output)[1].lower() != ".mp4":
-        raise InputError(args.output, None, "the output must be an .mp4 file")
-    if args.sheet and os.path.splitext(args.sheet)[1].lower() != ".png":
-        raise InputError(args.sheet, None, "the contact sheet must be a .png file")
+    check_output_path(args.output, (".mp4",), "the output")
+    if args.sheet:
+        check_output_path(args.sheet, (".png",), "the contact sheet")
+    if args.save_track:
+        check_output_path(args.save_track, (".json",), "the saved track")
     return MaskOptions((width, height), float(args.latency), args.frames or 0, float(args.fps), args.output)
-
-
-def _temporary(path):
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    base, ext = os.path.splitext(os.path.basename(path))
-    return os.path.join(folder, f".{base}{ext}.partial-{os.getpid()}{ext}")
-
-
-def _write_atomically(path, write):
-    """Call write(temporary path), then rename onto `path`; on any failure leave nothing behind."""
-    tmp = _temporary(path)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
 
 
 def run_mask(args):
@@ -960,7 +945,7 @@ def run_mask(args):
         def infrared(k):
             return camera_frame(rig, rig.camera_points(motion.poses(track.times[k]))[0], seed=(args.seed, k))
     if args.save_track:
-        _write_atomically(args.save_track, lambda tmp: write_track(tmp, track))
+        write_whole(args.save_track, lambda tmp: write_track(tmp, track))
 
     measured = track.leds[:, :4]
     predicted = predict_track(track, opts.latency, args.model)
@@ -986,12 +971,12 @@ def run_mask(args):
     try:
         frames = (projector_frame(draw_face(display[k]), shown[k], track.calibration, (width, height))
                   for k in progress)
-        _write_atomically(opts.output, lambda tmp: write_images(frames, None, tmp, ".mp4", track.fps, None))
+        write_whole(opts.output, lambda tmp: write_images(frames, None, tmp, ".mp4", track.fps, None))
         if args.sheet:
             picks = np.unique(np.linspace(min(warmup, len(track) - 1), len(track) - 1, 4).round().astype(int))
             sheet = _sheet(picks, track, infrared, {"predicted": predicted, "not predicted": measured},
                            truth, true_camera, draw_face, opts.latency, (width, height))
-            _write_atomically(args.sheet, lambda tmp: sheet.save(tmp, format="PNG"))
+            write_whole(args.sheet, lambda tmp: sheet.save(tmp, format="PNG"))
     finally:
         progress.close()
         if face is not None:
@@ -1005,10 +990,14 @@ def run_mask(args):
     dropped = int(np.sum(~np.isfinite(measured[:, 0, 0])))
     print(f"  latency {1e3 * opts.latency:.0f} ms, {len(track)} captures ({dropped} without all five LEDs); "
           f"projection error in projector px after the first {warmup} frames:", file=sys.stderr)
+    if len(track) <= warmup:
+        print(f"    none measured: the errors count from frame {warmup + 1} (the filter settling), and the track has "
+              f"{len(track)} frames", file=sys.stderr)
+        errors = {}
     for name, e in errors.items():
         mean, worst = error_summary(e, warmup)
         print(f"    {name + ':':19s} mean {mean:6.2f}, max {worst:6.2f}", file=sys.stderr)
-    if calibration_alone is not None:
+    if calibration_alone is not None and errors:
         print("    (calibration alone: the mask off the plane the homography was measured on, no latency)",
               file=sys.stderr)
     if args.sheet:

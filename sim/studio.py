@@ -254,6 +254,8 @@ def write_script(config, events, last_frame, path):
     """The scene file with this session's timeline: loading and running it repeats the session."""
     import tomli_w
 
+    from io_usd.output_file import write_whole
+
     from .config import load_toml
 
     data = load_toml(config.source) if config.source != "<demo>" else {}
@@ -272,9 +274,11 @@ def write_script(config, events, last_frame, path):
     # as they did in the session
     timeline = list(data.get("haircut", [])) + [dict(e) for e in events]
     data["haircut"] = sorted(timeline, key=lambda e: e["frame"])
-    os.makedirs(here, exist_ok=True)
-    with open(path, "wb") as f:
-        tomli_w.dump(data, f)
+    def write(tmp):
+        with open(tmp, "wb") as f:
+            tomli_w.dump(data, f)
+
+    write_whole(path, write)
 
 
 def write_session_cache(session, path):

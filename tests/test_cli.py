@@ -146,6 +146,10 @@ def test_view_without_a_display_exits_2(tmp_path, monkeypatch, capsys):
     (SMALL.replace("frames = 3", "frames = [3"), "", "not valid TOML"),
     (SMALL.replace("[solver]", "[solver]\ngravity = [0, -9.8]"), "solver.gravity", "list of 3"),
     (SMALL.replace("preroll = 0.0", 'preroll = 0.0\nhair_frames = "blocks"'), "scene.hair_frames", "must be"),
+    (SMALL + '\n[face]\n[[face.expressions]]\nframe = 1\nemotion = "fear"\nweight = 3.0\n',
+     "face.expressions[0].weight", "from 0 to 1"),
+    (SMALL + '\n[face]\n[[face.expressions]]\nframe = 1\naus = { "12" = -1 }\n', "face.expressions[0].aus.12",
+     "from 0 to 1"),
     (SMALL.replace("preroll = 0.0", 'preroll = 0.0\nhair_frames = "in_block"').replace("vertices = 8", "vertices = 70"),
      "scene.hair_frames", "at most 64 particles"),
     (SMALL.replace("preroll = 0.0", 'preroll = 0.0\nhair_frames = "in_warps"').replace("vertices = 8", "vertices = 40"),
@@ -264,6 +268,23 @@ def test_bad_output_path_and_missing_device_fail_before_simulating(tmp_path, cap
         err = capsys.readouterr().err
         assert "scene.device" in err and "not available" in err
     assert os.listdir(tmp_path) == ["scene.toml"]
+
+
+def test_outputs_that_cannot_be_written_fail_before_simulating(tmp_path, capsys):
+    """A folder where the cache should go, a preview of an unknown type or under a file: each one line
+    naming the path, exit 2, before any frame is simulated, and nothing written."""
+    scene = write(tmp_path, SMALL)
+    (tmp_path / "folder.usdc").mkdir()
+    (tmp_path / "afile").write_text("")
+    cache = str(tmp_path / "c.usdc")
+    for args, reason in [(["-o", str(tmp_path / "folder.usdc")], "folder.usdc: is a folder; name a file in it"),
+                         (["-o", cache, "--preview", str(tmp_path / "p.bmp")], "the preview must end in .png"),
+                         (["-o", cache, "--preview", str(tmp_path / "afile" / "p.png")], "afile is not a folder")]:
+        assert main(["run", scene, "-q", *args]) == 2
+        err = capsys.readouterr().err
+        assert reason in err and err.count("\n") == 1 and "partial" not in err
+    assert sorted(os.listdir(tmp_path)) == ["afile", "folder.usdc", "scene.toml"]
+    assert os.listdir(tmp_path / "folder.usdc") == []
 
 
 def test_scalp_mask_decides_where_hair_grows(tmp_path, head):

@@ -43,3 +43,20 @@ def test_preview_focus_names_what_it_cannot_find(tmp_path, capsys):
                   progress=False)
     assert main(["preview", str(out), "-o", str(tmp_path / "p.png"), "--focus", "face", "-q"]) == 2
     assert "nothing to focus on called 'face'" in capsys.readouterr().err
+
+
+def test_lipsync_names_the_option_a_bad_value_came_from(tmp_path, capsys):
+    """The command builds a scene from its options: an error names the option, not the scene key."""
+    from sim import lipsync
+
+    wav = tmp_path / "line.wav"
+    lipsync.write_wav(wav, lipsync.load_audio(lipsync.DEMO_LINE_PATH)[: int(0.3 * lipsync.SAMPLE_RATE)])
+    out = tmp_path / "x.usdc"
+    for options, named in [(["--intensity", "3", "--expression", "happiness"], "--intensity: must be from 0 to 1"),
+                           (["--intensity=-0.5"], "--intensity: must be from 0 to 1"),
+                           (["--fps", "0"], "--fps: must be a positive number"),
+                           (["--voice", str(tmp_path / "no_such_speaker")], "--voice: expected one of")]:
+        assert main(["lipsync", str(wav), "-o", str(out), "-q", *options]) == 2, options
+        err = capsys.readouterr().err
+        assert named in err and err.count("\n") == 1 and "<lipsync>" not in err
+        assert not out.exists()

@@ -303,20 +303,20 @@ def _frames(path):
 
 def test_run_mask_writes_a_playable_mp4_and_reports_both_errors(tmp_path, capsys):
     out, sheet, saved = tmp_path / "mask.mp4", tmp_path / "sheet.png", tmp_path / "track.json"
-    status = run_mask(_args("-o", out, "--size", "160x120", "--frames", 12, "--sheet", sheet,
+    status = run_mask(_args("-o", out, "--size", "160x120", "--frames", 18, "--sheet", sheet,
                             "--save-track", saved, "-q"))
     assert status == 0
     frames = _frames(out)
-    assert len(frames) == 12 and frames[0].shape == (120, 160, 3)
+    assert len(frames) == 18 and frames[0].shape == (120, 160, 3)
     assert max(f.max() for f in frames) > 100  # the face is in the picture
     err = capsys.readouterr().err
-    assert "no prediction:" in err and "Kalman prediction:" in err
-    assert sheet.stat().st_size > 0 and len(read_track(saved)) == 12
+    assert "no prediction:" in err and "Kalman prediction:" in err and "nan" not in err  # frames 16-18 measured
+    assert sheet.stat().st_size > 0 and len(read_track(saved)) == 18
     assert sorted(os.listdir(tmp_path)) == ["mask.mp4", "sheet.png", "track.json"]  # no partial files
 
     replay = tmp_path / "replay.mp4"
     assert run_mask(_args(saved, "-o", replay, "--size", "160x120", "--no-predict", "-q")) == 0
-    assert len(_frames(replay)) == 12
+    assert len(_frames(replay)) == 18
 
 
 def test_run_mask_renders_the_face_from_a_usd_cache(tmp_path):
@@ -386,3 +386,21 @@ def test_run_mask_projects_the_built_in_talking_face_by_default(tmp_path):
     assert frames.shape[0] == 3
     skin = frames[..., 0].astype(int) - frames[..., 2].astype(int)
     assert (skin > 30).sum() > 50  # warm skin tones of the rendered face land in the projector image
+
+
+def test_a_track_shorter_than_the_filters_settling_says_no_error_was_measured(tmp_path, capsys):
+    out = tmp_path / "short.mp4"
+    assert run_mask(_args("-o", out, "--size", "64x48", "--frames", 6, "-q")) == 0
+    err = capsys.readouterr().err
+    assert "none measured: the errors count from frame 16" in err and "the track has 6 frames" in err
+    assert "nan" not in err and "calibration alone" not in err
+
+
+def test_outputs_are_checked_before_the_track_is_rendered(tmp_path):
+    (tmp_path / "afile").write_text("")
+    for args, reason in [(("-o", tmp_path / "m.avi"), "the output must end in .mp4, not .avi"),
+                         (("-o", tmp_path / "m.mp4", "--sheet", tmp_path / "afile" / "s.png"), "afile is not a folder"),
+                         (("-o", tmp_path / "m.mp4", "--save-track", tmp_path / "t.csv"), "must end in .json")]:
+        with pytest.raises(InputError, match=reason):
+            run_mask(_args(*args, "-q"))
+    assert os.listdir(tmp_path) == ["afile"]

@@ -393,25 +393,50 @@ class _FakeViewer:
         self.scene, self.render_lock, self.viewport_size = scene, threading.RLock(), (W, H)
         self._ticks = ticks
 
+        self.closed = False
+
     @property
     def is_active(self):
         self._ticks -= 1
-        return self._ticks >= 0
+        return self._ticks >= 0 and not self.closed
+
+    def close_external(self):
+        self.closed = True
+
+
+def test_ctrl_c_during_playback_closes_the_window(cache):
+    """Otherwise the window's thread keeps the process running after the interrupt."""
+    from io_usd.viewer import play
+
+    class Interrupted:
+        def meshes(self, frame, eye, focal):
+            raise KeyboardInterrupt
+
+    viewer = _FakeViewer(_pyrender_scene(), 5)
+    with pytest.raises(KeyboardInterrupt):
+        play(viewer, Interrupted(), {}, [1, 2], fps=24.0, sleep=lambda s: None)
+    assert viewer.closed
+
+
+def _pyrender_scene():
+    from io_usd.preview import _pyrender
+
+    pyrender = _pyrender()
+    scene = pyrender.Scene()
+    scene.add(pyrender.PerspectiveCamera(yfov=0.6), pose=Camera.look_at((0, 0.3, 1.5), (0, 0.3, 0)).pose)
+    return scene
 
 
 @pytest.mark.parametrize("loop, expected", [(True, [1, 2, 3, 1, 2, 3, 1]), (False, [1, 2, 3, 3, 3, 3, 3])])
 def test_viewer_playback_updates_the_scene(cache, loop, expected):
-    from io_usd.preview import _pyrender
     from io_usd.viewer import play
 
-    pyrender = _pyrender()
     reader = CacheReader(cache)
     builder = SceneBuilder(reader)
     shown = []
     meshes = builder.meshes
     builder.meshes = lambda frame, eye, focal: shown.append(frame) or meshes(frame, eye, focal)
-    scene = pyrender.Scene()
-    scene.add(pyrender.PerspectiveCamera(yfov=0.6), pose=Camera.look_at((0, 0.3, 1.5), (0, 0.3, 0)).pose)
+    scene = _pyrender_scene()
     nodes = {}
     play(_FakeViewer(scene, len(expected)), builder, nodes, [1, 2, 3], fps=1000.0, loop=loop, sleep=lambda s: None)
     assert shown == expected

@@ -155,6 +155,22 @@ def test_cache_is_a_layer_over_the_scene(ran):
     assert not UsdGeom.Mesh(source.GetPrimAtPath("/root/Cape/Plane")).GetPointsAttr().GetTimeSamples()
 
 
+def test_curves_without_widths_get_the_hairs_in_the_cache_which_then_previews(ran, tmp_path):
+    """The shot's curves author no widths (renderers would draw them a unit wide); the cache gives
+    them the hair's, leaving the shot untouched, and so opens alone in cfx preview."""
+    from io_usd.cache import DEFAULT_CURVE_WIDTH
+
+    shot, cache = Usd.Stage.Open(str(ran / "shot.usda")), Usd.Stage.Open(str(ran / "cache.usdc"))
+    assert not UsdGeom.BasisCurves(shot.GetPrimAtPath("/root/Hair/HairData")).GetWidthsAttr().HasAuthoredValue()
+    curves = UsdGeom.BasisCurves(cache.GetPrimAtPath("/root/Hair/HairData"))
+    widths = np.asarray(curves.GetWidthsAttr().Get())
+    assert curves.GetWidthsInterpolation() == UsdGeom.Tokens.vertex
+    np.testing.assert_allclose(widths, np.full(len(_strands()[0]), DEFAULT_CURVE_WIDTH), rtol=1e-6)
+    png = tmp_path / "shot.png"
+    assert main(["preview", str(ran / "cache.usdc"), "-o", str(png), "-q"]) == 0
+    assert png.stat().st_size > 1000
+
+
 def test_simulated_hair_and_pins_follow_the_collider(ran):
     stage = Usd.Stage.Open(str(ran / "cache.usdc"))
     points, counts = _strands()
