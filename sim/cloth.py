@@ -43,7 +43,7 @@ class ClothParams:
     spring_damping: float = 0.02  # N s/m, dashpot along every spring
     damping: float = 0.3  # 1/s, global velocity damping
     air_drag: float = 0.3  # kg/(m^2 s), linear drag toward the wind per area of cloth
-    wind: tuple = (0.0, 0.0, 0.0)  # m/s
+    wind: tuple = (0.0, 0.0, 0.0)  # m/s, the air's velocity, which air_drag pulls toward
     gravity: tuple = (0.0, -9.81, 0.0)  # m/s^2
     friction: float = 0.4  # Coulomb coefficient at body contact
     collision_margin: float = 0.008  # m, kept outside the body; covers the body bulging between particles

@@ -174,7 +174,7 @@ class HairParams:
     gravity: tuple = (0.0, -9.81, 0.0)  # m/s^2 (Y up)
     damping: float = 0.6  # 1/s, velocity decay
     air_drag: float = 2.0  # 1/s, pulls velocity toward the wind velocity
-    wind: tuple = (0.0, 0.0, 0.0)  # m/s
+    wind: tuple = (0.0, 0.0, 0.0)  # m/s, the air's velocity, which air_drag pulls toward
     wind_turbulence: float = 0.0  # gust strength as a fraction of the wind speed
     wind_turbulence_scale: float = 6.0  # 1/m, spatial frequency of the gusts
     wind_turbulence_rate: float = 1.5  # 1/s, how fast the gust pattern changes

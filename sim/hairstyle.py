@@ -38,14 +38,14 @@ class HairstyleParams:
     # root's first segment is pinned to the head, so a steep one stands up for the whole shot, and a
     # crown of them reads as bristles over bare scalp; hair leaves the scalp at a shallow angle.
     root_lift: float = 30.0
-    wave_amplitude: float = 0.006  # m
-    wavelength: float = 0.09  # m
-    curl_radius: float = 0.008  # m
-    curl_pitch: float = 0.03  # m per turn
-    root_width: float = 1.2e-4  # m
-    tip_width: float = 4.0e-5  # m
+    wave_amplitude: float = 0.006  # m a wavy strand swings to either side of its centre line
+    wavelength: float = 0.09  # m along the strand from one wave crest to the next
+    curl_radius: float = 0.008  # m, the radius of a curly strand's helix
+    curl_pitch: float = 0.03  # m the helix advances per turn
+    root_width: float = 1.2e-4  # m, the curves' width at the root, tapering linearly ...
+    tip_width: float = 4.0e-5  # m ... to this at the tip
     clearance: float = 0.003  # m, rest shape kept this far off the head
-    seed: int = 1
+    seed: int = 1  # the random roots, lengths and shapes: the same seed grows the same groom
     color: tuple = (0.23, 0.14, 0.08)  # linear RGB: the curves' displayColor, which previews and DCCs draw
     # render children per simulated strand (sim.hair_children): grown between the simulated strands and
     # carried by them, written as their own curves (hair_children); 0 for none

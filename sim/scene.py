@@ -72,10 +72,10 @@ class HeadConfig:
     scalp_faces: str = ""  # .npy of scalp face indices or a boolean face mask (mesh files)
     roots: str = ""  # .npy/.txt of (N, 3) root points; overrides the scalp sampling
     animation: str = "turn_nod"  # "turn_nod", "turn", "nod" or "none"
-    turn_degrees: float = 40.0
-    turn_period: float = 3.0  # s
-    nod_degrees: float = 15.0
-    nod_period: float = 1.5  # s
+    turn_degrees: float = 40.0  # degrees the head turns to either side
+    turn_period: float = 3.0  # s, one turn there and back
+    nod_degrees: float = 15.0  # degrees the head nods down and up
+    nod_period: float = 1.5  # s, one nod
     sphere_leaves: int = 1024  # most leaf spheres in the sphere tree (built for collision = "sphere_tree")
 
     def __post_init__(self):
@@ -111,7 +111,9 @@ class GarmentConfig:
     garment: str = "dress"  # "dress", "skirt", "shirt" (fitted to the built-in body) or a mesh/USD file
     prim: str = ""  # prim path of the garment's UsdGeom.Mesh when garment is a USD file
     pinned: str = ""  # .npy of vertex indices bound to the body, for a garment file
-    particles: int = 322  # particles of a built-in garment (the paper's one-piece dress has 322)
+    # the particle count a built-in garment is meshed to, within a few percent (the paper's one-piece dress has 322;
+    # the built-in dress then has 332)
+    particles: int = 322
     ease: float = 0.012  # m, how far outside the body a built-in garment is fitted
     color: tuple = (0.25, 0.35, 0.55)  # linear RGB: the garment's and its detail surface's displayColor
 
