@@ -588,8 +588,8 @@ def contact_sheet(images, labels=None, columns=None, background=BACKGROUND):
     fill = tuple(int(round(255 * c)) for c in background)
     sheet = Image.new("RGB", (columns * w, rows * h), fill)
     draw = ImageDraw.Draw(sheet)
-    font = _font(max(9, h // 12))
-    pad = max(2, h // 60)
+    font = _font(max(9, h // 20))  # a caption, not a headline: at 720 lines a 36-pixel face keeps clear of the subject
+    pad = max(2, h // 90)
     for k, image in enumerate(images):
         x, y = (k % columns) * w, (k // columns) * h
         sheet.paste(Image.fromarray(np.asarray(image, np.uint8)), (x, y))
