@@ -71,6 +71,8 @@ class CacheWriter:
     path: .usdc (default binary), .usd or .usda. Frames are time codes; fps sets both
     timeCodesPerSecond and framesPerSecond. over: a scene's USD file that this cache is a layer over
     (sublayered, relative to the cache's folder): prims then go where the scene has them (add_over).
+    The root layer's customLayerData names the engine and its version (engine_version, default this
+    package's), the settings given, and cfx:complete once the last frame is written.
     """
 
     def __init__(self, path, fps, start_frame, end_frame, settings=None, up_axis="Y",
@@ -105,8 +107,9 @@ class CacheWriter:
             if default:
                 stage.GetRootLayer().defaultPrim = default
         data = {"cfx:engine": ENGINE, "cfx:complete": False}
-        if engine_version:
-            data["cfx:engineVersion"] = str(engine_version)
+        if not engine_version:  # every cache says which engine wrote it, whoever calls the writer
+            from sim import __version__ as engine_version
+        data["cfx:engineVersion"] = str(engine_version)
         if settings:
             data["cfx:settings"] = _usd_dict(settings)
         stage.GetRootLayer().customLayerData = data

@@ -76,3 +76,17 @@ def test_a_cache_whose_path_became_a_folder_during_the_run_leaves_no_partial(tmp
     with pytest.raises(InputError, match="cache.usdc: is a folder"):
         writer.close()
     assert os.listdir(tmp_path) == ["cache.usdc"] and os.listdir(path) == []
+
+
+def test_a_cache_written_without_a_version_records_the_engines(tmp_path):
+    """SPEC: the root layer names the engine version, also for caches a host writes through the API."""
+    from pxr import Sdf
+
+    import sim
+
+    path = tmp_path / "api.usdc"
+    with CacheWriter(path, 24.0, 1, 1) as writer:
+        writer.add_curves("hair", "hair", [3], np.full(3, 1e-4))
+        writer.write_frame(1, {"hair": np.zeros((3, 3))})
+    data = Sdf.Layer.FindOrOpen(str(path)).customLayerData
+    assert data["cfx:engineVersion"] == sim.__version__ and data["cfx:complete"]
