@@ -71,6 +71,8 @@ class UsdScene:
         if os.path.abspath(out_path) == os.path.abspath(self.path):
             raise InputError(out_path, None, "the cache would overwrite the scene it sublayers; choose another output")
         t = self.config.timing
+        if settings is not None:  # recorded as the stage gave them
+            settings = self.frame_space.settings_from_engine(settings)
         writer = CacheWriter(out_path, t.fps, t.start_frame, t.start_frame + t.frames - 1, settings=settings,
                              up_axis=self.frame_space.up_axis, meters_per_unit=self.frame_space.meters_per_unit,
                              engine_version=engine_version, over=self.path)

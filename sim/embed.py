@@ -51,6 +51,20 @@ class HostFrame:
         """A host vector setting (gravity, wind) in engine axes; units are already SI."""
         return tuple(float(v) for v in self.rotation @ np.asarray(vector, np.float64))
 
+    def direction_from_engine(self, vector):
+        """An engine vector setting back in the host's axes (direction_to_engine's inverse)."""
+        return tuple(float(v) for v in np.asarray(vector, np.float64) @ self.rotation)
+
+    def settings_from_engine(self, settings):
+        """A scene's settings (SceneConfig.settings()) with the vector settings (gravity, wind) in the
+        host's axes, as the host gave them, for a cache over the host's stage."""
+        out = dict(settings)
+        for table in ("solver", "cloth_solver"):
+            if table in out:
+                out[table] = {k: list(self.direction_from_engine(v)) if k in ("gravity", "wind") else v
+                              for k, v in out[table].items()}
+        return out
+
 
 class Simulation:
     """Hair and a garment against an animated collider, driven one frame at a time from NumPy.

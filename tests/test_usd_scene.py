@@ -171,6 +171,16 @@ def test_curves_without_widths_get_the_hairs_in_the_cache_which_then_previews(ra
     assert png.stat().st_size > 1000
 
 
+def test_the_cache_records_gravity_and_wind_in_the_stages_axes(ran):
+    """The stage is Z up: its gravity is along -Z, as a TD reading the cache's settings expects."""
+    settings = Sdf.Layer.FindOrOpen(str(ran / "cache.usdc")).customLayerData["cfx:settings"]
+    for table in ("solver", "cloth_solver"):
+        np.testing.assert_allclose(list(settings[table]["gravity"]), [0.0, 0.0, -9.81])
+        np.testing.assert_allclose(list(settings[table]["wind"]), [0.0, 0.0, 0.0])
+    engine = read_usd_scene(ran / "shot.usda").config
+    np.testing.assert_allclose(engine.solver.gravity, [0.0, -9.81, 0.0])  # the engine's own axes: Y up
+
+
 def test_simulated_hair_and_pins_follow_the_collider(ran):
     stage = Usd.Stage.Open(str(ran / "cache.usdc"))
     points, counts = _strands()
