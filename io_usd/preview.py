@@ -687,8 +687,6 @@ def preview(cache_path, out_path, frame=None, frames=None, width=960, height=720
     """
     cache_path, out_path = os.fspath(cache_path), os.fspath(out_path)
     ext = os.path.splitext(out_path)[1].lower()
-    if ext not in EXTENSIONS:
-        raise ValueError(f"{out_path}: unknown output type {ext or '(none)'!r}; use .png, .mp4 or .gif")
     check_output_path(out_path, EXTENSIONS, "the preview")
     if camera is not None and views:
         raise ValueError(f"{out_path}: pass a camera or views, not both")
