@@ -49,15 +49,21 @@ def test_rk4_converges_at_fourth_order_on_a_mass_spring():
     assert 13.0 < ratio < 19.0, (errors, ratio)
 
 
-@pytest.mark.parametrize("k_compress", [2.0, 50.0])
-def test_hanging_column_stretches_as_the_analytic_static_solution(k_compress):
-    n, rest, k, m, g = 8, 0.05, 400.0, 0.01, 9.81
+@pytest.mark.parametrize("pull", ["down", "up"])
+def test_hanging_column_deforms_as_the_analytic_static_solution(pull):
+    """A column of 8 springs hanging from its top particle: gravity away from the pin stretches the
+    springs by their stretch stiffness, toward it compresses them by their compress stiffness (the
+    bi-phase springs of Oshita & Makinouchi); spring j from the pin carries n - j + 1 masses, so the
+    column's length changes by m g n (n + 1) / (2 k) of the stiffness that side uses."""
+    n, rest, k_stretch, k_compress, m, g = 8, 0.05, 400.0, 50.0, 0.01, 9.81
     pts = np.stack([np.zeros(n + 1), -rest * np.arange(n + 1), np.zeros(n + 1)], 1)
-    model = chain(pts, k, k_compress, m, damping=4.0, gravity=(0.0, -g, 0.0))
+    sign = -1.0 if pull == "down" else 1.0
+    model = chain(pts, k_stretch, k_compress, m, damping=4.0, gravity=(0.0, sign * g, 0.0))
     state, _ = run(model, 6.0, 1.0 / 600.0)
-    stretch = -state.x.numpy()[-1, 1] - n * rest
-    expected = m * g * n * (n + 1) / (2.0 * k)
-    assert abs(stretch / expected - 1.0) < 0.01, (stretch, expected)
+    change = -state.x.numpy()[-1, 1] - n * rest
+    k = k_stretch if pull == "down" else k_compress
+    expected = -sign * m * g * n * (n + 1) / (2.0 * k)
+    assert abs(change / expected - 1.0) < 0.01, (change, expected)
 
 
 def test_free_fall_with_linear_drag_matches_the_exponential_approach():
@@ -192,6 +198,27 @@ def test_cloth_draped_on_a_ball_ends_outside_it():
     assert np.mean(r < 0.3 + margin + 0.002) > 0.15  # and the cloth really rests on it, at the margin
     seg = np.linalg.norm(state.x.numpy()[edges[:, 0]] - state.x.numpy()[edges[:, 1]], axis=1)
     assert np.percentile(seg / model.spring_rest_np[:len(edges)] - 1.0, 99) < 0.05  # stiff in stretch
+
+
+@pytest.mark.parametrize("friction", [0.0, 0.2, 0.5])
+def test_a_particle_on_an_incline_slides_as_coulomb_friction_allows(friction):
+    """One particle resting on a plane tilted 20 degrees: it slides with a = g (sin t - mu cos t) when
+    mu < tan t (0.364), and holds when mu exceeds it (within a millimetre in 0.5 s: the contact is made
+    at the step's end, so each step starts a little off the plane)."""
+    g, tilt, seconds, dt = 9.81, np.radians(20.0), 0.5, 1e-3
+    box = trimesh.creation.box(extents=(3.0, 0.4, 3.0)).subdivide().subdivide()
+    turn = np.array([[np.cos(tilt), -np.sin(tilt), 0.0], [np.sin(tilt), np.cos(tilt), 0.0], [0.0, 0.0, 1.0]])
+    plane = rigid_body("incline", np.asarray(box.vertices) @ turn.T, np.asarray(box.faces))
+    normal, downhill = turn @ [0.0, 1.0, 0.0], turn @ [-1.0, 0.0, 0.0]
+    params = ClothParams(friction=friction, air_drag=0.0, damping=0.0, gravity=(0.0, -g, 0.0), follow=False)
+    start = normal * (0.2 + params.collision_margin)  # on the top face, 0.2 m above the box's centre
+    model = ClothModel(start[None], np.zeros((0, 3)), [], [], [], [], params, masses=0.01)
+    state, _ = run(model, seconds, dt, body=plane)
+    x, v = state.x.numpy()[0].astype(np.float64), state.v.numpy()[0].astype(np.float64)
+    accel = max(0.0, g * (np.sin(tilt) - friction * np.cos(tilt)))
+    assert abs(v @ downhill - accel * seconds) < 0.01 * g * np.sin(tilt) * seconds
+    assert abs((x - start) @ downhill - 0.5 * accel * seconds ** 2) < 1e-3
+    assert abs(x @ normal - 0.2 - params.collision_margin) < 1e-3  # on the plane, not through it
 
 
 def test_following_keeps_body_relative_coordinates_under_rigid_motion():

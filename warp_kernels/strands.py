@@ -1600,7 +1600,7 @@ def _follow_the_leader(paths, ahead=False, loose=False):
           rest_length (float, per particle, m): rest distance to the previous particle (unused for roots)
           pinned_per_strand (int): leading particles of each strand left where they are; at least 1,
               since a root has no parent to follow (with 0 it would read the previous strand's tip)
-          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0.7, 1]
           dt (float, s): substep length
           order (LaneOrder): particle order, or the lane order (then first is 0 and thread t works on
               lane t)
@@ -2183,7 +2183,7 @@ def _step_strands(paths, simplified=False, loose=False):
           stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
           exact (int, flag): non-zero solves the first pass's rotations from scratch (full)
           rotation_iterations (int): rotation refinement steps per pass otherwise (full)
-          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0.7, 1]
           order (LaneOrder): particle order, or the lane order: the order of the slots (per, shaped,
               spare and the contact bounds)
           lane_state (int, flag): non-zero: the state (x, v, x_out, v_out) is per slot too, in lane
@@ -2607,7 +2607,7 @@ _FRAME_ARGUMENTS = """
           exact (int, flag): non-zero solves the first substep's first pass's rotations from scratch (full)
           rotation_iterations (int): rotation refinement steps per pass otherwise (full)
           per (StrandSlots): the particles and windows in particle order (its scratch is not used)
-          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0, 1]
+          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0.7, 1]
           list_slack (float, m): the loose variant's slack of list_runs_short at the substep's start
               positions (hair_solver.FUSED_LIST_SLACK, as step_strands' walks queued ahead)
           first (int, index): the range's first strand, block 0's first
