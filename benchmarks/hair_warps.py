@@ -70,7 +70,7 @@ def counting_follow_the_leader(loose=False):
          "    order: LaneOrder,\n    first: int,\n    work: wp.array(dtype=float),\n):"),
         (r"\n( +)correction = wp\.vec3\(0\.0\)\n", rf"\n\1correction = wp.vec3(0.0)\n\1work[i] += {STEP}\n"),
         (r"p = follow\(", "p = follow_leader_counted("),
-        (r"(NO_BOUND|held_beyond)\)\n( +)correction = p - predicted", r"\1, work)\n\2correction = p - predicted"),
+        (r"(NO_BOUND|held_beyond)\)\n( +)x\[i\] = p", r"\1, work)\n\2x[i] = p"),
     ]
     func_edits = [
         (r"    held_beyond: float,\n\):",

@@ -1393,6 +1393,36 @@ def held_bounds(i: int, lists: int, contact: StrandContact):
     return held, held_leaves, held_beyond
 
 
+@wp.func(inline=True)
+def leader_placement(parent: wp.vec3, before: wp.vec3, k: int, predicted: wp.vec3, length: float):
+    """Where follow-the-leader puts a particle before its contacts (follow_leader): at its rest distance
+    from its parent, toward its prediction (where the prediction is on the parent, along the segment
+    before, or down for a strand's first free particle). Its move from the prediction is the correction
+    whose share ftl_damping the parent's velocity gives up (dynamic FTL). A contact's push is not part of
+    it: the push is the collider's on the particle, not the segment's pull on the parent, and fed back it
+    set hair ends resting on a shoulder buzzing. The length pass writes the parent's velocity between the
+    placement and the contacts, so that no correction is kept through them.
+
+    Inputs:
+      parent (vec3, m): the parent's resolved position
+      before (vec3, m): the grandparent's resolved position; read only when k >= 2 and the prediction is
+          on the parent
+      k (int, index): the particle's place along its strand
+      predicted (vec3, m): where the particle was predicted and shape-matched to
+      length (float, m): its rest distance to the parent
+    Returns:
+      vec3 (m): the placement
+    """
+    d = predicted - parent
+    dist = wp.length(d)
+    if dist < 1.0e-12:
+        d = wp.vec3(0.0, -1.0, 0.0)
+        if k >= 2:
+            d = parent - before
+        dist = wp.length(d)
+    return parent + d * (length / dist)
+
+
 def _follow_leader(paths, ahead=False, loose=False):
     """follow_leader compiled with the collision paths `paths` (PATHS_*); with `ahead` it takes the
     bounds held at the start as values (held, held_leaves, held_beyond) instead of reading them.
@@ -1403,9 +1433,7 @@ def _follow_leader(paths, ahead=False, loose=False):
              ("_loose" if loose else ""))
     def follow_leader(
         parent: wp.vec3,
-        before: wp.vec3,
-        k: int,
-        predicted: wp.vec3,
+        placed: wp.vec3,
         length: float,
         i: int,
         start: wp.vec3,
@@ -1414,9 +1442,9 @@ def _follow_leader(paths, ahead=False, loose=False):
         held_leaves: wp.vec4i,
         held_beyond: float,
     ):
-        """One particle of the length pass (follow_the_leader, step_strands): put at its rest distance
-        from its parent, pushed out of the collider and put back on that sphere, its contact bounds
-        kept or renewed.
+        """One particle of the length pass (follow_the_leader, step_strands) after its placement at rest
+        distance from its parent (leader_placement): pushed out of the collider and put back on that
+        sphere, its contact bounds kept or renewed.
 
         Compiled ahead (follow_the_leader's variant that reads a particle ahead), the bounds held at
         the start come as values (held, held_leaves, held_beyond), read by the caller (held_bounds)
@@ -1425,9 +1453,7 @@ def _follow_leader(paths, ahead=False, loose=False):
 
         Inputs:
           parent (vec3, m): the parent's resolved position
-          before (vec3, m): the grandparent's resolved position; read only when k >= 2
-          k (int, index): the particle's place along its strand
-          predicted (vec3, m): where the particle was predicted and shape-matched to
+          placed (vec3, m): the particle's placement (leader_placement)
           length (float, m): its rest distance to the parent
           i (int, index): its element of the contact-bound arrays (lane_slot)
           start (vec3, m): its position at the start of the substep, where the bounds hold
@@ -1441,14 +1467,7 @@ def _follow_leader(paths, ahead=False, loose=False):
         Returns:
           vec3 (m): the resolved position
         """
-        d = predicted - parent
-        dist = wp.length(d)
-        if dist < 1.0e-12:
-            d = wp.vec3(0.0, -1.0, 0.0)
-            if k >= 2:
-                d = parent - before
-            dist = wp.length(d)
-        p = parent + d * (length / dist)
+        p = placed
         colliding = contact.mode
         if wp.static(paths == PATHS_NONE):
             colliding = 0  # a constant: no collision code is compiled in
@@ -1564,8 +1583,8 @@ def _follow_the_leader(paths, ahead=False, loose=False):
         Each particle is put at its rest distance from its parent; a contact push-out is resolved inline
         and the particle is then put back on the sphere of rest radius, so every segment leaves with its
         exact rest length. Velocities are v = (x - x_prev) / dt minus ftl_damping * d_(i+1) / dt for
-        free particles, d_(i+1) the child's correction (dynamic FTL); the correction is carried to the
-        next particle in a register rather than stored.
+        free particles, d_(i+1) the child's move to rest length (dynamic FTL; without a contact's push, see
+        leader_placement), carried to the next particle in a register rather than stored.
 
         Contact bounds (contact.use_bounds != 0): each particle keeps a lower bound of its distance from the
         collider, set by its last query and lowered every substep by how far it and the collider near it
@@ -1600,7 +1619,7 @@ def _follow_the_leader(paths, ahead=False, loose=False):
           rest_length (float, per particle, m): rest distance to the previous particle (unused for roots)
           pinned_per_strand (int): leading particles of each strand left where they are; at least 1,
               since a root has no parent to follow (with 0 it would read the previous strand's tip)
-          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0.7, 1]
+          ftl_damping (float, fraction): share of the child's move to rest length taken off the velocity, [0.7, 1]
           dt (float, s): substep length
           order (LaneOrder): particle order, or the lane order (then first is 0 and thread t works on
               lane t)
@@ -1645,16 +1664,17 @@ def _follow_the_leader(paths, ahead=False, loose=False):
                     held_next, leaves_next, beyond_next = held_bounds(n, lists, contact)
                 correction = wp.vec3(0.0)
                 if k >= pinned_per_strand:
-                    predicted = p
-                    p = follow(parent, before, k, predicted, rest, i, x_start, contact, held, held_leaves,
-                               held_beyond)
-                    correction = p - predicted
-                    x[i] = p
+                    placed = leader_placement(parent, before, k, p, rest)
+                    correction = placed - p
+                    p = placed
                 if k > 0:
                     vel = (parent - start_parent) / dt
                     if mass_parent > 0.0:
                         vel = vel - (ftl_damping / dt) * correction
                     v[lane_slot(start, lane, k - 1, lanes)] = vel
+                if k >= pinned_per_strand:
+                    p = follow(parent, p, rest, i, x_start, contact, held, held_leaves, held_beyond)
+                    x[i] = p
                 before = parent
                 parent = p
                 start_parent = x_start
@@ -1666,17 +1686,19 @@ def _follow_the_leader(paths, ahead=False, loose=False):
                 p = x[i]
                 correction = wp.vec3(0.0)
                 if k >= pinned_per_strand:
-                    predicted = p
-                    p = follow(parent, before, k, predicted, rest_length[i], i, x_prev[i], contact, NO_BOUND,
-                               wp.vec4i(-1, -1, -1, -1), NO_BOUND)
-                    correction = p - predicted
-                    x[i] = p
+                    placed = leader_placement(parent, before, k, p, rest_length[i])
+                    correction = placed - p
+                    p = placed
                 if k > 0:
                     j = lane_slot(start, lane, k - 1, lanes)
                     vel = (parent - x_prev[j]) / dt
                     if inv_mass[j] > 0.0:
                         vel = vel - (ftl_damping / dt) * correction
                     v[j] = vel
+                if k >= pinned_per_strand:
+                    p = follow(parent, p, rest_length[i], i, x_prev[i], contact, NO_BOUND, wp.vec4i(-1, -1, -1, -1),
+                               NO_BOUND)
+                    x[i] = p
                 before = parent
                 parent = p
             j = lane_slot(start, lane, count - 1, lanes)
@@ -2183,7 +2205,7 @@ def _step_strands(paths, simplified=False, loose=False):
           stiffness (float, fraction): share of the way to the goal moved per pass, in (0, 1]
           exact (int, flag): non-zero solves the first pass's rotations from scratch (full)
           rotation_iterations (int): rotation refinement steps per pass otherwise (full)
-          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0.7, 1]
+          ftl_damping (float, fraction): share of the child's move to rest length taken off the velocity, [0.7, 1]
           order (LaneOrder): particle order, or the lane order: the order of the slots (per, shaped,
               spare and the contact bounds)
           lane_state (int, flag): non-zero: the state (x, v, x_out, v_out) is per slot too, in lane
@@ -2266,16 +2288,18 @@ def _step_strands(paths, simplified=False, loose=False):
                 p = shaped_position(p, i, stride, k, count, window_size, shapes, stiffness, per)
             correction = wp.vec3(0.0)
             if k >= pinned_per_strand:
-                predicted = p
-                p = follow(parent, before, k, predicted, per.rest_length[i], i, x[at], contact, NO_BOUND,
-                           wp.vec4i(-1, -1, -1, -1), NO_BOUND)
-                correction = p - predicted
-            x_out[at] = p
+                placed = leader_placement(parent, before, k, p, per.rest_length[i])
+                correction = placed - p
+                p = placed
             if k > 0:
                 vel = (parent - x[at - state_step]) / dt
                 if per.inv_mass[i - stride] > 0.0:
                     vel = vel - (ftl_damping / dt) * correction
                 v_out[at - state_step] = vel
+            if k >= pinned_per_strand:
+                p = follow(parent, p, per.rest_length[i], i, x[at], contact, NO_BOUND, wp.vec4i(-1, -1, -1, -1),
+                           NO_BOUND)
+            x_out[at] = p
             before = parent
             parent = p
         last = state_base + (count - 1) * state_step
@@ -2607,7 +2631,7 @@ _FRAME_ARGUMENTS = """
           exact (int, flag): non-zero solves the first substep's first pass's rotations from scratch (full)
           rotation_iterations (int): rotation refinement steps per pass otherwise (full)
           per (StrandSlots): the particles and windows in particle order (its scratch is not used)
-          ftl_damping (float, fraction): share of the child's correction removed from the velocity, [0.7, 1]
+          ftl_damping (float, fraction): share of the child's move to rest length taken off the velocity, [0.7, 1]
           list_slack (float, m): the loose variant's slack of list_runs_short at the substep's start
               positions (hair_solver.FUSED_LIST_SLACK, as step_strands' walks queued ahead)
           first (int, index): the range's first strand, block 0's first
@@ -2919,14 +2943,17 @@ def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap, listed
                         if wp.static(lists):
                             held_leaves = leaves_at[e]
                             held_beyond = beyond_at[e]
-                        q = follow(parent, before, k, q, lengths[e], start + k, starts[e], touching, held,
-                                   held_leaves, held_beyond)
+                        placed_k = leader_placement(parent, before, k, q, lengths[e])
+                        v_out[start + k] = placed_k - q  # its correction, for its parent's velocity below
+                        q = follow(parent, placed_k, lengths[e], start + k, starts[e], touching, held, held_leaves,
+                                   held_beyond)
                         x_out[start + k] = q
                     before = parent
                     parent = q
                 if h == run - 1:
                     wp.tile_scatter_masked(handovers, lane, wp.matrix_from_rows(parent, before), mine)
-            # the velocities, with each child's correction, from the placements the chain left in x_out
+            # the velocities from the placements the chain left in x_out, less each child's correction, which it
+            # left in v_out (free until the frame's end writes the velocities there)
             for h in range(wp.static(run)):
                 k = group * run + h
                 e = k * side + lane
@@ -2935,7 +2962,7 @@ def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap, listed
                     q = x_out[start + k]
                 step_v = (q - starts[e]) / dt
                 if live and k + 1 < count and inv_mass[h] > 0.0:
-                    step_v = step_v - (ftl_damping / dt) * (x_out[start + k + 1] - placed[e + side])
+                    step_v = step_v - (ftl_damping / dt) * v_out[start + k + 1]
                 vel[h] = step_v
                 wp.tile_scatter_masked(starts, e, q, True)  # read above by this thread alone
         for h in range(wp.static(run)):
