@@ -58,8 +58,11 @@ class ClothParams:
     follow: bool = True  # move particles with the body before each step (§3.4)
     follow_full_within: float = 0.02  # m: particles this close to the body follow it fully ...
     follow_none_beyond: float = 0.08  # m: ... fading to not at all at this distance
-    strain_limit: float = 0.0  # max edge stretch after a step (0.03 = 3%); 0 = off
-    strain_iterations: int = 4  # Jacobi passes of the strain limit
+    # spring stretch that strain_iterations Jacobi passes pull each step's springs back to (0.03 = 3%; 0 = off);
+    # they approach it and the body's contact has the last word, so some edges end past it: the walking dress
+    # at 0.03 keeps 99% of its edges within 3.8% with 4 passes, 3.7% with 8, 3.3% with 16
+    strain_limit: float = 0.0
+    strain_iterations: int = 4  # Jacobi passes of the strain limit a step
     substeps: int = 0  # per frame; 0 = from the stability bound
     max_speed: float = 50.0  # m/s, faster particles are reported as an explosion
 

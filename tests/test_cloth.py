@@ -77,6 +77,20 @@ def test_free_fall_with_linear_drag_matches_the_exponential_approach():
     assert abs(state.v.numpy()[0, 1] / expected - 1.0) < 1e-4
 
 
+def test_a_particle_in_wind_approaches_the_wind_plus_its_fall_speed():
+    """Linear drag c/m toward the air's velocity w: from rest, v(t) = (w + g m/c)(1 - exp(-c t / m)),
+    in every axis, RK4's answer to 1e-4 of it."""
+    wind, gravity = np.array([2.0, 0.0, -1.0]), np.array([0.0, -9.81, 0.0])
+    params = ClothParams(air_drag=0.6, density=0.15, gravity=tuple(gravity), wind=tuple(wind), damping=0.0,
+                         follow=False)
+    model = ClothModel(np.zeros((1, 3)), np.zeros((0, 3)), [], [], [], [], params, masses=0.01)
+    c_over_m = params.air_drag / params.density
+    seconds = 0.5
+    state, _ = run(model, seconds, 1.0 / 100.0)
+    expected = (wind + gravity / c_over_m) * (1.0 - np.exp(-c_over_m * seconds))
+    np.testing.assert_allclose(state.v.numpy()[0], expected, rtol=1e-4, atol=1e-4 * np.abs(expected).max())
+
+
 def test_spring_force_kernel_matches_float64_reference():
     rng = np.random.default_rng(4)
     n = 200

@@ -180,6 +180,21 @@ def test_full_variant_goals_are_a_rigid_motion_of_the_rest_window():
     np.testing.assert_allclose(moved, x, atol=2e-6)
 
 
+def test_simplified_variant_keeps_a_rigidly_moved_straight_strand():
+    """The simplified goals c + d_k u (the window's centroid and chord) hold a straight strand's rest shape
+    wherever it is moved rigidly, with uneven segments too: a check of the rest offsets d_k that the
+    float64 reference above reads from the model rather than making them itself."""
+    spacing = np.cumsum([0.0, 0.01, 0.02, 0.015, 0.03, 0.01, 0.025, 0.02, 0.012, 0.018])
+    rest = np.stack([0.3 * spacing, -spacing, 0.2 * spacing], 1)
+    model = StrandBuilder().add_strand(rest).finalize("cpu", pinned_per_strand=1)
+    angle = 1.1
+    R = np.array([[1, 0, 0], [0, np.cos(angle), -np.sin(angle)], [0, np.sin(angle), np.cos(angle)]])
+    x = (model.rest_positions_np @ R.T + [0.1, -0.05, 0.3]).astype(np.float32)
+    for size in (3, 4, 6):
+        moved, _ = launch_pass(x, model, model.shape_windows(size), 0, stiffness=1.0)
+        np.testing.assert_allclose(moved, x, atol=2e-6)
+
+
 def test_warm_started_rotations_track_the_exact_solution():
     """Refinement (Mueller et al. 2016) from last step's rotations converges to the float64 SVD answer."""
     rng = np.random.default_rng(8)
