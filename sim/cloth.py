@@ -44,6 +44,11 @@ class ClothParams:
     damping: float = 0.3  # 1/s, global velocity damping
     air_drag: float = 0.3  # kg/(m^2 s), linear drag toward the wind per area of cloth
     wind: tuple = (0.0, 0.0, 0.0)  # m/s, the air's velocity, which air_drag pulls toward
+    # gust strength as a fraction of the wind speed: the same smooth noise as the hair's gusts, so a skirt
+    # flutters in a steady breeze rather than holding one flared shape
+    wind_turbulence: float = 0.0
+    wind_turbulence_scale: float = 6.0  # 1/m, spatial frequency of the gusts
+    wind_turbulence_rate: float = 1.5  # 1/s, how fast the gust pattern changes
     gravity: tuple = (0.0, -9.81, 0.0)  # m/s^2
     friction: float = 0.4  # Coulomb coefficient at body contact
     collision_margin: float = 0.008  # m, kept outside the body; covers the body bulging between particles
@@ -72,7 +77,7 @@ class ClothParams:
                 raise ValueError(f"{name} must be positive")
         for name in ("compress_stiffness", "shear_stiffness", "bend_stiffness", "spring_damping", "damping",
                      "air_drag", "friction", "collision_margin", "body_proxy", "strain_limit", "reseed_drift",
-                     "candidate_slack"):
+                     "candidate_slack", "wind_turbulence", "wind_turbulence_scale", "wind_turbulence_rate"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"{name} must be zero or positive")
         if self.substeps < 0:
@@ -334,6 +339,11 @@ class ClothSolver:
         p = self.params
         self.reseed_radius = max(2.0 * p.walk_trust_distance, p.follow_none_beyond if p.follow else 0.0) + p.collision_margin
         self.step_count = wp.zeros(1, dtype=wp.int32, device=d)  # on the device: captured frames advance it
+        # the wind's gusts at each particle, made once a step (kernels.wind_gusts) where the wind gusts; their
+        # time is the device clock plus the step's offset from it, so that a captured frame replays at any time
+        self.gusts = z() if p.wind_turbulence > 0.0 else wp.zeros(0, dtype=wp.vec3, device=d)
+        self.clock = wp.zeros(1, dtype=float, device=d)
+        self._clock_time = 0.0
         self._bad_count = wp.zeros(1, dtype=wp.int32, device=d)
         self._first_bad = wp.zeros(1, dtype=wp.int32, device=d)
         self.candidates = body_candidates(0, 0, d)  # kernels.BodyCandidates, allocated for the first body
@@ -373,13 +383,23 @@ class ClothSolver:
         self._candidates_body = body
         return self.candidates
 
-    def step(self, state_in, state_out, body, dt):
-        """One step of dt. `body` (a Collider or None) must be posed for the end of the step, its
-        triangle boxes holding that pose (Collider.apply_pose refits them, or a sweep of the frame's
-        poses holds them all: Collider.sweep). With block_step (a GPU's default for a small cloth) the
-        step is one launch of one thread block, the same particles as the launches below."""
+    def set_clock(self, time):
+        """Set the device clock to `time` [s] (e.g. a frame's start, before launching its graph)."""
+        self._clock_time = float(time)
+        self.clock.fill_(self._clock_time)
+
+    def step(self, state_in, state_out, body, dt, time=0.0):
+        """One step of dt from `time` [s] (the wind's gusts are those of that time). `body` (a Collider or
+        None) must be posed for the end of the step, its triangle boxes holding that pose
+        (Collider.apply_pose refits them, or a sweep of the frame's poses holds them all: Collider.sweep).
+        With block_step (a GPU's default for a small cloth) the step is one launch of one thread block,
+        the same particles as the launches below."""
         m, p, dev, n = self.model, self.params, self.model.device, self.model.num_particles
         pins = body is not None and m.bind_particle is not None
+        if p.wind_turbulence > 0.0:
+            wp.launch(kernels.wind_gusts, n, [state_in.x, wp.vec3(*p.wind), p.wind_turbulence, p.wind_turbulence_scale,
+                                              p.wind_turbulence_rate, self.clock, float(time - self._clock_time),
+                                              self.gusts], device=dev)
         # a strain limit of no passes still collides twice, which the block's step does not do
         if self.block_step and (p.strain_limit == 0.0 or p.strain_iterations > 0):
             self._step_in_block(state_in, state_out, body, dt, pins)
@@ -402,7 +422,7 @@ class ClothSolver:
             xn, vn = (state_out.x, state_out.v) if last else buffers[k % 2]
             wp.launch(kernels.rk4_stage, n,
                       [x0, v0, xs, vs, m.inv_mass, m.drag, m.springs, wp.vec3(*p.gravity), wp.vec3(*p.wind),
-                       p.damping, weight, h_next, dt if last else 0.0,
+                       self.gusts, p.damping, weight, h_next, dt if last else 0.0,
                        self.acc_x, self.acc_v, xn, vn], device=dev)
             xs, vs = xn, vn
         if body is not None:
@@ -423,8 +443,8 @@ class ClothSolver:
         binding = [m.particle_binding, body.skin_binding(m)] if pins else [None, skinning.SkinBinding()]
         # with a mesh given, its queries answer every closest point: the step compiled without the boxes'
         wp.launch_tiled(kernels.STEP_IN_BLOCK[surface.mesh == 0], dim=[1], inputs=[
-            n, state_in.x, state_in.v, m.inv_mass, m.drag, m.springs, wp.vec3(*p.gravity), wp.vec3(*p.wind), p.damping,
-            dt, self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
+            n, state_in.x, state_in.v, m.inv_mass, m.drag, m.springs, wp.vec3(*p.gravity), wp.vec3(*p.wind), self.gusts,
+            p.damping, dt, self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
             int(body is not None and p.follow), state_in.follow, p.follow_full_within, p.follow_none_beyond, int(pins),
             *binding, self.step_count,
             passes, p.strain_limit,

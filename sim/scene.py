@@ -610,6 +610,7 @@ class Scene:
                                                 whole=self._step_hair_frame if self.solver.frame_in_block and not held
                                                 else None))
             if self.cloth_model is not None:
+                self.cloth_solver.set_clock(t0)
                 body = self.cloth_body if self.cloth_body is not self.cloth_collider else None
                 # the cloth queries the body's triangle boxes, swept over the frame or refitted to each
                 # substep; the detail's lift queries the mesh of the body after the frame (end_pose, or
@@ -741,7 +742,7 @@ class Scene:
         self.state, self._scratch = self._scratch, self.state
 
     def _step_cloth(self, dt, t):
-        self.cloth_solver.step(self.cloth_state, self._cloth_scratch, self.cloth_collider, dt)
+        self.cloth_solver.step(self.cloth_state, self._cloth_scratch, self.cloth_collider, dt, t - dt)
         self.cloth_state, self._cloth_scratch = self._cloth_scratch, self.cloth_state
 
     def update_detail(self):

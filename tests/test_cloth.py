@@ -91,6 +91,34 @@ def test_a_particle_in_wind_approaches_the_wind_plus_its_fall_speed():
     np.testing.assert_allclose(state.v.numpy()[0], expected, rtol=1e-4, atol=1e-4 * np.abs(expected).max())
 
 
+def test_gusts_vary_the_wind_each_particle_feels_and_the_stages_take_them():
+    """Gusty wind (wind_turbulence): each particle's gust, made once a step (kernels.wind_gusts), averages
+    out over the cloth and scales with turbulence x wind speed; the RK4 stages pull every particle toward
+    the wind plus its own gust: from rest, v = (w + gust)(1 - exp(-c dt / m)) after one step."""
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-0.5, 0.5, (4000, 3))
+    wind = np.array([2.0, 0.0, -1.0])
+    speeds = []
+    for turbulence in (0.3, 0.6):
+        params = ClothParams(air_drag=0.6, density=0.15, gravity=(0.0, 0.0, 0.0), wind=tuple(wind), damping=0.0,
+                             follow=False, wind_turbulence=turbulence)
+        model = ClothModel(points, np.zeros((0, 3)), [], [], [], [], params, masses=0.01)
+        solver = ClothSolver(model)
+        solver.set_clock(2.0)
+        s0, s1 = model.state(), model.state()
+        dt = 1.0 / 240.0
+        solver.step(s0, s1, None, dt, time=2.5)
+        gusts = solver.gusts.numpy().astype(np.float64)
+        c_over_m = params.air_drag / params.density
+        np.testing.assert_allclose(s1.v.numpy(), (wind + gusts) * (1.0 - np.exp(-c_over_m * dt)), atol=1e-6)
+        rms = np.sqrt((gusts ** 2).sum(axis=1).mean())
+        assert np.abs(gusts.mean(axis=0)).max() < 0.15 * rms  # no mean drift: the mean wind is the wind
+        speeds.append(rms / (turbulence * np.linalg.norm(wind)))
+    assert 0.1 < speeds[0] < 2.0 and speeds[1] == pytest.approx(speeds[0], rel=1e-5)
+    steady = ClothModel(points, np.zeros((0, 3)), [], [], [], [], ClothParams(), masses=0.01)
+    assert ClothSolver(steady).gusts.shape[0] == 0  # no gusts, nothing made or read
+
+
 def test_spring_force_kernel_matches_float64_reference():
     rng = np.random.default_rng(4)
     n = 200

@@ -27,9 +27,11 @@ def _hair_config(device, graphs):
 
 
 def _cloth_config(device, graphs):
+    # gusts read the device clock here too
     return demo_scene({"scene": {"device": device, "frames": 5, "preroll": 0.0, "stats": False,
                                  "graphs": graphs},
-                       "hair": {"enabled": False}, "face": {"enabled": False}, "cloth.detail": {"level": 3}})
+                       "hair": {"enabled": False}, "face": {"enabled": False}, "cloth.detail": {"level": 3},
+                       "cloth.solver": {"wind": [1.5, 0.0, 0.5], "wind_turbulence": 0.6}})
 
 
 @pytest.mark.parametrize("device", DEVICES)

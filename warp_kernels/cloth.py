@@ -24,6 +24,7 @@ from .collision import closest_on_triangle, pseudo_normal_weight
 wp.set_module_options(MODULE_OPTIONS)
 
 from .skinning import SkinBinding, bound_position, face_frame, face_point
+from .strands import air_velocity
 
 # step_in_block's most lanes: a particle per lane for a garment of a few hundred particles (the paper's
 # dress has 332), where a lane with two would double each pass's latency. The most that fit: a body
@@ -196,6 +197,7 @@ def _rk4_stage_at(
     springs: SpringNetwork,
     gravity: wp.vec3,
     wind: wp.vec3,
+    gusts: wp.array(dtype=wp.vec3),
     damping: float,
     weight: float,
     h_next: float,
@@ -206,7 +208,10 @@ def _rk4_stage_at(
     v_next: wp.array(dtype=wp.vec3),
 ):
     """rk4_stage for particle p: its body, which step_in_block also runs."""
-    kv = particle_acceleration(p, xs, vs, inv_mass, drag, springs, gravity, wind, damping)
+    air = wind
+    if gusts.shape[0] > 0:
+        air = wind + gusts[p]
+    kv = particle_acceleration(p, xs, vs, inv_mass, drag, springs, gravity, air, damping)
     kx = vs[p]
     sum_x = acc_x[p] + weight * kx
     sum_v = acc_v[p] + weight * kv
@@ -233,6 +238,7 @@ def rk4_stage(
     springs: SpringNetwork,
     gravity: wp.vec3,
     wind: wp.vec3,
+    gusts: wp.array(dtype=wp.vec3),
     damping: float,
     weight: float,
     h_next: float,
@@ -262,6 +268,7 @@ def rk4_stage(
       springs (SpringNetwork): the cloth's springs, per spring and per particle's slot (ClothModel.springs)
       gravity (vec3, m/s^2): acceleration of gravity, e.g. (0, -9.81, 0)
       wind (vec3, m/s): air velocity that the drag pulls toward
+      gusts (vec3, per particle, m/s): the gusts added to it this step (wind_gusts); empty for none
       damping (float, 1/s): global velocity damping
       weight (float): RK4 weight of this stage's slope: 1, 2, 2, 1
       h_next (float, s): time from the step's start to the next stage: dt/2, dt/2, dt (unread when
@@ -276,8 +283,40 @@ def rk4_stage(
           close_dt > 0; must not alias xs, which neighbours are still reading
       v_next (vec3, per particle, m/s): velocities likewise; must not alias vs
     """
-    _rk4_stage_at(wp.tid(), x0, v0, xs, vs, inv_mass, drag, springs, gravity, wind, damping, weight, h_next, close_dt,
-                  acc_x, acc_v, x_next, v_next)
+    _rk4_stage_at(wp.tid(), x0, v0, xs, vs, inv_mass, drag, springs, gravity, wind, gusts, damping, weight, h_next,
+                  close_dt, acc_x, acc_v, x_next, v_next)
+
+
+@wp.kernel
+def wind_gusts(
+    x: wp.array(dtype=wp.vec3),
+    wind: wp.vec3,
+    turbulence: float,
+    scale: float,
+    rate: float,
+    clock: wp.array(dtype=float),
+    time_offset: float,
+    gusts: wp.array(dtype=wp.vec3),
+):
+    """The gusts of a step's wind at each particle (strands.air_velocity, the noise the hair's wind gusts
+    with), once a step: the RK4 stages add them to the mean wind (rk4_stage), so that the noise is not
+    evaluated in each of the four. The time is clock[0] + time_offset, the clock on the device, so a
+    captured frame replays at any time.
+
+    Launch: one thread per particle (dim = num_particles).
+    Inputs:
+      x (vec3, per particle, m): positions at the start of the step
+      wind (vec3, m/s): the mean wind
+      turbulence (float, fraction): gust strength as a fraction of the wind speed
+      scale (float, 1/m): the gusts' spatial frequency
+      rate (float, 1/s): how fast their pattern changes
+      clock (float, 1 element, s): device clock
+      time_offset (float, s): the step's start relative to clock[0]
+    Outputs:
+      gusts (vec3, per particle, m/s): the air's velocity less the mean wind
+    """
+    i = wp.tid()
+    gusts[i] = air_velocity(wind, turbulence, scale, rate, x[i], clock[0] + time_offset) - wind
 
 
 # inlined: a call per particle made the kernels that share it about 1% slower on the CPU
@@ -1364,6 +1403,7 @@ def _step_in_block(boxes):
         springs: SpringNetwork,
         gravity: wp.vec3,
         wind: wp.vec3,
+        gusts: wp.array(dtype=wp.vec3),
         damping: float,
         dt: float,
         x_stage: wp.array(dtype=wp.vec3),
@@ -1420,6 +1460,7 @@ def _step_in_block(boxes):
           springs (SpringNetwork): the cloth's springs, per spring and per particle's slot (ClothModel.springs)
           gravity (vec3, m/s^2): acceleration of gravity
           wind (vec3, m/s): air velocity that the drag pulls toward
+          gusts (vec3, per particle, m/s): the gusts added to it this step (wind_gusts); empty for none
           damping (float, 1/s): global velocity damping
           dt (float, s): step length
           follow (int, flag): non-zero moves free particles with the body (begin_step)
@@ -1471,27 +1512,27 @@ def _step_in_block(boxes):
         # RK4 stages ping-pong as ClothSolver.step's launches: x0 -> stage -> scratch -> stage -> x
         p = lane
         while p < n:
-            _rk4_stage_at(p, x0, v0, x0, v0, inv_mass, drag, springs, gravity, wind, damping, 1.0, 0.5 * dt, 0.0, acc_x,
-                          acc_v, x_stage, v_stage)
+            _rk4_stage_at(p, x0, v0, x0, v0, inv_mass, drag, springs, gravity, wind, gusts, damping, 1.0, 0.5 * dt, 0.0,
+                          acc_x, acc_v, x_stage, v_stage)
             p += stride
         _block_sync()
         p = lane
         while p < n:
-            _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, springs, gravity, wind, damping, 2.0, 0.5 * dt,
-                          0.0, acc_x, acc_v, x_scratch, v_scratch)
+            _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, springs, gravity, wind, gusts, damping, 2.0,
+                          0.5 * dt, 0.0, acc_x, acc_v, x_scratch, v_scratch)
             p += stride
         _block_sync()
         p = lane
         while p < n:
-            _rk4_stage_at(p, x0, v0, x_scratch, v_scratch, inv_mass, drag, springs, gravity, wind, damping, 2.0, dt,
-                          0.0, acc_x, acc_v, x_stage, v_stage)
+            _rk4_stage_at(p, x0, v0, x_scratch, v_scratch, inv_mass, drag, springs, gravity, wind, gusts, damping, 2.0,
+                          dt, 0.0, acc_x, acc_v, x_stage, v_stage)
             p += stride
         _block_sync()
         record = follow != 0 and strain_passes == 0
         p = lane
         while p < n:
-            _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, springs, gravity, wind, damping, 1.0, 0.0, dt,
-                          acc_x, acc_v, x, v)
+            _rk4_stage_at(p, x0, v0, x_stage, v_stage, inv_mass, drag, springs, gravity, wind, gusts, damping, 1.0, 0.0,
+                          dt, acc_x, acc_v, x, v)
             if collide != 0:  # its own particle only: no barrier after the stage
                 collide_body(p, x, x0, v, inv_mass, body, params, step_count, 1, dt, nearest_in, clearance_in,
                              int(record), nearest, clearance, candidates, contact, fallbacks, recorded, 0)

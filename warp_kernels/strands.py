@@ -138,9 +138,38 @@ class StrandForces:
 
 
 @wp.func
+def air_velocity(wind: wp.vec3, turbulence: float, scale: float, rate: float, p: wp.vec3, time: float):
+    """The air's velocity at p: the mean wind, with gusts where turbulence > 0 (smooth noise in space and
+    time scaled by the mean wind speed). The hair's gusting_wind and the cloth's wind_gusts.
+
+    Inputs:
+      wind (vec3, m/s): the mean wind
+      turbulence (float, fraction): gust strength as a fraction of the wind speed; 0 for none
+      scale (float, 1/m): the gusts' spatial frequency
+      rate (float, 1/s): how fast their pattern changes
+      p (vec3, m): where
+      time (float, s): the gusts' time
+    Returns:
+      vec3 (m/s): the air's velocity
+    """
+    air = wind
+    if turbulence > 0.0:
+        q = p * scale
+        t = time * rate
+        speed = wp.length(wind)
+        state = wp.rand_init(7)
+        gust = wp.vec3(
+            wp.noise(state, wp.vec4(q[0], q[1], q[2], t)),
+            wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], t)),
+            wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], t)),
+        )
+        air = wind + gust * (turbulence * speed)
+    return air
+
+
+@wp.func
 def gusting_wind(forces: StrandForces, p: wp.vec3, time: float):
-    """The air's velocity at p: the mean wind, with gusts where forces.turbulence > 0 (smooth noise in
-    space and time scaled by the mean wind speed).
+    """The air's velocity at p for the strands (air_velocity of forces' wind and gusts).
 
     Inputs:
       forces (StrandForces): the wind and its gusts
@@ -149,19 +178,7 @@ def gusting_wind(forces: StrandForces, p: wp.vec3, time: float):
     Returns:
       vec3 (m/s): the air's velocity
     """
-    air = forces.wind
-    if forces.turbulence > 0.0:
-        q = p * forces.turbulence_scale
-        t = time * forces.turbulence_rate
-        speed = wp.length(forces.wind)
-        state = wp.rand_init(7)
-        gust = wp.vec3(
-            wp.noise(state, wp.vec4(q[0], q[1], q[2], t)),
-            wp.noise(state, wp.vec4(q[0] + 31.7, q[1], q[2], t)),
-            wp.noise(state, wp.vec4(q[0], q[1] + 57.1, q[2], t)),
-        )
-        air = forces.wind + gust * (forces.turbulence * speed)
-    return air
+    return air_velocity(forces.wind, forces.turbulence, forces.turbulence_scale, forces.turbulence_rate, p, time)
 
 
 @wp.func(inline=True)
