@@ -320,14 +320,15 @@ def _soft(d, width):
     return _smoothstep(1.0 - d / width)
 
 
-def _paint(vertices, rows, cols, index, lower, lining, mouth_row):
-    """Display colours: lips, the mouth lining, brows and eyes on skin, with soft edges."""
-    nr, nc = index.shape
-    k = len(lower)
-    col = np.concatenate([np.tile(cols, nr), np.tile(cols[list(lower)], 3)])
-    row = np.concatenate([np.repeat(rows, nc), np.full(3 * k, rows[mouth_row])])
+# sub-samples a side of the cell around each vertex that its colour averages (_paint)
+PAINT_SAMPLES = 5
+
+
+def _paint_at(row, col):
+    """Display colours at face coordinates (row: height [m], col: angle from the front [rad]): lips,
+    brows and eyes on skin, with soft edges."""
     skin = np.asarray(SKIN, np.float64)
-    colors = np.tile(skin, (len(vertices), 1))
+    colors = np.tile(skin, (len(row), 1))
 
     def blend(mask, rgb):
         colors[:] = colors * (1.0 - mask[:, None]) + np.asarray(rgb) * mask[:, None]
@@ -335,7 +336,7 @@ def _paint(vertices, rows, cols, index, lower, lining, mouth_row):
     # lips: thickest at the middle, tapering to the corners, with a dip in the upper lip's edge
     a = np.clip(np.abs(col) / _CORNER, 0.0, 1.5)
     taper = np.sqrt(np.clip(1.0 - a ** 2, 0.0, 1.0))
-    mouth_y = rows[mouth_row]
+    mouth_y = _ROWS[_MOUTH_ROW]
     upper_edge = mouth_y + (0.0085 - 0.0015 * np.exp(-(col / 0.05) ** 2)) * taper
     lower_edge = mouth_y - 0.0095 * taper
     inside = np.maximum(row - upper_edge, lower_edge - row)
@@ -348,6 +349,38 @@ def _paint(vertices, rows, cols, index, lower, lining, mouth_row):
         e = np.sqrt(((col - side * 0.425) / 0.13) ** 2 + ((row - 0.3415) / 0.0060) ** 2)
         blend(_soft(e - 1.0, 0.35), EYE_WHITE)
         blend(_soft(e - 0.42, 0.25), IRIS)
+    return colors
+
+
+def _paint(vertices, rows, cols, index, lower, lining, mouth_row):
+    """Display colours of the face's vertices: _paint_at averaged over the grid cell around each vertex
+    (PAINT_SAMPLES^2 points from halfway to the row and column before it to halfway to the ones after).
+    Taken at the vertex alone, a brow's or an eye's edge falls between vertices all in or all out, and the
+    colours interpolated across the triangles draw it as a staircase of the grid's cells (2.7 mm at the
+    default resolution); averaged, an edge vertex takes the share of its cell the feature covers, and the
+    edge draws straight. Lip vertices are painted at the mouth row as their twins, the lining dark."""
+    nr, nc = index.shape
+    k = len(lower)
+    col = np.concatenate([np.tile(cols, nr), np.tile(cols[list(lower)], 3)])
+    row = np.concatenate([np.repeat(rows, nc), np.full(3 * k, rows[mouth_row])])
+
+    def half_gaps(values):
+        gaps = np.diff(values)
+        return 0.5 * np.concatenate([gaps[:1], gaps]), 0.5 * np.concatenate([gaps, gaps[-1:]])
+
+    below, above = half_gaps(rows)
+    left, right = half_gaps(cols)
+    row_lo = np.concatenate([np.repeat(below, nc), np.zeros(3 * k)])  # the mouth row's twins: along the row only
+    row_hi = np.concatenate([np.repeat(above, nc), np.zeros(3 * k)])
+    col_lo = np.concatenate([np.tile(left, nr), np.tile(left[list(lower)], 3)])
+    col_hi = np.concatenate([np.tile(right, nr), np.tile(right[list(lower)], 3)])
+    t = (np.arange(PAINT_SAMPLES) + 0.5) / PAINT_SAMPLES * 2.0 - 1.0  # -1 .. 1, the cell's centres
+    colors = np.zeros((len(row), 3))
+    for u in t:
+        r = row + np.where(u < 0.0, row_lo, row_hi) * u
+        for w in t:
+            colors += _paint_at(r, col + np.where(w < 0.0, col_lo, col_hi) * w)
+    colors /= PAINT_SAMPLES ** 2
     colors[lining] = MOUTH_INSIDE
     return colors
 
