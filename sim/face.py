@@ -212,9 +212,9 @@ def _refine(values, times):
     return np.concatenate([inner, values[-1:]])
 
 
-def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resolution=2):
+def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resolution=3):
     """The built-in face over the front of the built-in bust: 29 x 31 vertices refined `resolution`
-    times (resolution 2: 57 x 61), the lips parted
+    times (resolution 2: 57 x 61, 3: 85 x 91), the lips parted
     along one row, a dark mouth lining behind them, and the 48 feature points.
 
     project(points) -> (surface points, unit normals) snaps the grid onto the actual collider (the
@@ -298,6 +298,30 @@ def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resoluti
     return FaceMesh(lifted, faces, features, surface_uv, colors, normals)
 
 
+# Phong tessellation's shape factor: the blend from the flat triangle (0) to the tangent planes' (1). A
+# half cancels the flat triangle's sagitta on a sphere (an icosphere of 320 triangles: 1.8 mm inside flat,
+# 1.7 mm outside at 1, within 0.05 mm at a half); Boubekeur & Alexa suggest 3/4 for shapes in general
+PHONG_SHAPE = 0.5
+
+
+def phong_points(closest, bary, corners, vertices, normals, shape=PHONG_SHAPE):
+    """(points, unit normals) on a mesh's Phong surface (Boubekeur & Alexa 2008) for points whose closest
+    points on its flat triangles are `closest` (N, 3), at barycentric weights `bary` (N, 3) of the
+    triangles with vertex indices `corners` (N, 3): each closest point projected onto the tangent planes
+    of its triangle's corners (vertices, vertex normals `normals`), those blended by the weights, and
+    the result moved `shape` of the way there from the flat point; the normals blended by the weights.
+    A face grid finer than the head's triangles, snapped onto them flat, shows their facets in its
+    shading (resolution 4); on the curved surface it does not, and over the built-in bust it stays
+    outside it (test_face)."""
+    closest = np.asarray(closest, np.float64)
+    n_corner = np.asarray(normals, np.float64)[corners]  # (N, 3 corners, 3)
+    towards = closest[:, None, :] - np.asarray(vertices, np.float64)[corners]
+    on_planes = closest[:, None, :] - np.einsum("nk,nkj->nkj", np.einsum("nkj,nkj->nk", towards, n_corner), n_corner)
+    curved = np.einsum("nk,nkj->nj", bary, on_planes)
+    n = np.einsum("nk,nkj->nj", bary, n_corner)
+    return closest + shape * (curved - closest), n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
 def _analytic_normals(vertices, rows, cols, index, n0, mouth_row):
     """Unit normals of the bust surface at the grid (twins copy their original's)."""
     eps = 1e-4
@@ -356,8 +380,8 @@ def _paint(vertices, rows, cols, index, lower, lining, mouth_row):
     """Display colours of the face's vertices: _paint_at averaged over the grid cell around each vertex
     (PAINT_SAMPLES^2 points from halfway to the row and column before it to halfway to the ones after).
     Taken at the vertex alone, a brow's or an eye's edge falls between vertices all in or all out, and the
-    colours interpolated across the triangles draw it as a staircase of the grid's cells (2.7 mm at the
-    default resolution); averaged, an edge vertex takes the share of its cell the feature covers, and the
+    colours interpolated across the triangles draw it as a staircase of the grid's cells (2.7 mm at
+    resolution 2); averaged, an edge vertex takes the share of its cell the feature covers, and the
     edge draws straight. Lip vertices are painted at the mouth row as their twins, the lining dark."""
     nr, nc = index.shape
     k = len(lower)
@@ -630,7 +654,9 @@ class FaceConfig:
     enabled: bool = False  # set by the presence of a [face] table
     mesh: str = "builtin"  # "builtin" (fits the built-in head and body) or a face mesh file
     features: str = ""  # JSON {feature name: vertex index} for a face mesh file
-    resolution: int = 2  # built-in face: grid refinement (1: ~830 vertices, 2: ~3200)
+    # built-in face: grid refinement (1: ~830 vertices, 2: ~3,500, 3: ~7,800, 4: ~13,800); 3 draws brows and eyes
+    # crisp in a close-up (vertex colours are no finer than the grid), 4 crisper still
+    resolution: int = 3
     lift: float = 0.002  # m the face floats off the head surface, so it draws over it
     audio: str = ""  # a WAV the character speaks (lip sync); "builtin" for the demo line
     mouth: str = ""  # instead of audio: .npy or .csv of (T, 13) mouth parameters [mm], one row per frame

@@ -27,7 +27,7 @@ from .graphs import AsyncReadback, FrameGraphs, cpu_cores, run_parallel, run_sid
 from .errors import InputError
 from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
-from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
+from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions, phong_points
 from .hair_children import HairChildren
 from .hair_solver import HAIR_FRAMES, HairParams, HairSolver, deferred_step_modules
 from .comb import before_frame as comb_before_frame
@@ -462,8 +462,7 @@ class Scene:
 
         def project(points):
             closest, face, bary = self.collider.closest_points(points)
-            n = np.einsum("nk,nkj->nj", bary, normals[self.head.faces[face]])
-            return closest, n / np.linalg.norm(n, axis=1, keepdims=True)
+            return phong_points(closest, bary, self.head.faces[face], self.head.vertices, normals)
 
         offset = getattr(self.head, "head_offset", (0.0, 0.0, 0.0)) if cfg.body.enabled else (0.0, 0.0, 0.0)
         return builtin_face(project, cfg.face.lift, offset, cfg.face.resolution)

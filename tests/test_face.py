@@ -375,7 +375,7 @@ def test_feature_colours_are_the_averages_of_the_paint_over_each_vertex_cell():
     each channel (measured 0.0034); a colour taken at the vertex alone misses by up to 0.16 there."""
     from sim import face as face_module
 
-    mesh = face_module.builtin_face()
+    mesh = face_module.builtin_face(resolution=2)
     rows = face_module._refine(np.asarray(face_module._ROWS), 2)
     half = face_module._refine(np.asarray(face_module._HALF_COLUMNS), 2)
     cols = np.concatenate([-half[:0:-1], half])
@@ -397,3 +397,43 @@ def test_feature_colours_are_the_averages_of_the_paint_over_each_vertex_cell():
     assert np.abs(got - want).max() < 0.01
     point = face_module._paint_at(rows[i], cols[j])
     assert np.abs(point - want).max() > 0.1  # the edges are where averaging matters
+
+
+def test_phong_points_lie_on_the_curved_surface_a_coarse_mesh_stands_for():
+    """On an icosphere of 320 triangles (its vertices on a sphere of 10 cm, its normals radial), points
+    snapped onto the flat triangles sit up to 1.8 mm inside the sphere; on the Phong surface (phong_points,
+    its shape factor a half) within 0.05 mm of it, and a mesh vertex stays where it is."""
+    import trimesh
+
+    from sim.face import phong_points
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    vertices, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
+    normals = vertices / np.linalg.norm(vertices, axis=1, keepdims=True)
+    rng = np.random.default_rng(2)
+    face = rng.integers(0, len(faces), 2000)
+    bary = rng.dirichlet(np.ones(3), 2000)
+    flat = np.einsum("nk,nkj->nj", bary, vertices[faces[face]])
+    curved, n = phong_points(flat, bary, faces[face], vertices, normals)
+    flat_error = np.abs(np.linalg.norm(flat, axis=1) - 0.1)
+    curved_error = np.abs(np.linalg.norm(curved, axis=1) - 0.1)
+    assert flat_error.max() > 1.5e-3 and curved_error.max() < 1e-4
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
+    at_corner, _ = phong_points(vertices[faces[:5, 0]], np.tile([1.0, 0.0, 0.0], (5, 1)), faces[:5], vertices, normals)
+    np.testing.assert_allclose(at_corner, vertices[faces[:5, 0]], atol=1e-15)
+
+
+def test_a_finer_built_in_face_rides_the_head_outside_it():
+    """The built-in face at resolution 3 (close-ups), projected onto the head's Phong surface and lifted
+    2 mm: every vertex lies outside the head's mesh by at least a millimetre (measured 1.63 mm), so the
+    head never shows through it."""
+    import trimesh
+
+    from sim.scene import Scene, hair_demo_scene
+
+    scene = Scene(hair_demo_scene({"hair": {"enabled": False}, "face": {"enabled": True, "resolution": 3}}))
+    points = scene.face_rig.mesh.vertices
+    head = trimesh.Trimesh(scene.head.vertices, scene.head.faces, process=False)
+    closest, face, bary = scene.collider.closest_points(points)
+    outward = np.einsum("ij,ij->i", points - closest, head.face_normals[face])
+    assert len(points) > 7000 and outward.min() > 1e-3
