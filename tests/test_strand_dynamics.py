@@ -190,6 +190,9 @@ def test_ftl_damping_outside_its_stable_range_is_refused():
 
 @pytest.mark.parametrize("variant", ["simplified", "full"])
 def test_hanging_strand_settles_below_root_and_keeps_length(variant):
+    """A straight strand released horizontally settles straight below its root at its rest lengths with
+    either shape matching: the windows hold no bend of their own to fight gravity with. (The hang is the
+    same for any gravity; the chain's period above checks g.)"""
     n, length = 20, 0.3
     pts = np.stack([np.linspace(0, length, n), np.zeros(n), np.zeros(n)], 1)  # starts horizontal
     model = StrandBuilder().add_strand(pts).finalize("cpu", pinned_per_strand=1)
