@@ -244,6 +244,26 @@ class DetailSurface:
         return self.positions, self.normals
 
 
+def pn_surface_points(vertices, normals, triangles, face, bary, device="cpu"):
+    """(points, unit normals), NumPy (N, 3), on the PN triangles (Vlachos et al. 2001) of a mesh
+    (vertices (V, 3), unit vertex normals (V, 3), triangles (F, 3)) at barycentric weights bary (N, 3) of
+    triangles face (N,): the curved surface the detail surface lays over the coarse cloth
+    (kernels.pn_coefficients, pn_evaluate), here for points given on any mesh's flat triangles, such as
+    the closest points of a face grid snapped onto the head (sim.scene)."""
+    arr = lambda a, t, k=np.float32: wp.array(np.ascontiguousarray(a, k), dtype=t, device=device)  # noqa: E731
+    faces = np.asarray(triangles).reshape(-1, 3)
+    control = wp.zeros(10 * len(faces), dtype=wp.vec3, device=device)
+    normal_coeffs = wp.zeros(6 * len(faces), dtype=wp.vec3, device=device)
+    wp.launch(kernels.pn_coefficients, len(faces), [arr(vertices, wp.vec3), arr(normals, wp.vec3),
+                                                    arr(faces.reshape(-1), wp.int32, np.int32), control,
+                                                    normal_coeffs], device=device)
+    points = wp.zeros(len(face), dtype=wp.vec3, device=device)
+    out_normals = wp.zeros(len(face), dtype=wp.vec3, device=device)
+    wp.launch(kernels.pn_evaluate, len(face), [control, normal_coeffs, arr(face, wp.int32, np.int32),
+                                               arr(bary, wp.vec3), points, out_normals], device=device)
+    return points.numpy().astype(np.float64), out_normals.numpy().astype(np.float64)
+
+
 @dataclass(frozen=True)
 class DetailParams:
     """The detail surface over a simulated garment (Oshita & Makinouchi §4)."""

@@ -294,32 +294,8 @@ def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resoluti
     if len(set(features.values())) != len(features):
         raise AssertionError("two feature points share a vertex")
 
-    colors = _paint(vertices - np.asarray(head_offset), rows, cols, index, lower, lining, mouth_row)
+    colors = _paint(rows, cols, index, lower, lining, mouth_row)
     return FaceMesh(lifted, faces, features, surface_uv, colors, normals)
-
-
-# Phong tessellation's shape factor: the blend from the flat triangle (0) to the tangent planes' (1). A
-# half cancels the flat triangle's sagitta on a sphere (an icosphere of 320 triangles: 1.8 mm inside flat,
-# 1.7 mm outside at 1, within 0.05 mm at a half); Boubekeur & Alexa suggest 3/4 for shapes in general
-PHONG_SHAPE = 0.5
-
-
-def phong_points(closest, bary, corners, vertices, normals, shape=PHONG_SHAPE):
-    """(points, unit normals) on a mesh's Phong surface (Boubekeur & Alexa 2008) for points whose closest
-    points on its flat triangles are `closest` (N, 3), at barycentric weights `bary` (N, 3) of the
-    triangles with vertex indices `corners` (N, 3): each closest point projected onto the tangent planes
-    of its triangle's corners (vertices, vertex normals `normals`), those blended by the weights, and
-    the result moved `shape` of the way there from the flat point; the normals blended by the weights.
-    A face grid finer than the head's triangles, snapped onto them flat, shows their facets in its
-    shading (resolution 4); on the curved surface it does not, and over the built-in bust it stays
-    outside it (test_face)."""
-    closest = np.asarray(closest, np.float64)
-    n_corner = np.asarray(normals, np.float64)[corners]  # (N, 3 corners, 3)
-    towards = closest[:, None, :] - np.asarray(vertices, np.float64)[corners]
-    on_planes = closest[:, None, :] - np.einsum("nk,nkj->nkj", np.einsum("nkj,nkj->nk", towards, n_corner), n_corner)
-    curved = np.einsum("nk,nkj->nj", bary, on_planes)
-    n = np.einsum("nk,nkj->nj", bary, n_corner)
-    return closest + shape * (curved - closest), n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
 def _analytic_normals(vertices, rows, cols, index, n0, mouth_row):
@@ -376,7 +352,7 @@ def _paint_at(row, col):
     return colors
 
 
-def _paint(vertices, rows, cols, index, lower, lining, mouth_row):
+def _paint(rows, cols, index, lower, lining, mouth_row):
     """Display colours of the face's vertices: _paint_at averaged over the grid cell around each vertex
     (PAINT_SAMPLES^2 points from halfway to the row and column before it to halfway to the ones after).
     Taken at the vertex alone, a brow's or an eye's edge falls between vertices all in or all out, and the

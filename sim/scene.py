@@ -21,13 +21,13 @@ import warp_kernels
 from . import __version__
 from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
-from .detail import ClothDetail, DetailParams
+from .detail import ClothDetail, DetailParams, pn_surface_points
 from .config import from_table, load_toml
 from .graphs import AsyncReadback, FrameGraphs, cpu_cores, run_parallel, run_side_by_side
 from .errors import InputError
 from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
-from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions, phong_points
+from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
 from .hair_children import HairChildren
 from .hair_solver import HAIR_FRAMES, HairParams, HairSolver, deferred_step_modules
 from .comb import before_frame as comb_before_frame
@@ -461,8 +461,10 @@ class Scene:
         normals = trimesh.Trimesh(self.head.vertices, self.head.faces, process=False).vertex_normals
 
         def project(points):
-            closest, face, bary = self.collider.closest_points(points)
-            return phong_points(closest, bary, self.head.faces[face], self.head.vertices, normals)
+            # onto the head's PN surface (as the detail surface over the cloth): a face grid finer than the
+            # head's triangles, snapped onto them flat, shows their facets in its shading
+            _closest, face, bary = self.collider.closest_points(points)
+            return pn_surface_points(self.head.vertices, normals, self.head.faces, face, bary)
 
         offset = getattr(self.head, "head_offset", (0.0, 0.0, 0.0)) if cfg.body.enabled else (0.0, 0.0, 0.0)
         return builtin_face(project, cfg.face.lift, offset, cfg.face.resolution)

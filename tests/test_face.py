@@ -399,13 +399,14 @@ def test_feature_colours_are_the_averages_of_the_paint_over_each_vertex_cell():
     assert np.abs(point - want).max() > 0.1  # the edges are where averaging matters
 
 
-def test_phong_points_lie_on_the_curved_surface_a_coarse_mesh_stands_for():
+def test_pn_surface_points_lie_on_the_curved_surface_a_coarse_mesh_stands_for():
     """On an icosphere of 320 triangles (its vertices on a sphere of 10 cm, its normals radial), points
-    snapped onto the flat triangles sit up to 1.8 mm inside the sphere; on the Phong surface (phong_points,
-    its shape factor a half) within 0.05 mm of it, and a mesh vertex stays where it is."""
+    on the flat triangles sit up to 1.8 mm inside the sphere; on its PN triangles (pn_surface_points, the
+    surface the face is projected onto) within 0.05 mm of it, with normals within 1e-3 of the radial ones,
+    and a mesh vertex stays where it is."""
     import trimesh
 
-    from sim.face import phong_points
+    from sim.detail import pn_surface_points
 
     sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
     vertices, faces = np.asarray(sphere.vertices), np.asarray(sphere.faces)
@@ -414,19 +415,19 @@ def test_phong_points_lie_on_the_curved_surface_a_coarse_mesh_stands_for():
     face = rng.integers(0, len(faces), 2000)
     bary = rng.dirichlet(np.ones(3), 2000)
     flat = np.einsum("nk,nkj->nj", bary, vertices[faces[face]])
-    curved, n = phong_points(flat, bary, faces[face], vertices, normals)
-    flat_error = np.abs(np.linalg.norm(flat, axis=1) - 0.1)
-    curved_error = np.abs(np.linalg.norm(curved, axis=1) - 0.1)
-    assert flat_error.max() > 1.5e-3 and curved_error.max() < 1e-4
-    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-12)
-    at_corner, _ = phong_points(vertices[faces[:5, 0]], np.tile([1.0, 0.0, 0.0], (5, 1)), faces[:5], vertices, normals)
-    np.testing.assert_allclose(at_corner, vertices[faces[:5, 0]], atol=1e-15)
+    curved, n = pn_surface_points(vertices, normals, faces, face, bary)
+    assert np.abs(np.linalg.norm(flat, axis=1) - 0.1).max() > 1.5e-3
+    assert np.abs(np.linalg.norm(curved, axis=1) - 0.1).max() < 1e-4
+    radial = curved / np.linalg.norm(curved, axis=1, keepdims=True)
+    assert np.abs(np.einsum("ij,ij->i", n, radial) - 1.0).max() < 1e-3
+    at_corner, _ = pn_surface_points(vertices, normals, faces, np.arange(5), np.tile([1.0, 0.0, 0.0], (5, 1)))
+    np.testing.assert_allclose(at_corner, vertices[faces[:5, 0]], atol=1e-7)
 
 
 def test_a_finer_built_in_face_rides_the_head_outside_it():
-    """The built-in face at resolution 3 (close-ups), projected onto the head's Phong surface and lifted
-    2 mm: every vertex lies outside the head's mesh by at least a millimetre (measured 1.63 mm), so the
-    head never shows through it."""
+    """The built-in face at resolution 3 (close-ups), projected onto the head's PN surface and lifted 2 mm:
+    every vertex lies outside the head's mesh by at least a millimetre (measured 1.62 mm), so the head
+    never shows through it."""
     import trimesh
 
     from sim.scene import Scene, hair_demo_scene
