@@ -27,6 +27,11 @@ KIND_VERTEX, KIND_EDGE, KIND_INTERIOR = 0, 1, 2
 SPLIT_SAMPLES = 1024
 # coarser samples whose clearances bound a detail sample's (the lift's gate; a wp.vec4i each)
 BOUNDED_BY = 4
+# Jacobi passes of the slope limit (§4.3.4): each carries a lowered sample's limit one ring further, and a
+# limit applied once leaves the samples it lowered steeper than max_slope above their own neighbours, so
+# the more often the heights were updated the lower they sat; four reach the limit's fixed point in the
+# squeezed sheet of the tests (wrinkles a centimetre high) and in the walking dress
+SLOPE_PASSES = 4
 
 
 def _lattice(n):
@@ -274,13 +279,17 @@ class DetailParams:
     # its finer neighbours within band of it
     band: float = 0.01  # m (§4.2)
     # eq. 3 carries dh from the last frame; carrying all of it would keep a lift forever after the
-    # contact ends (only wrinkles and the dh >= 0 clamp ever lower it), so a share is carried
-    height_carry: float = 0.85  # share of last frame's height carried into this frame (eq. 3)
+    # contact ends (only wrinkles and the dh >= 0 clamp ever lower it), so a share is carried:
+    height_carry: float = 0.85  # share of the height carried over a frame of 1/reference_fps s (eq. 3)
     wrinkles: bool = True  # force-driven wrinkles (§4.3)
     k_out_plane: float = 1.0  # m/(N s), how far a sample may move per unit vertical force and time (eq. 12)
     max_slope: float = 0.6  # a sample rises at most this times its distance above a neighbour (§4.3.4)
     smoothing: int = 2  # Jacobi passes over the heights before the constraints (0: the paper's model)
     h_normal: float = 0.004  # m, height at which the displaced surface's normal fully takes over (eq. 13)
+    # the paper's height updates (the carry, eq. 11's length change, the smoothing passes) are per frame;
+    # they are read as those of a frame at this rate and scaled to the time an update spans, so the
+    # wrinkles do not depend on the scene's fps (taken per update, 48 fps had 60% of the heights of 24):
+    reference_fps: float = 24.0  # frames/s at which height_carry and the smoothing passes are given
 
     def __post_init__(self):
         if self.level < 0:
@@ -292,6 +301,8 @@ class DetailParams:
         for name in ("margin", "band", "k_out_plane", "max_slope", "h_normal"):
             if getattr(self, name) < 0.0:
                 raise ValueError(f"{name} must be zero or positive")
+        if self.reference_fps <= 0.0:
+            raise ValueError("reference_fps must be positive")
 
 
 class ClothDetail:
@@ -411,7 +422,7 @@ class ClothDetail:
         """Evaluate this frame's detail surface from the coarse state; body (a Collider) may be None."""
         p, dev, nv = self.params, self.device, self.surface.topology.num_vertices
         base, pn_normals = self.surface.update(cloth_state.x)
-        wp.launch(kernels.relax_heights, nv, [self.height, p.height_carry], device=dev)
+        wp.launch(kernels.relax_heights, nv, [self.height, p.height_carry ** (dt * p.reference_fps)], device=dev)
         if p.wrinkles:
             self._wrinkles(cloth_model, cloth_state, base, dt)
         self.queries.zero_()
@@ -477,15 +488,20 @@ class ClothDetail:
                   device=dev)
         wp.launch(kernels.wrinkle_heights, nv, [self.owner_face, self.bary, self.corner_vertex, self.coarse_deficit,
                                                 self.nbr_start, self.nbr, self.vertical, self.height, p.k_out_plane,
-                                                dt, self.change], device=dev)
+                                                dt, dt * p.reference_fps, self.change], device=dev)
         wp.launch(kernels.add_heights, nv, [self.height, self.change], device=dev)
+        # a pass halfway to the neighbours' mean in a reference frame, that share of it in a shorter update (and
+        # halfway still in a longer one: further would overshoot toward a checkerboard)
+        weight = 0.5 * min(dt * p.reference_fps, 1.0)
         for _ in range(p.smoothing):
-            wp.launch(kernels.smooth_heights, nv, [self.nbr_start, self.nbr, self.height, self.height_tmp], device=dev)
+            wp.launch(kernels.smooth_heights, nv, [self.nbr_start, self.nbr, self.height, weight, self.height_tmp],
+                      device=dev)
             self.height, self.height_tmp = self.height_tmp, self.height
-        wp.launch(kernels.constrain_heights, nv, [base, self.nbr_start, self.nbr, self.owner_face, self.kind,
-                                                  self.coarse_edge, self.edge_deficit, self.uncompressed, p.max_slope,
-                                                  self.height, self.height_tmp], device=dev)
-        wp.copy(self.height, self.height_tmp)
+        for _ in range(SLOPE_PASSES):
+            wp.launch(kernels.constrain_heights, nv, [base, self.nbr_start, self.nbr, self.owner_face, self.kind,
+                                                      self.coarse_edge, self.edge_deficit, self.uncompressed,
+                                                      p.max_slope, self.height, self.height_tmp], device=dev)
+            self.height, self.height_tmp = self.height_tmp, self.height
 
     def query_counts(self):
         """(samples tested, BVH queries among them) in the last update, summed over the parts."""

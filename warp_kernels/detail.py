@@ -849,6 +849,7 @@ def wrinkle_heights(
     height: wp.array(dtype=float),
     k_out_plane: float,
     dt: float,
+    frames: float,
     change: wp.array(dtype=float),
 ):
     """Eqs. 9-12: the height change dh_deformation of each sample.
@@ -858,6 +859,9 @@ def wrinkle_heights(
     pushed harder is already the higher one (the surface spreads), negative otherwise (eq. 10).
     dh_length = required / expected where length is missing and rising adds it (eq. 11), limited by
     the force-driven k v_i dt (eq. 12). Elsewhere a sample may only sink (eq. 11 read with §4.3.4).
+    Eq. 11 is a change per update, not per time: it is read as the change over a reference frame
+    (DetailParams.reference_fps, 1/24 s) and scaled by `frames`, the reference frames this update
+    spans, as eq. 12 scales with dt, so the heights do not depend on how often the surface is updated.
 
     Launch: one thread per detail vertex (dim = num_detail_vertices).
     Inputs:
@@ -871,6 +875,7 @@ def wrinkle_heights(
       height (float, per detail vertex, m): current heights
       k_out_plane (float, m/(N s)): how far a sample may move per unit vertical force and time
       dt (float, s): time since the last update (a frame)
+      frames (float): reference frames in dt (dt times DetailParams.reference_fps)
     Outputs:
       change (float, per detail vertex, m): height change to add (add_heights)
     """
@@ -889,7 +894,7 @@ def wrinkle_heights(
             expected -= k_out_plane * wp.abs(dv)
     by_force = k_out_plane * vertical[i] * dt
     if required > 0.0 and expected > 0.0:
-        change[i] = wp.min(required / expected, by_force)
+        change[i] = wp.min(required / expected * frames, by_force)
     else:
         # eq. 11 read with §4.3.4: only missing length raises a wrinkle; where the cloth is stretched,
         # or rising would not add length, a sample may only sink (forces pulling it flat)
@@ -913,10 +918,14 @@ def constrain_heights(
     """§4.3.4: keep the heights plausible after the wrinkle update.
 
     dh >= 0; no sample rises more than max_slope times its distance above a neighbour (the
-    neighbour-to-neighbour length limit); no wrinkle inside a face none of whose edges is compressed
-    (the paper's all-stretched faces included) nor on a coarse edge that is not compressed.
+    neighbour-to-neighbour length limit); no wrinkle inside a face none of whose edges is
+    compressed (the paper's all-stretched faces included) nor on a coarse edge that is not
+    compressed. One pass limits each sample by its neighbours' heights before the pass; passes
+    repeated, each carrying a lowered sample's limit a ring further, reach the heights that meet
+    every limit (the highest such heights below the update's). A sample at height 0 cannot be
+    lowered and skips its neighbours: most of a garment is (87% of the walking dress's samples).
 
-    Launch: one thread per detail vertex (dim = num_detail_vertices).
+    Launch: one thread per detail vertex (dim = num_detail_vertices), once per pass.
     Inputs:
       positions (vec3, per detail vertex, m): PN surface positions
       nbr_start (int32, num_detail_vertices + 1): CSR offsets of the detail vertex adjacency
@@ -927,7 +936,7 @@ def constrain_heights(
       edge_deficit (float, per coarse edge, m): edge_length_deficit
       face_uncompressed (int32, per coarse triangle): faces_without_compression
       max_slope (float, m/m): largest rise per distance to a neighbour
-      height_in (float, per detail vertex, m): heights before the constraints
+      height_in (float, per detail vertex, m): heights before the pass
     Outputs:
       height_out (float, per detail vertex, m): constrained heights; must not alias height_in
     """
@@ -938,9 +947,10 @@ def constrain_heights(
     if kind[i] == 1:
         if edge_deficit[coarse_edge[i]] <= 0.0:
             h = 0.0
-    for k in range(nbr_start[i], nbr_start[i + 1]):
-        j = nbr[k]
-        h = wp.min(h, wp.max(height_in[j], 0.0) + max_slope * wp.length(positions[i] - positions[j]))
+    if h > 0.0:
+        for k in range(nbr_start[i], nbr_start[i + 1]):
+            j = nbr[k]
+            h = wp.min(h, wp.max(height_in[j], 0.0) + max_slope * wp.length(positions[i] - positions[j]))
     height_out[i] = h
 
 
@@ -989,9 +999,11 @@ def smooth_heights(
     nbr_start: wp.array(dtype=wp.int32),
     nbr: wp.array(dtype=wp.int32),
     height_in: wp.array(dtype=float),
+    weight: float,
     height_out: wp.array(dtype=float),
 ):
-    """One Jacobi pass halfway to the neighbours' mean height.
+    """One Jacobi pass `weight` of the way to the neighbours' mean height (half the way over a
+    reference frame of DetailParams.reference_fps, that share of it over a shorter update).
 
     Per-sample forces are noisy, and unsmoothed heights read as pimples rather than folds.
 
@@ -1000,6 +1012,7 @@ def smooth_heights(
       nbr_start (int32, num_detail_vertices + 1): CSR offsets of the detail vertex adjacency
       nbr (int32, per adjacency entry): neighbouring detail vertices
       height_in (float, per detail vertex, m): heights before the pass
+      weight (float, fraction): share of the way to the mean, in [0, 1]
     Outputs:
       height_out (float, per detail vertex, m): smoothed heights; must not alias height_in
     """
@@ -1011,5 +1024,5 @@ def smooth_heights(
         count += 1.0
     h = height_in[i]
     if count > 0.0:
-        h = 0.5 * h + 0.5 * total / count
+        h = (1.0 - weight) * h + weight * total / count
     height_out[i] = h
