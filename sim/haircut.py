@@ -22,6 +22,10 @@ Python API (on a sim.Scene with hair; every call returns an `Edit` naming the st
     haircut.grow(scene, 0.03, region=haircut.Sphere((0, 0.45, 0.1), 0.05))
     haircut.erase(scene, haircut.Brush([[480, 200]], cam, radius=25))
     haircut.wax(scene, haircut.Sphere((0, 0.35, 0.12), 0.04), drag=(60, -80), camera=cam)
+    drag = haircut.start_wax(scene, haircut.Sphere((0, 0.3, 0.1), 0.04), offset=(0, 0.03, -0.02))
+    for share in (0.25, 0.5, 0.75, 1.0):  # a drag over frames: a share of the way each frame
+        drag.to(scene, share)
+        scene.advance(1 / 24)
     haircut.initialise(scene)
 
 Cut lines are a `Plane` (point, normal) or a `Stroke` (pixel points and the camera they were drawn
@@ -63,6 +67,7 @@ simulation reaches `frame` and before that frame is written::
     drag = [60, -80]                     # pixels, with camera; or offset = [dx, dy, dz] or target = [x, y, z]
     camera = { eye = [0.0, 0.3, 1.2], target = [0.0, 0.3, 0.0] }
     strength = 0.5                       # how firmly the styled shape holds, [0, 1]
+    until = 42                           # optional: the drag eased over frames 36-42 (no cut in between)
 
 Caches record the changing topology: sim.scene.run_scene hands each frame's curveVertexCounts and
 widths to io_usd.cache.CacheWriter, which time-samples them once they change.
@@ -716,7 +721,41 @@ def wax(scene, region, drag=None, camera=None, offset=None, target=None, select=
     camera of a drag are left alone. The styled shape becomes the strand's rest shape
     and the root hold keeps it along the whole strand with weight `strength` in [0, 1] (times
     solver.root_stiffness per substep), as wax does against gravity. hold=False drags without
-    waxing: the strand springs back to its old rest shape."""
+    waxing: the strand springs back to its old rest shape. The whole drag lands at once; to draw it
+    over frames, start_wax(...) and move the WaxDrag a share of the way each frame."""
+    return start_wax(scene, region, drag, camera, offset, target, select, hold, strength).to(scene, 1.0)
+
+
+@dataclass
+class WaxDrag:
+    """A wax drag under way: the strands it took and where their tips started and are going, both
+    in the pose the groom is bound on, so the drag goes with a moving head. to(scene, share) lays
+    the tips `share` of the way (wax's rules at each step), waxing each step's shape with hold."""
+
+    strands: np.ndarray  # (S,) strand indices
+    start: np.ndarray  # (S, 3) tips when the drag began, rest pose
+    goal: np.ndarray  # (S, 3) where the tips are dragged to, rest pose
+    counts: np.ndarray  # vertices of every strand of the groom when the drag began: a cut ends the drag
+    hold: bool = True
+    strength: float = 0.5
+
+    def to(self, scene, share):
+        g = groom_of(scene)
+        if not np.array_equal(g.counts, self.counts):
+            raise ValueError("another edit changed the strands of this wax drag")
+        to_rest, to_world = _pose_maps(scene, scene.model)
+        goal = to_world(self.start + float(share) * (self.goal - self.start), self.strands)
+        new, changed, reached = style_tips(g, self.strands, goal, to_rest, _push_out(scene), hold=self.hold,
+                                           strength=self.strength)
+        if len(changed):
+            apply(scene, new)
+        return Edit("wax", changed, targets=reached)
+
+
+def start_wax(scene, region, drag=None, camera=None, offset=None, target=None, select="tips", hold=True,
+              strength=0.5):
+    """Select the strands and their tips' goals as wax does (same arguments), and return the WaxDrag
+    without moving anything."""
     if sum(a is not None for a in (drag, offset, target)) != 1:
         raise ValueError("wax needs exactly one of drag (with camera), offset or target")
     if drag is not None and camera is None:
@@ -732,17 +771,13 @@ def wax(scene, region, drag=None, camera=None, offset=None, target=None, select=
     if drag is not None:
         goal = tips + strokes.screen_drag(camera, tips, drag)
         seen = np.all(np.isfinite(goal), axis=1)
-        s, goal = s[seen], goal[seen]
+        s, tips, goal = s[seen], tips[seen], goal[seen]
     elif offset is not None:
         goal = tips + np.asarray(offset, np.float64)
     else:
         goal = np.repeat(np.asarray(target, np.float64)[None], len(s), 0)
     to_rest, _ = _pose_maps(scene, scene.model)
-    push = _push_out(scene)
-    new, changed, reached = style_tips(g, s, goal, to_rest, push, hold=hold, strength=strength)
-    if len(changed):
-        apply(scene, new)
-    return Edit("wax", changed, targets=reached)
+    return WaxDrag(s, to_rest(tips, s), to_rest(goal, s), g.counts.copy(), hold, strength)
 
 
 def _push_out(scene):
@@ -807,6 +842,7 @@ class HaircutEvent:
     moves: tuple = None  # comb: ((frame, du, dv), ...) its drag in pixels, reached at each frame
     release: int = None  # comb: the frame from which the hair is free again
     strength: float = 0.5  # wax: how firmly the styled shape is held, [0, 1]
+    until: int = None  # wax: the frame the drag reaches its goal, eased over the frames from `frame`
 
     def line(self):
         if self.plane is not None:
@@ -853,19 +889,35 @@ def run_event(scene, event):
         return Edit("comb", scene.held_comb.comb.strands)
     if t == "wax":
         camera = event.camera.camera() if event.camera is not None else None
-        return wax(scene, event.region(), event.drag, camera, event.offset, event.target, event.select, event.hold,
-                   event.strength)
+        drag = start_wax(scene, event.region(), event.drag, camera, event.offset, event.target, event.select,
+                         event.hold, event.strength)
+        if event.until is not None and event.until > event.frame:
+            scene.wax_drags[id(event)] = drag
+        return drag.to(scene, wax_share(event, event.frame))
     return initialise(scene)
 
 
+def wax_share(event, frame):
+    """How much of a timeline wax's drag is done at `frame`: smoothstep over the frames from its
+    frame to its until (all of it at once without until), so the tips start and stop gently."""
+    if event.until is None or event.until <= event.frame:
+        return 1.0
+    t = min(max((frame - event.frame + 1) / (event.until - event.frame + 1), 0.0), 1.0)
+    return t * t * (3.0 - 2.0 * t)
+
+
 def run_events(scene, events, frame):
-    """Apply the timeline's events at `frame`, in file order; returns their Edits."""
+    """Apply the timeline's events at `frame`, in file order, and move the waxes dragged over
+    frames (until) that are under way; returns their Edits."""
     edits = []
     for k, event in enumerate(events):
-        if event.frame != frame:
-            continue
         try:
-            edits.append(run_event(scene, event))
+            if event.frame == frame:
+                edits.append(run_event(scene, event))
+            elif id(event) in scene.wax_drags and event.frame < frame <= event.until:
+                edits.append(scene.wax_drags[id(event)].to(scene, wax_share(event, frame)))
+                if frame == event.until:
+                    del scene.wax_drags[id(event)]
         except ValueError as err:
             raise InputError(scene.config.source, f"haircut[{k}]", f"frame {frame}: {err}") from None
     return edits
@@ -879,7 +931,7 @@ KEYS = {
     "thinning": _LINE + ("fraction", "seed"),
     "grow": ("length",) + _REGION,
     "erase": _REGION,
-    "wax": _REGION + ("drag", "offset", "target", "select", "hold", "strength"),
+    "wax": _REGION + ("drag", "offset", "target", "select", "hold", "strength", "until"),
     "initialise": (),
     "comb": ("stroke", "camera", "moves", "release"),
 }
@@ -889,7 +941,17 @@ def parse_timeline(entries, source, timing=None):
     """[[haircut]] tables -> HaircutEvents; errors name the entry and key (haircut[3].tool)."""
     if not isinstance(entries, list):
         raise InputError(source, "haircut", "expected an array of tables ([[haircut]])")
-    return tuple(_parse_event(entry, source, f"haircut[{i}]", timing) for i, entry in enumerate(entries))
+    events = tuple(_parse_event(entry, source, f"haircut[{i}]", timing) for i, entry in enumerate(entries))
+    for i, event in enumerate(events):
+        if event.tool != "wax" or event.until is None:
+            continue
+        for k, other in enumerate(events):
+            # a drag keeps its strands by index: only wax and the comb leave every strand as it is
+            during = event.frame < other.frame <= event.until or (other.frame == event.frame and k > i)
+            if during and other.tool not in ("wax", "comb"):
+                raise InputError(source, f"haircut[{k}].frame", f"a {other.tool} at frame {other.frame} would change "
+                                 f"the strands haircut[{i}] drags until frame {event.until}")
+    return events
 
 
 def _parse_event(entry, source, where, timing):
@@ -1017,6 +1079,11 @@ def _parse_event(entry, source, where, timing):
         if any(f != int(f) for f in frames) or frames != sorted(frames) or (frames and frames[0] <= frame):
             fail("moves", "frames must be whole, increasing and after the comb's frame")
         kw["moves"] = keys
+    if "until" in entry:
+        until = entry["until"]
+        if isinstance(until, bool) or not isinstance(until, int) or until < frame:
+            fail("until", f"expected the frame the drag ends, {frame} or later, got {until!r}")
+        kw["until"] = until
     if "release" in entry:
         release = entry["release"]
         if isinstance(release, bool) or not isinstance(release, int) or release <= frame:

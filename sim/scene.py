@@ -383,6 +383,7 @@ class Scene:
 
         self.model = self.solver = self.state = self.guides = self.hair_template = self.children = None
         self.held_comb = None  # a sim.comb.CombGrip while a comb holds hair (haircut timelines, cfx studio)
+        self.wax_drags = {}  # id of a sim.haircut.HaircutEvent -> WaxDrag: timeline waxes dragged over frames (until)
         # the pose the groom is bound on: haircut edits map styled shapes back into it
         self.groom_points = self.collider.posed_points().copy()  # a copy: on the CPU numpy() is a view
         if config.hair.enabled:

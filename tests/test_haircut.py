@@ -257,6 +257,46 @@ def test_wax_on_a_turned_head_stores_the_rest_shape_in_the_groom_pose():
     assert np.all(np.isfinite(scene.state.x.numpy()))
 
 
+def test_a_timeline_wax_drags_over_its_frames_and_ends_where_one_at_once_does():
+    table = {"frame": 4, "tool": "wax", "sphere": {"center": [0.0, 0.42, 0.08], "radius": 0.05}, "select": "roots",
+             "offset": [0.0, 0.06, 0.04]}
+    runs = {}
+    for until in (None, 9):
+        scene = Scene(config([table if until is None else dict(table, until=until)], frames=12))
+        events, tips, last = scene.config.haircut, [], None
+        for frame in range(1, 11):
+            if frame > 1:
+                scene.advance(1.0 / 24.0)
+            for edit in haircut.run_events(scene, events, frame):
+                last = edit
+            if last is not None:
+                g = haircut.groom_of(scene)
+                tips.append(g.x[g.tips[last.strands]].astype(np.float64))
+        assert scene.wax_drags == {}
+        runs[until] = last, np.array(tips)
+    (at_once, _), (eased, tips_eased) = runs[None], runs[9]
+    assert len(at_once.strands) >= 3
+    np.testing.assert_array_equal(eased.strands, at_once.strands)
+    np.testing.assert_allclose(eased.targets, at_once.targets, atol=1e-5)  # the same goal, reached at frame 9
+    total = np.linalg.norm(eased.targets - tips_eased[0], axis=1)
+    steps = np.linalg.norm(np.diff(tips_eased, axis=0), axis=2)
+    assert total.mean() > 0.05
+    # smoothstep over the six frames 4..9: at most 26% of the way in a frame (the one-frame wax: all of it)
+    assert np.all(steps[:5] <= 0.27 * total + 1e-3) and np.all(steps[:5].sum(axis=0) > 0.7 * total)
+    assert np.all(steps[5:] < 2e-3)  # then the wax holds the styled shape
+
+
+def test_a_cut_during_a_wax_drag_is_refused_with_its_key():
+    wax = {"frame": 2, "tool": "wax", "sphere": {"center": [0, 0.4, 0], "radius": 0.1}, "offset": [0, 0.1, 0],
+           "until": 6}
+    cut = {"frame": 4, "tool": "blunt", "plane": {"point": [0, 0.2, 0], "normal": [0, 1, 0]}}
+    data = {"hair": {"count": 10}, "haircut": [wax, cut]}
+    with pytest.raises(InputError) as err:
+        _build_config("cut.toml", data, None)
+    assert err.value.key == "haircut[1].frame" and "until frame 6" in str(err.value)
+    _build_config("cut.toml", {"hair": {"count": 10}, "haircut": [wax, dict(cut, frame=7)]}, None)
+
+
 def test_initialise_returns_to_the_template_groom():
     scene = settled()
     template = scene.model
@@ -372,6 +412,8 @@ def test_writer_samples_topology_only_once_it_changes(tmp_path):
      "haircut[1].sphere.center"),
     ({"frame": 2, "tool": "erase", "sphere": {"center": [0, 0, 0], "radius": 1}, "camera": {"eye": [0, 0, 1]}},
      "haircut[1].camera.target"),
+    ({"frame": 2, "tool": "wax", "sphere": {"center": [0, 0, 0], "radius": 1}, "offset": [0, 1, 0], "until": 1},
+     "haircut[1].until"),
 ])
 def test_bad_event_names_its_key(event, key):
     data = {"hair": {"count": 10}, "haircut": [{"frame": 1, "tool": "initialise"}, event]}
