@@ -36,6 +36,11 @@ _MOUTH_ROW = 9  # the lips part along this row
 _CORNER = 0.30  # ring-angle offset of the mouth corners [rad]
 _MUZZLE = 0.004  # m the face rises over the bust around the mouth
 _LIP_GAP = 0.008  # the lips' separation in the unrolled coordinates [m], so upper and lower lip interpolate apart
+# toward its border the face eases from floating over the head's curved surface to lying on the head's own
+# triangles, lifted this share of `lift`: a face floating 2 mm out to its edge shows a step all round it, and
+# a narrower band (1.5 cm) shows as a ridge across the forehead
+BORDER_BAND = 0.03  # m, measured along the surface from the border
+BORDER_LIFT_SHARE = 0.2
 
 # name: (ring-angle offset [rad], height [m], lip) with lip "upper"/"lower" for the parted row;
 # names ending in _l have a mirrored _r twin
@@ -217,10 +222,13 @@ def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resoluti
     times (resolution 2: 57 x 61, 3: 85 x 91), the lips parted
     along one row, a dark mouth lining behind them, and the 48 feature points.
 
-    project(points) -> (surface points, unit normals) snaps the grid onto the actual collider (the
-    bust, or the body whose head is the bust moved by head_offset); without it the grid sits on the
-    bust's analytic surface. Vertices are lifted `lift` metres off the surface so the face draws over
-    the head it rides.
+    project(points) -> (surface points, unit normals[, flat points]) snaps the grid onto the actual
+    collider (the bust, or the body whose head is the bust moved by head_offset): a smooth surface
+    over it and, where the collider is drawn as flat triangles, the points on those; without it the
+    grid sits on the bust's analytic surface. Vertices are lifted `lift` metres off the surface so
+    the face draws over the head it rides; within BORDER_BAND of the grid's border at the forehead and
+    the sides they ease onto the flat points, lifted BORDER_LIFT_SHARE of that, so the face's edge meets
+    the head without a step.
     """
     rows = _refine(np.asarray(_ROWS), resolution)
     half = _refine(np.asarray(_HALF_COLUMNS), resolution)
@@ -269,9 +277,18 @@ def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resoluti
 
     vertices = vertices + np.asarray(head_offset, np.float64)
     if project is not None:
-        surface, normals = project(vertices)
+        surface, normals, *flat = project(vertices)
+        flat = flat[0] if flat else surface
     else:
         surface, normals = vertices, _analytic_normals(vertices - np.asarray(head_offset), rows, cols, index, n0, mouth_row)
+        flat = surface
+    # distance along the surface to the grid's border at the forehead and the sides; under the chin, which
+    # the jaw moves (1 mm inward for an open mouth), the face keeps its whole lift
+    border = np.minimum(np.minimum(uv_u - uv_u[:, :1], uv_u[:, -1:] - uv_u), (rows[-1] - rows)[:, None])
+    inside = np.ones(len(vertices))
+    inside[:n0] = _smoothstep(border.reshape(-1) / BORDER_BAND)
+    surface = flat + inside[:, None] * (surface - flat)
+    lift = lift * (BORDER_LIFT_SHARE + (1.0 - BORDER_LIFT_SHARE) * inside)
     # the bust has no mouth: raise a muzzle under the lips (as teeth and gums do), so lips that move
     # back or slide over the curved face stay in front of the head; the lining sits deeper, behind them
     k = len(inner)
@@ -282,7 +299,7 @@ def builtin_face(project=None, lift=0.002, head_offset=(0.0, 0.0, 0.0), resoluti
     muzzle = _MUZZLE * _smoothstep(1.0 - e)
     lifted = surface + (lift + muzzle)[:, None] * normals
     lining = np.array(list(lining_up.values()) + list(lining_lo.values()))
-    lifted[lining] = surface[lining] + (0.25 * lift + muzzle[lining])[:, None] * normals[lining]
+    lifted[lining] = surface[lining] + (0.25 * lift[lining] + muzzle[lining])[:, None] * normals[lining]
 
     features = {}
     for name, (dt, y, lip) in _expand_sides(_FEATURES).items():

@@ -27,7 +27,7 @@ from .graphs import AsyncReadback, FrameGraphs, cpu_cores, run_parallel, run_sid
 from .errors import InputError
 from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
-from .face import FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
+from .face import SKIN, FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
 from .hair_children import HairChildren
 from .hair_solver import HAIR_FRAMES, HairParams, HairSolver, deferred_step_modules
 from .comb import before_frame as comb_before_frame
@@ -38,7 +38,7 @@ from .quality import QualityProbe
 from .strands import StrandBuilder
 
 HAIR_COLOR = HairstyleParams.color
-SKIN_COLOR = (0.85, 0.68, 0.58)
+SKIN_COLOR = SKIN  # the head is drawn in the skin its face is painted with, so the face's edge does not show
 
 
 @dataclass(frozen=True)
@@ -463,9 +463,10 @@ class Scene:
 
         def project(points):
             # onto the head's PN surface (as the detail surface over the cloth): a face grid finer than the
-            # head's triangles, snapped onto them flat, shows their facets in its shading
-            _closest, face, bary = self.collider.closest_points(points)
-            return pn_surface_points(self.head.vertices, normals, self.head.faces, face, bary)
+            # head's triangles, snapped onto them flat, shows their facets in its shading; its border meets
+            # the triangles the head is drawn with
+            closest, face, bary = self.collider.closest_points(points)
+            return (*pn_surface_points(self.head.vertices, normals, self.head.faces, face, bary), closest)
 
         offset = getattr(self.head, "head_offset", (0.0, 0.0, 0.0)) if cfg.body.enabled else (0.0, 0.0, 0.0)
         return builtin_face(project, cfg.face.lift, offset, cfg.face.resolution)
