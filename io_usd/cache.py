@@ -17,6 +17,7 @@ from sim.errors import InputError
 from .output_file import check_output_path, discard, publish, temporary_beside
 
 ROLES = ("hair", "cloth", "cloth_detail", "collider", "face", "hair_card")
+OPEN_SURFACES = ("cloth", "cloth_detail", "hair_card")  # meshes written doubleSided
 ROOT = "/World"
 DEFAULT_CURVE_WIDTH = 1e-4  # m, a hair's width where a scene's curves give none
 # on curves drawn from other curves each frame (render children): the path of those curves
@@ -118,7 +119,8 @@ class CacheWriter:
     def _tag(self, prim, name, role, kind, **info):
         if role not in ROLES:
             raise ValueError(f"role must be one of {ROLES}, got {role!r}")
-        prim.GetPrim().CreateAttribute("cfx:role", Sdf.ValueTypeNames.Token, custom=False).Set(role)
+        # custom, as DCC importers read only custom attributes (Blender's "All Custom")
+        prim.GetPrim().CreateAttribute("cfx:role", Sdf.ValueTypeNames.Token, custom=True).Set(role)
         self._prims[name] = dict(prim=prim, kind=kind, **info)
         return prim
 
@@ -134,13 +136,17 @@ class CacheWriter:
         if prim.IsA(UsdGeom.BasisCurves):
             count = len(geom.GetPointsAttr().Get(Usd.TimeCode.EarliestTime()) or [])
             values = np.asarray(geom.GetWidthsAttr().Get(Usd.TimeCode.EarliestTime()) or [], np.float32)
+            hair_width = DEFAULT_CURVE_WIDTH / UsdGeom.GetStageMetersPerUnit(self.stage)  # in the stage's units
             widths = Vt.FloatArray.FromNumpy(values if len(values) == count else np.full(count, values[0] if len(
-                values) else DEFAULT_CURVE_WIDTH, np.float32))
+                values) else hair_width, np.float32))
             if not len(values):  # renderers draw curves without widths a unit wide: the cache gives them the hair's
                 over = UsdGeom.BasisCurves(self.stage.GetPrimAtPath(path))
                 over.CreateWidthsAttr(widths)
                 over.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
         kind = "curves" if widths is not None else "mesh"
+        if kind == "mesh" and animated and not geom.GetSubdivisionSchemeAttr().HasAuthoredValue():
+            # unauthored, the scheme is Catmull-Clark: DCCs would round off the simulated surface
+            UsdGeom.Mesh(self.stage.GetPrimAtPath(path)).CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
         tag = prim.GetAttribute("cfx:role")
         if tag and tag.HasAuthoredValue() and str(tag.Get()) == role:  # tagged in the scene already
             self._prims[name] = dict(prim=geom, kind=kind, widths=widths, animated=animated)
@@ -164,6 +170,8 @@ class CacheWriter:
         mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(indices.astype(np.int32)))
         mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
         mesh.CreateOrientationAttr(UsdGeom.Tokens.rightHanded)
+        if role in OPEN_SURFACES:  # seen from both sides: renderers may cull a single-sided mesh's back faces
+            mesh.CreateDoubleSidedAttr(True)
         _display_color(mesh, color)
         if normals:
             mesh.CreateNormalsAttr()

@@ -16,8 +16,9 @@ taken in world space at each frame (transforms, deformation, upAxis and metersPe
 Output. The cache is a layer over the input: `over`s at the input's prim paths carrying
 time-sampled points (and extent) in each prim's own local space and units, plus the engine's
 metadata; it sublayers the input, so it opens alone as the animated scene and can also be stacked
-over the input in a shot. A detail surface, when asked for, is a new Mesh `/cfx_cloth_detail` at
-the root, in the stage's world space (it spans every garment).
+over the input in a shot. A detail surface, when asked for, is a new Mesh `cfx_cloth_detail` under
+the stage's default prim (at the root without one), in that prim's space (it spans every garment), so
+a reference to the cache brings it along.
 """
 
 import os
@@ -31,7 +32,7 @@ from sim.embed import HostFrame, scene_config
 from sim.errors import InputError
 
 ROLES = ("collider", "hair", "cloth")
-DETAIL_PATH = "/cfx_cloth_detail"  # the detail surface over every garment, in the stage's world space
+DETAIL_NAME = "cfx_cloth_detail"  # the detail surface over every garment, under the default prim
 SETTING_TABLES = {"hair": ("solver", "scene"), "cloth": ("solver", "detail", "scene"), "collider": ("scene",)}
 USD_EXTENSIONS = (".usd", ".usda", ".usdc")
 
@@ -84,10 +85,21 @@ class UsdScene:
             writer.add_over(prim.path, "cloth", prim.path)
         return writer
 
+    @property
+    def detail_parent(self):
+        """The stage's default prim, which a reference to the cache brings in; None: the root."""
+        prim = self.stage.GetDefaultPrim() if self.stage is not None else None
+        return prim if prim and prim.IsValid() else None
+
+    @property
+    def detail_path(self):
+        parent = self.detail_parent
+        return f"{parent.GetPath() if parent is not None else ''}/{DETAIL_NAME}"
+
     def add_detail(self, writer, triangles):
-        """The detail surface as a new Mesh at the stage's root, in world space: it spans every garment."""
-        writer.add_mesh(DETAIL_PATH, "cloth_detail", None, triangles, normals=True, path=DETAIL_PATH)
-        return DETAIL_PATH
+        """The detail surface as a new Mesh under the default prim, in its space: it spans every garment."""
+        writer.add_mesh(self.detail_path, "cloth_detail", None, triangles, normals=True, path=self.detail_path)
+        return self.detail_path
 
     def write_frame(self, writer, frame, samples, normals=None):
         """samples: {"hair", "cloth", "cloth_detail": engine positions}; written in local space."""
@@ -101,20 +113,37 @@ class UsdScene:
                 offset += count
         local_normals = {}
         if "cloth_detail" in samples:
-            out[DETAIL_PATH] = self._local(None, samples["cloth_detail"], t)
+            parent, path = self.detail_parent, self.detail_path
+            out[path] = self._local(parent, samples["cloth_detail"], t)
             if normals and "cloth_detail" in normals:
-                local_normals[DETAIL_PATH] = np.asarray(normals["cloth_detail"], np.float64) @ self.frame_space.rotation
+                world = np.asarray(normals["cloth_detail"], np.float64) @ self.frame_space.rotation
+                local_normals[path] = self._local_normals(parent, world, t)
         writer.write_frame(frame, out, local_normals)
+
+    @staticmethod
+    def _transform(prim, time):
+        """prim's local-to-world 4x4 (USD's row-vector convention), or None where it is the identity."""
+        if prim is None:
+            return None
+        m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), np.float64)
+        return None if np.array_equal(m, np.eye(4)) else m
 
     def _local(self, prim, engine_points, time):
         """Engine positions in `prim`'s local space and the stage's units (prim None: world space)."""
         world = np.asarray(engine_points, np.float64) @ self.frame_space.rotation / self.frame_space.meters_per_unit
-        if prim is None:
-            return world
-        m = np.asarray(UsdGeom.Xformable(prim).ComputeLocalToWorldTransform(time), np.float64)
-        if np.array_equal(m, np.eye(4)):
+        m = self._transform(prim, time)
+        if m is None:
             return world
         return (world - m[3, :3]) @ np.linalg.inv(m[:3, :3])  # USD matrices act on row vectors
+
+    def _local_normals(self, prim, world_normals, time):
+        """Unit world normals in `prim`'s local space: by the transpose of its linear part, which
+        keeps them perpendicular to the surface under scales."""
+        m = self._transform(prim, time)
+        if m is None:
+            return world_normals
+        n = world_normals @ m[:3, :3].T
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
 
 def read_usd_scene(path, overrides=None):

@@ -329,7 +329,7 @@ def cmd_info(args):
         print(f"  UsdValidation: {len(errors)} errors")
         for e in errors:
             print(f"    {e}")
-        return 1 if errors else 0
+        return 1 if errors or not reader.complete else 0  # a gate: an interrupted run's cache fails it too
     return 0
 
 
@@ -436,7 +436,8 @@ def build_parser():
 
     p = sub.add_parser("info", help="list a cache's prims, roles, frames and counts")
     p.add_argument("cache")
-    p.add_argument("--validate", action="store_true", help="also run usd-core's validators")
+    p.add_argument("--validate", action="store_true",
+                   help="also run usd-core's validators; exit 1 if they find errors or the cache is incomplete")
     p.set_defaults(func=cmd_info)
     return parser
 
@@ -447,10 +448,45 @@ def _version():
     return f"warp-cfx {__version__}"
 
 
+class Stopped(KeyboardInterrupt):
+    """SIGTERM or SIGHUP (a farm's cancel, a closed terminal) raised in the main thread, so a run
+    stops the way Ctrl-C stops it: the partial output discarded, an existing one left as it was."""
+
+    def __init__(self, signum):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_stopped(signum, _frame):
+    raise Stopped(signum)
+
+
+def _stop_on_signals():
+    """Install _raise_stopped for SIGTERM and SIGHUP; returns the handlers it replaced."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    return {getattr(signal, n): signal.signal(getattr(signal, n), _raise_stopped) for n in names}
+
+
 def main(argv=None):
-    from .errors import InputError, SimulationError
+    import signal
 
     args = build_parser().parse_args(argv)
+    replaced = _stop_on_signals()
+    try:
+        return _run(args)
+    finally:
+        for signum, handler in replaced.items():
+            signal.signal(signum, handler)
+
+
+def _run(args):
+    from .errors import InputError, SimulationError
+
     try:
         return args.func(args)
     except InputError as err:
@@ -463,8 +499,12 @@ def main(argv=None):
         return _fail(str(err), EXIT_INPUT)
     except SimulationError as err:
         return _fail(f"simulation failed: {err}", EXIT_SIMULATION)
+    except Stopped as err:
+        import signal
+
+        return _fail(f"stopped by {signal.Signals(err.signum).name}; no output was written", 128 + err.signum)
     except KeyboardInterrupt:
-        return _fail("interrupted; no cache was written", 130)
+        return _fail("interrupted; no output was written", 130)
 
 
 if __name__ == "__main__":

@@ -3,10 +3,10 @@
 A host hands over its collider mesh, hair curves and garment in its own coordinates (up axis and
 units), then steps frame by frame with the collider's positions at each new frame:
 
-    sim = Simulation(head_points, head_triangles, fps=24, hair_points=p, hair_counts=c, up_axis="Z")
+    simulation = Simulation(head_points, head_triangles, fps=24, hair_points=p, hair_counts=c, up_axis="Z")
     for frame in range(2, 49):
-        sim.step(head_points_at(frame))
-        draw(sim.hair_points())
+        simulation.step(head_points_at(frame))
+        draw(simulation.hair_points())
 
 It is the same Scene that `cfx run` drives (same kernels, same substeps, same collider interpolation
 between frames), so a host and the command line agree to float rounding on the same input. The

@@ -244,7 +244,10 @@ def _build_config(source, data, overrides, check_files=True):
         files.append(("cloth", "garment", config.cloth.garment))
     for section, key, value in files:
         if value and value != "builtin" and not os.path.exists(os.path.join(base, value)):
-            raise InputError(source, f"{section}.{key}", f"file not found: {value}")
+            where = os.path.normpath(os.path.join(base, value))
+            raise InputError(source, f"{section}.{key}", f"file not found: {value} (paths are taken from the scene "
+                                                         f"file's folder: {where})" if where != value else
+                             f"file not found: {value}")
     f = config.face
     if f.enabled and f.mesh == "builtin" and (config.head.mesh != "builtin" if not config.body.enabled
                                               else config.body.mesh != "builtin"):

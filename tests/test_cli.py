@@ -50,6 +50,14 @@ def test_run_writes_a_valid_cache_and_info_lists_it(tmp_path, capsys):
     assert main(["info", out, "--validate"]) == 0
     text = capsys.readouterr().out
     assert "role=hair" in text and "40 curves, 320 points" in text and "0 errors" in text
+    # a publish gate: an interrupted run's cache (cfx:complete false) fails --validate
+    from pxr import Sdf
+
+    layer = Sdf.Layer.FindOrOpen(out)
+    layer.customLayerData = dict(layer.customLayerData, **{"cfx:complete": False})
+    layer.Save()
+    assert main(["info", out]) == 0 and main(["info", out, "--validate"]) == 1
+    assert "complete: NO" in capsys.readouterr().out
 
 
 def test_the_hairs_colour_reaches_the_cache_and_the_preview(tmp_path, capsys):
@@ -228,6 +236,33 @@ def test_the_package_loads_its_parts_on_first_use():
                           env=dict(os.environ, PYTHONPATH=os.getcwd()))
     assert proc.returncode == 1 and proc.stderr.strip().endswith("AttributeError: module 'sim' has no attribute "
                                                                  "'no_such_name'"), proc.stderr
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("signum", ["SIGTERM", "SIGHUP"])
+def test_a_run_stopped_by_a_farm_or_a_closed_terminal_leaves_nothing_and_says_so(tmp_path, signum):
+    """SIGTERM (a farm's cancel) and SIGHUP (an ssh drop) stop a run as Ctrl-C does: the partial cache
+    beside the output is removed, exit status 128 + the signal, one line saying so."""
+    import signal
+    import time
+
+    scene = write(tmp_path, SMALL.replace("frames = 3", "frames = 100000"))
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([os.getcwd(), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen([sys.executable, "-m", "sim.cli", "run", scene, "-o", str(tmp_path / "c.usdc"), "-q"],
+                            stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        deadline = time.monotonic() + 300.0  # a cold kernel cache compiles first
+        while not any(".partial-" in p.name for p in tmp_path.iterdir()) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert proc.poll() is None
+        time.sleep(0.5)  # some frames written
+        proc.send_signal(getattr(signal, signum))
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + getattr(signal, signum), err
+    assert err.strip().splitlines()[-1] == f"cfx: error: stopped by {signum}; no output was written"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["scene.toml"]
 
 
 def test_quiet_run_prints_nothing_to_stderr(tmp_path):

@@ -61,8 +61,48 @@ def test_cache_follows_the_usd_conventions(tmp_path):
     mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/World/head"))
     assert mesh.GetSubdivisionSchemeAttr().Get() == "none"
     for prim in ("/World/hair", "/World/head"):
-        assert stage.GetPrimAtPath(prim).GetAttribute("cfx:role").GetTypeName() == "token"
+        role = stage.GetPrimAtPath(prim).GetAttribute("cfx:role")
+        assert role.GetTypeName() == "token" and role.IsCustom()  # DCC importers bring in custom attributes
+    assert not mesh.GetDoubleSidedAttr().Get()  # a closed collider; open surfaces are double-sided:
     assert validation_errors(path) == []
+
+
+def test_open_surfaces_are_double_sided(tmp_path):
+    path = str(tmp_path / "cloth.usda")
+    quad = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float32)
+    with CacheWriter(path, fps=24, start_frame=1, end_frame=1) as w:
+        for role in ("cloth", "cloth_detail", "hair_card", "face"):
+            w.add_mesh(role, role, None, np.array([[0, 1, 2], [0, 2, 3]]))
+        w.write_frame(1, {role: quad for role in ("cloth", "cloth_detail", "hair_card", "face")})
+    stage = Usd.Stage.Open(path)
+    sided = {role: UsdGeom.Mesh(stage.GetPrimAtPath(f"/World/{role}")).GetDoubleSidedAttr().Get()
+             for role in ("cloth", "cloth_detail", "hair_card", "face")}
+    assert sided == {"cloth": True, "cloth_detail": True, "hair_card": True, "face": False}  # the face covers a head
+
+
+def test_a_cache_over_a_centimetre_stage_gives_its_hair_widths_in_centimetres(tmp_path):
+    from pxr import Vt
+
+    shot = Usd.Stage.CreateNew(str(tmp_path / "shot.usda"))
+    UsdGeom.SetStageMetersPerUnit(shot, 0.01)
+    shot.SetDefaultPrim(UsdGeom.Xform.Define(shot, "/char").GetPrim())
+    curves = UsdGeom.BasisCurves.Define(shot, "/char/hair")
+    curves.CreateCurveVertexCountsAttr([3])
+    curves.CreatePointsAttr(Vt.Vec3fArray([(0, 0, 0), (0, -1, 0), (0, -2, 0)]))
+    cape = UsdGeom.Mesh.Define(shot, "/char/cape")  # its subdivisionScheme unauthored: Catmull-Clark
+    cape.CreatePointsAttr(Vt.Vec3fArray([(0, 0, 0), (1, 0, 0), (1, 1, 0)]))
+    cape.CreateFaceVertexCountsAttr([3])
+    cape.CreateFaceVertexIndicesAttr([0, 1, 2])
+    shot.GetRootLayer().Save()
+    over = str(tmp_path / "shot.usda")
+    with CacheWriter(str(tmp_path / "cache.usdc"), 24, 1, 1, meters_per_unit=0.01, over=over) as w:
+        w.add_over("hair", "hair", "/char/hair")
+        w.add_over("cape", "cloth", "/char/cape")
+        w.write_frame(1, {"hair": np.zeros((3, 3)), "cape": np.eye(3)})
+    stage = Usd.Stage.Open(str(tmp_path / "cache.usdc"))
+    widths = np.asarray(UsdGeom.BasisCurves(stage.GetPrimAtPath("/char/hair")).GetWidthsAttr().Get())
+    np.testing.assert_allclose(widths, 0.01, rtol=1e-6)  # a tenth of a millimetre, in centimetres
+    assert UsdGeom.Mesh(stage.GetPrimAtPath("/char/cape")).GetSubdivisionSchemeAttr().Get() == "none"
 
 
 def test_failed_run_leaves_no_cache_behind(tmp_path):

@@ -366,7 +366,8 @@ def test_embedding_rejects_bad_arrays():
 
 def test_several_garments_simulate_as_one_and_write_back_to_their_prims(tmp_path):
     """A second cape on the other side of the head: both prims get their own points back, both sets
-    of pins ride the collider, and the detail surface spans both, at the stage's root."""
+    of pins ride the collider, and the detail surface spans both, under the stage's default prim (so a
+    reference to the cache brings it), in that prim's space: here turned a quarter about Z and moved."""
     scene = build_stage(tmp_path / "two.usda", extra=[("/root/Cape", "cfx:detail:level", Sdf.ValueTypeNames.Int, 2)])
     stage = Usd.Stage.Open(str(scene))
     back = UsdGeom.Xform.Define(stage, "/root/BackCape")
@@ -379,7 +380,14 @@ def test_several_garments_simulate_as_one_and_write_back_to_their_prims(tmp_path
     plane.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.full(len(quads), 4, np.int32)))
     plane.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(quads[:, ::-1].ravel().astype(np.int32)))
     plane.GetPrim().CreateAttribute("cfx:pinned", Sdf.ValueTypeNames.IntArray).Set([0, 1, 2, 3, 4])
+    root = UsdGeom.Xformable(stage.GetPrimAtPath("/root"))
+    root.AddTranslateOp().Set(Gf.Vec3d(0.3, -0.2, 0.0))
+    root.AddRotateZOp().Set(90.0)
     stage.GetRootLayer().Save()
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # the root's turn, column vectors
+
+    def world(local):
+        return local @ quarter.T + [0.3, -0.2, 0.0]
 
     read = read_usd_scene(scene)
     assert [p.path for p in read.cloth] == ["/root/Cape/Plane", "/root/BackCape/Plane"]
@@ -393,9 +401,19 @@ def test_several_garments_simulate_as_one_and_write_back_to_their_prims(tmp_path
         a = np.radians(r[2])
         turn = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
         front, rear = _world(cache, "/root/Cape/Plane", frame), _world(cache, "/root/BackCape/Plane", frame)
-        np.testing.assert_allclose(front[:5], gv[:5] @ turn.T + t, atol=1e-4)
-        np.testing.assert_allclose(rear[:5], mirrored[:5] @ turn.T + t, atol=1e-4)
-    detail = _world(cache, "/cfx_cloth_detail", FRAMES)
-    assert detail[:, 1].min() < -RADIUS + 0.01 and detail[:, 1].max() > RADIUS - 0.01  # spans both sides
+        np.testing.assert_allclose(front[:5], world(gv[:5] @ turn.T + t), atol=1e-4)
+        np.testing.assert_allclose(rear[:5], world(mirrored[:5] @ turn.T + t), atol=1e-4)
+    detail = _world(cache, "/root/cfx_cloth_detail", FRAMES)
+    across = (detail - [0.3, -0.2, 0.0]) @ quarter  # back in the root's axes
+    assert across[:, 1].min() < -RADIUS + 0.01 and across[:, 1].max() > RADIUS - 0.01  # spans both sides
+    # the normals are in the root's space too: turned to the world they agree with the surface's winding
+    mesh = UsdGeom.Mesh(cache.GetPrimAtPath("/root/cfx_cloth_detail"))
+    tris = np.asarray(mesh.GetFaceVertexIndicesAttr().Get()).reshape(-1, 3)
+    normals = np.asarray(mesh.GetNormalsAttr().Get(Usd.TimeCode(FRAMES)), np.float64) @ quarter.T
+    winding = np.zeros_like(detail)
+    for k in range(3):
+        np.add.at(winding, tris[:, k], np.cross(detail[tris[:, 1]] - detail[tris[:, 0]], detail[tris[:, 2]] -
+                                                 detail[tris[:, 0]]))
+    assert np.mean(np.einsum("ij,ij->i", normals, winding) > 0.0) > 0.99
     reader = CacheReader(out)
     assert {p.role for p in reader.prims.values()} >= {"cloth", "cloth_detail", "hair", "collider"}
