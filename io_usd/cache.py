@@ -22,6 +22,7 @@ ROOT = "/World"
 DEFAULT_CURVE_WIDTH = 1e-4  # m, a hair's width where a scene's curves give none
 # on curves drawn from other curves each frame (render children): the path of those curves
 INTERPOLATED_FROM = "cfx:interpolatedFrom"
+STRAND_ID = "strandId"  # uniform int primvar on the simulated hair: which strand of the groom each curve is
 
 
 def _vec3f(points):
@@ -245,11 +246,13 @@ class CacheWriter:
         anim.GetScalesAttr().Set(Vt.Vec3hArray([Gf.Vec3h(1.0, 1.0, 1.0)]), t)
         anim.GetBlendShapeWeightsAttr().Set(Vt.FloatArray.FromNumpy(np.asarray(weights, np.float32)), t)
 
-    def add_curves(self, name, role, counts, widths, color=None, interpolated_from=None):
+    def add_curves(self, name, role, counts, widths, color=None, interpolated_from=None, ids=None):
         """Linear, nonperiodic BasisCurves with per-vertex widths [m]; points come per frame.
         interpolated_from: the name of the curves these are interpolated from each frame (render
         children), kept as the string attribute `cfx:interpolatedFrom` (that prim's path): readers
-        that want the simulated strands alone (scoring, a cache read back as a scene) leave them out."""
+        that want the simulated strands alone (scoring, a cache read back as a scene) leave them out.
+        ids: (C,) an int per curve, the uniform primvar `strandId`, sampled with the topology when it
+        changes, so a DCC can follow a strand across cuts that remove others."""
         curves = UsdGeom.BasisCurves.Define(self.stage, f"{ROOT}/{name}")
         if interpolated_from is not None:
             curves.GetPrim().CreateAttribute(INTERPOLATED_FROM, Sdf.ValueTypeNames.String, custom=True).Set(
@@ -264,42 +267,54 @@ class CacheWriter:
         curves.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
         if color is not None:
             curves.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([Gf.Vec3f(*color)])
+        id_values = None
+        if ids is not None:
+            id_values = np.asarray(ids, np.int32).copy()
+            UsdGeom.PrimvarsAPI(curves).CreatePrimvar(STRAND_ID, Sdf.ValueTypeNames.IntArray,
+                                                      UsdGeom.Tokens.uniform).Set(Vt.IntArray.FromNumpy(id_values))
         self._tag(curves, name, role, "curves", widths=widths_vt, animated=True,
-                  counts=np.asarray(counts, np.int32).copy(), width_values=widths.copy(), frames=[], varying=False)
+                  counts=np.asarray(counts, np.int32).copy(), width_values=widths.copy(), id_values=id_values,
+                  frames=[], varying=False)
         return curves
 
-    def _set_curves(self, name, frame, counts, widths):
-        """A curves prim's topology at `frame`. Nothing is sampled while it stays the one add_curves
-        gave; from its first change on, curveVertexCounts and widths are sampled at every frame
-        written (the frames before are filled in), so no reader ever interpolates between topologies."""
+    def _set_curves(self, name, frame, counts, widths, ids=None):
+        """A curves prim's topology at `frame` (and its strand ids, if add_curves gave some). Nothing is
+        sampled while it stays the one add_curves gave; from its first change on, curveVertexCounts,
+        widths and ids are sampled at every frame written (the frames before are filled in), so no
+        reader ever interpolates between topologies."""
         info = self._prims[name]
         counts = np.asarray(counts, np.int32)
         widths = np.asarray(widths, np.float32)
+        ids = info["id_values"] if ids is None or info["id_values"] is None else np.asarray(ids, np.int32)
         if not info["varying"]:
-            if np.array_equal(counts, info["counts"]) and np.array_equal(widths, info["width_values"]):
+            if (np.array_equal(counts, info["counts"]) and np.array_equal(widths, info["width_values"])
+                    and (ids is None or np.array_equal(ids, info["id_values"]))):
                 return
             info["varying"] = True
-            first = (Vt.IntArray.FromNumpy(info["counts"]), Vt.FloatArray.FromNumpy(info["width_values"]))
+            first = (info["counts"], info["width_values"], info["id_values"])
             for earlier in info["frames"]:
                 self._sample_curves(info["prim"], earlier, *first)
         info["widths"] = Vt.FloatArray.FromNumpy(widths)
-        self._sample_curves(info["prim"], frame, Vt.IntArray.FromNumpy(counts), info["widths"])
+        self._sample_curves(info["prim"], frame, counts, widths, ids)
 
     @staticmethod
-    def _sample_curves(curves, frame, counts, widths):
+    def _sample_curves(curves, frame, counts, widths, ids):
         t = Usd.TimeCode(float(frame))
-        curves.GetCurveVertexCountsAttr().Set(counts, t)
-        curves.GetWidthsAttr().Set(widths, t)
+        curves.GetCurveVertexCountsAttr().Set(Vt.IntArray.FromNumpy(counts), t)
+        curves.GetWidthsAttr().Set(Vt.FloatArray.FromNumpy(widths), t)
+        if ids is not None:
+            UsdGeom.PrimvarsAPI(curves).GetPrimvar(STRAND_ID).Set(Vt.IntArray.FromNumpy(ids), t)
 
     # -- frames ------------------------------------------------------------------------------
     def write_frame(self, frame, points_by_name, normals_by_name=None, curves=None):
         """Write time samples of points (and extent, and normals where given) at time code `frame`.
 
-        curves: {name: (curveVertexCounts, widths)} of curves prims whose strands may change between
-        frames (cut, grown, erased); once they differ from add_curves' they are time-sampled."""
+        curves: {name: (curveVertexCounts, widths[, strand ids])} of curves prims whose strands may
+        change between frames (cut, grown, erased); once they differ from add_curves' they are
+        time-sampled."""
         t = Usd.TimeCode(float(frame))
-        for name, (counts, widths) in (curves or {}).items():
-            self._set_curves(name, frame, counts, widths)
+        for name, topology in (curves or {}).items():
+            self._set_curves(name, frame, *topology)
         for name, points in points_by_name.items():
             info = self._prims[name]
             if "frames" in info:

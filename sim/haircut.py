@@ -553,6 +553,7 @@ def apply(scene, groom):
         raise ValueError("the edit would leave no strands")
     old = scene.model
     model = HairModel(groom.rest, groom.counts, groom.widths, groom.pinned, scene.device, wax=groom.wax)
+    model.strand_ids = old.strand_ids[groom.origin]
     model.bind_to_mesh(scene.groom_points, scene.head.faces, old.root_triangle_np[groom.origin],
                        old.root_barycentric_np[groom.origin])
     _install(scene, model, groom.x, groom.v)

@@ -1007,7 +1007,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
             if hair is not None:  # the hair's model and solver when the frame was queued (haircuts replace them)
                 model, solver = hair
                 solver.report_unhealthy(data["hair_bad"], data["hair_first"], frame, hair_prim)
-                curves = {"hair": (model.counts, model.widths_np)}
+                curves = {"hair": (model.counts, model.widths_np, model.strand_ids)}
                 if stage is not None and not np.array_equal(model.counts, first_counts):
                     raise InputError(config.source, "haircut", "a cache layered over a USD stage keeps the "
                                      "stage's curves: cut strands in a scene of their own")
@@ -1083,7 +1083,8 @@ def _add_prims(writer, scene):
     """Our own cache layout: one prim per object under /World."""
     writer.add_mesh(scene.collider_name, "collider", scene.head.vertices, scene.head.faces, color=SKIN_COLOR)
     if scene.model is not None:
-        writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=scene.config.hair.color)
+        writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=scene.config.hair.color,
+                          ids=scene.model.strand_ids)
     if scene.children is not None:
         writer.add_curves("hair_children", "hair", scene.children.counts, scene.children.widths_np,
                           color=scene.config.hair.color, interpolated_from="hair")

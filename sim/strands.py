@@ -43,6 +43,9 @@ class HairModel:
         self.rest_positions_np = rest.astype(np.float32)
         self.widths_np = np.asarray(widths, dtype=np.float32)
         self.wax_np = np.zeros(self.num_particles, np.float32) if wax is None else np.asarray(wax, np.float32)
+        # which strand of the groom each one is: a haircut that removes or reorders strands carries them
+        # (sim.haircut.apply), so a cache can name a strand across a change of topology
+        self.strand_ids = np.arange(self.num_strands, dtype=np.int32)
 
         start = self.strand_start_np[:-1]
         local = np.arange(self.num_particles) - np.repeat(start, counts)

@@ -348,6 +348,25 @@ def test_cache_total_hair_length_falls_at_each_cut_and_rises_at_the_grow(timelin
         assert abs(length[steady] - length[steady - 1]) < 1e-3 * length[steady]
 
 
+def test_cache_names_each_strand_across_the_erase(timeline_cache):
+    """The uniform primvar strandId says which strand of the groom each curve is: the erase at frame 10
+    removes some, and every id left names a curve whose root stays where that id's root was."""
+    from pxr import Usd, UsdGeom
+
+    path, _, _ = timeline_cache
+    reader = CacheReader(path)
+    primvar = UsdGeom.PrimvarsAPI(reader.stage.GetPrimAtPath("/World/hair")).GetPrimvar("strandId")
+    assert primvar.GetInterpolation() == "uniform"
+    ids = {f: np.asarray(primvar.Get(Usd.TimeCode(f))) for f in (9, 10)}
+    before, after = ids[9], ids[10]
+    np.testing.assert_array_equal(before, np.arange(60))
+    assert 0 < len(after) < len(before) and np.all(np.diff(after) > 0)
+    roots = {f: reader.points("hair", f)[np.concatenate([[0], np.cumsum(reader.counts("hair", f))[:-1]])]
+             for f in (9, 10)}
+    assert len(roots[10]) == len(after)
+    np.testing.assert_allclose(roots[10], roots[9][after], atol=1e-3)  # the head is still: roots stay put
+
+
 def test_cache_samples_curve_topology_per_frame_and_validates(timeline_cache):
     path, counts, result = timeline_cache
     reader = CacheReader(path)
