@@ -605,7 +605,13 @@ def contact_sheet(images, labels=None, columns=None, background=BACKGROUND):
 def _choose_frames(cache_path, available, ext, frame, frames):
     if frame is not None and frames is not None:
         raise ValueError(f"{cache_path}: pass frame or frames, not both")
-    if frames is not None:
+    have = set(available)
+    if isinstance(frames, range):  # a range asks for what the cache has of it
+        chosen = [f for f in frames if f in have]
+        if not chosen:
+            raise ValueError(f"{cache_path}: no frame of {frames.start}:{frames.stop - 1}:{frames.step} is in the "
+                             f"cache (it has {len(available)} frames, {available[0]} to {available[-1]})")
+    elif frames is not None:
         chosen = [int(f) for f in frames]
         if not chosen:
             raise ValueError(f"{cache_path}: frames is empty")
@@ -613,7 +619,6 @@ def _choose_frames(cache_path, available, ext, frame, frames):
         chosen = [int(frame)]
     else:
         chosen = [available[-1]] if ext == ".png" else list(available)
-    have = set(available)
     missing = [f for f in chosen if f not in have]
     if missing:
         raise ValueError(f"{cache_path}: frame {missing[0]} is not in the cache "

@@ -1359,7 +1359,7 @@ def solve(capture_dir, out_path, params=None, progress=False, **options):
         writer.add_curves("hair_guides", "hair", np.full(guides.shape[1], V), np.full(guides.shape[1] * V,
                           params.strand_width), color=GUIDE_COLOR)
         writer.add_curves("hair", "hair", np.full(hair.shape[1], V), np.full(hair.shape[1] * V, params.strand_width),
-                          color=HAIR_COLOR)
+                          color=HAIR_COLOR, ids=np.arange(hair.shape[1]))
         writer.add_mesh("hair_card", "hair_card", None, cards.faces, color=CARD_COLOR, uvs=cards.uvs)
         for f, frame in enumerate(capture.frames):
             samples = {"hair_guides": guides[f].reshape(-1, 3), "hair": hair[f].reshape(-1, 3),

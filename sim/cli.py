@@ -14,14 +14,15 @@ def _fail(message, status):
 
 
 def _frames(text):
-    """'12' -> [12]; '1:72:12' -> [1, 13, ...] (inclusive end); '1,24,48' -> [1, 24, 48]. ValueError
-    naming the flag for anything else, or a range that holds no frame."""
+    """'12' -> [12]; '1:72:12' -> range(1, 73, 12) (inclusive end; the preview keeps the range's frames
+    the cache has, so the README's 1:72:12 also suits a short test cache); '1,24,48' -> [1, 24, 48].
+    ValueError naming the flag for anything else, or a range that holds no frame."""
     try:
         if ":" in text:
             parts = [int(p) for p in text.split(":")]
             if len(parts) not in (2, 3) or min(parts[2:], default=1) <= 0:
                 raise ValueError
-            frames = list(range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1))
+            frames = range(parts[0], parts[1] + 1, parts[2] if len(parts) == 3 else 1)
         else:
             frames = [int(p) for p in text.split(",")]
     except ValueError:
@@ -178,11 +179,12 @@ def cmd_lipsync(args):
     if not 0.0 <= args.intensity <= 1.0:
         raise InputError("--intensity", None, f"must be from 0 to 1, got {args.intensity:g}")
     _check_preview(args.preview)
-    samples = lipsync.load_audio(args.audio)
+    audio = str(lipsync.DEMO_LINE_PATH) if args.audio == "builtin" else args.audio  # as a scene's audio = "builtin"
+    samples = lipsync.load_audio(audio)
     seconds = len(samples) / lipsync.SAMPLE_RATE
     start = 1.0
     frames = int(math.ceil(seconds * args.fps)) + 2  # the mouth closes again after the last word
-    face = {"audio": os.path.abspath(args.audio), "audio_start": start, "voice": args.voice}
+    face = {"audio": os.path.abspath(audio), "audio_start": start, "voice": args.voice}
     if args.expression != "neutral":
         face["expressions"] = [{"frame": start, "emotion": args.expression, "weight": args.intensity}]
     data = {"scene": {"frames": frames, "fps": args.fps, "preroll": 0.0 if not args.hair else 1.0},
@@ -357,7 +359,8 @@ def build_parser():
     p.set_defaults(func=cmd_demo)
 
     p = sub.add_parser("lipsync", help="make the built-in head speak a WAV (lip sync) to a USD cache")
-    p.add_argument("audio", help="a WAV file at any sample rate (mixed to mono, resampled to 16 kHz)")
+    p.add_argument("audio", help="a WAV file at any sample rate (mixed to mono, resampled to 16 kHz); builtin: "
+                                 "the demo's line")
     p.add_argument("-o", "--output", required=True, help="cache path (.usdc, .usd or .usda)")
     p.add_argument("--fps", type=float, default=24.0)
     p.add_argument("--voice", default="general",
@@ -370,7 +373,7 @@ def build_parser():
     p.add_argument("--hair", action="store_true", help="grow and simulate the default hairstyle too")
     p.add_argument("--device", help="cpu, cuda or cuda:N")
     p.add_argument("--preview", help="also render this preview of the face (.png/.mp4/.gif)")
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_lipsync)
 
     p = sub.add_parser("mask", help="render projector frames that put the face on a tracked, moving mask (MP4)")
@@ -402,7 +405,7 @@ def build_parser():
     p.add_argument("--view", action="append", metavar="VIEW",
                    help="three-quarter (the default), front, left, right, back, top, turnaround (front, left, "
                         "back, right) or YAW,PITCH in degrees; repeat it for several views side by side")
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_preview)
 
     p = sub.add_parser("studio", help="the interactive haircut studio: comb, cut and wax the scene's hair with "
@@ -422,7 +425,7 @@ def build_parser():
     p.add_argument("-o", "--output", help="also write a side-by-side PNG report (result, target, difference)")
     p.add_argument("--frame", type=int, help="frame of both caches (default: each cache's last)")
     p.add_argument("--size", default="480x480", help="WIDTHxHEIGHT of each view in pixels")
-    p.add_argument("-q", "--quiet", action="store_true")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_score)
 
     p = sub.add_parser("view", help="open the interactive viewer (needs a display)")

@@ -245,9 +245,12 @@ def _build_config(source, data, overrides, check_files=True):
     for section, key, value in files:
         if value and value != "builtin" and not os.path.exists(os.path.join(base, value)):
             where = os.path.normpath(os.path.join(base, value))
-            raise InputError(source, f"{section}.{key}", f"file not found: {value} (paths are taken from the scene "
-                                                         f"file's folder: {where})" if where != value else
-                             f"file not found: {value}")
+            missing = value + (f" (paths are taken from the scene file's folder: {where})" if where != value else "")
+            if (section, key) == ("cloth", "garment"):
+                reason = f"not a built-in garment ({', '.join(_garment_names())}) nor a file: {missing}"
+            else:
+                reason = f"file not found: {missing}"
+            raise InputError(source, f"{section}.{key}", reason)
     f = config.face
     if f.enabled and f.mesh == "builtin" and (config.head.mesh != "builtin" if not config.body.enabled
                                               else config.body.mesh != "builtin"):
@@ -818,7 +821,8 @@ def load_kernels(device, announce=False, deferred=None):
     def notice():
         if not done.wait(KERNELS_NOTICE_S):
             print(f"cfx: compiling the Warp kernels for {device}, once per machine and Warp version "
-                  f"(on a two-core CPU about 7 s)", file=sys.stderr, flush=True)
+                  f"(on a two-core CPU 10-20 s, some of it at the first launch of a module)", file=sys.stderr,
+                  flush=True)
 
     teller = threading.Thread(target=notice, daemon=True)
     teller.start()

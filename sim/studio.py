@@ -72,7 +72,7 @@ class FrameSpool:
     10 GB in ten minutes at 24 frames/s. Saving reads them back in order; the folder goes with the
     spool (close, or when it is collected)."""
 
-    FIELDS = ("hair", "counts", "widths", "collider")
+    FIELDS = ("hair", "counts", "widths", "ids", "collider")
 
     def __init__(self, folder=None):
         self._dir = tempfile.TemporaryDirectory(prefix="cfx_studio_", dir=folder)
@@ -85,8 +85,8 @@ class FrameSpool:
     def _path(self, index):
         return os.path.join(self._dir.name, f"{index:07d}.npz")
 
-    def append(self, frame, hair, counts, widths, collider):
-        np.savez(self._path(len(self.numbers)), hair=hair, counts=counts, widths=widths, collider=collider)
+    def append(self, frame, hair, counts, widths, ids, collider):
+        np.savez(self._path(len(self.numbers)), hair=hair, counts=counts, widths=widths, ids=ids, collider=collider)
         self.numbers.append(int(frame))
 
     def pop(self):
@@ -95,7 +95,7 @@ class FrameSpool:
         self.numbers.pop()
 
     def read(self, index):
-        """(frame, hair points, counts, widths, collider points) of the index-th frame recorded."""
+        """(frame, hair points, counts, widths, strand ids, collider points) of the index-th frame recorded."""
         with np.load(self._path(index % len(self.numbers))) as data:
             return (self.numbers[index], *(data[k] for k in self.FIELDS))
 
@@ -229,7 +229,8 @@ class Session:
 
     def _record(self):
         s = self.scene
-        self.frames.append(self.frame, s.state.x.numpy(), s.model.counts, s.model.widths_np, s.collider.points.numpy())
+        self.frames.append(self.frame, s.state.x.numpy(), s.model.counts, s.model.widths_np, s.model.strand_ids,
+                           s.collider.points.numpy())
 
     def _refresh_frame(self):
         """An edit at this frame replaces what was recorded for it."""
@@ -290,14 +291,14 @@ def write_session_cache(session, path):
 
     s, t = session.scene, session.config.timing
     frames = session.frames
-    _, _, counts, widths, _ = frames.read(0)
+    _, _, counts, widths, ids, _ = frames.read(0)
     with CacheWriter(path, t.fps, frames.numbers[0], frames.numbers[-1], settings=session.config.settings(),
                      engine_version=__version__) as writer:
         writer.add_mesh(s.collider_name, "collider", s.head.vertices, s.head.faces, color=SKIN_COLOR)
-        writer.add_curves("hair", "hair", counts, widths, color=session.config.hair.color)
-        for frame, hair, counts, widths, collider in frames:
+        writer.add_curves("hair", "hair", counts, widths, color=session.config.hair.color, ids=ids)
+        for frame, hair, counts, widths, ids, collider in frames:
             writer.write_frame(frame, {s.collider_name: collider, "hair": hair},
-                               curves={"hair": (counts, widths)})
+                               curves={"hair": (counts, widths, ids)})
         writer.set_metadata("cfx:haircut", {"events": len(session.events)})
 
 

@@ -108,6 +108,10 @@ def test_preview_command_renders_a_still_and_a_contact_sheet(tmp_path, capsys):
     assert Image.open(views).size == (5 * 160, 120)
     assert capsys.readouterr().err == ""  # -q: no progress bar either
     assert main(["preview", out, "-o", str(tmp_path / "x.png"), "--frames", "9", "-q"]) == 2
+    assert main(["preview", out, "-o", str(tmp_path / "x.png"), "--frames", "5:9", "-q"]) == 2  # none of them
+    sheet.unlink()
+    assert main(["preview", out, "-o", str(sheet), "--frames", "1:72:2", "--size", "160x120", "-q"]) == 0
+    assert Image.open(sheet).size == (320, 120)  # the frames of the range the cache has: 1 and 3
     # a malformed size and one beyond what the GL draws: one line each, exit 2, nothing written
     capsys.readouterr()
     for flag, value, reason in (("--size", "160x120x", "--size: expected WIDTHxHEIGHT in pixels"),

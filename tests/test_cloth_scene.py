@@ -212,6 +212,11 @@ def test_built_in_garment_without_the_built_in_body_is_refused(tmp_path, capsys)
     scene.write_text('[cloth]\ngarment = "dress"\n')
     assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
     assert "cloth.garment" in capsys.readouterr().err
+    scene.write_text('[body]\n[cloth]\ngarment = "robe"\n')  # a typo: the message lists the built-in ones
+    assert main(["run", str(scene), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1
+    assert "cloth.garment: not a built-in garment (dress, skirt, shirt) nor a file: robe" in err
 
 
 def test_hair_on_a_body_file_needs_a_scalp(tmp_path, capsys):

@@ -26,6 +26,16 @@ def test_lipsync_writes_a_talking_face(tmp_path):
     assert png.stat().st_size > 10_000
 
 
+def test_lipsync_speaks_the_builtin_line(tmp_path):
+    """`builtin` names the demo's line, as a scene's audio = "builtin" does."""
+    from sim import lipsync
+
+    out = tmp_path / "talk.usdc"
+    assert main(["lipsync", "builtin", "-o", str(out), "--fps", "6", "-q"]) == 0
+    seconds = len(lipsync.load_audio(lipsync.DEMO_LINE_PATH)) / lipsync.SAMPLE_RATE
+    assert len(CacheReader(str(out)).frames("face")) == int(np.ceil(seconds * 6)) + 2
+
+
 def test_lipsync_rejects_a_file_that_is_not_audio(tmp_path, capsys):
     bad = tmp_path / "notes.wav"
     bad.write_text("not audio")

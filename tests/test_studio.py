@@ -179,7 +179,8 @@ def test_recorded_frames_wait_on_disk_and_read_back_exactly(tmp_path):
     for frame in range(1, 5):
         counts = np.full(3 + frame % 2, 8, np.int64)
         record = (frame, rng.random((int(counts.sum()), 3)).astype(np.float32), counts,
-                  rng.random(int(counts.sum())).astype(np.float32), rng.random((50, 3)).astype(np.float32))
+                  rng.random(int(counts.sum())).astype(np.float32), np.arange(len(counts), dtype=np.int32),
+                  rng.random((50, 3)).astype(np.float32))
         spool.append(*record)
         frames.append(record)
     spool.pop()
