@@ -3,7 +3,8 @@
     python examples/face_gallery.py out/face_gallery.png
 
 Frames 1-7 hold the seven expressions (neutral and the six emotions as FACS action-unit mixes),
-frames 8-13 the mouth bases a, i, u, e, o and closed, given as a mouth-parameter track.
+frames 8-13 the mouth bases a, i, u, e, o and closed, given as a mouth-parameter track; each tile is
+labelled with its name.
 """
 
 import os
@@ -31,9 +32,10 @@ def main(out="out/face_gallery.png"):
             "face": {"enabled": True, "mouth": track, "audio_start": 1.0, "expressions": keys}})
         cache = os.path.join(tmp, "gallery.usdc")
         sim.run_scene(config, cache, progress=False)
-        preview(cache, out, frames=list(range(1, len(mouth) + 1)), width=360, height=360, columns=7, focus="face")
-    labels = emotions + [f"/{v}/" if v != "closed" else "closed" for v in sim.VOWELS]
-    print(f"wrote {out}: " + ", ".join(f"{i + 1} {name}" for i, name in enumerate(labels)))
+        labels = emotions + [f"/{v}/" if v != "closed" else "closed mouth" for v in sim.VOWELS]
+        preview(cache, out, frames=list(range(1, len(mouth) + 1)), width=360, height=360, columns=7, focus="face",
+                labels=labels)
+    print(f"wrote {out}: " + ", ".join(labels))
 
 
 if __name__ == "__main__":

@@ -93,9 +93,9 @@ class ShapeDefinition:
 
 ACTION_UNITS = {
     1: ShapeDefinition("AU01", "inner brow raiser", 0.030,
-                       {"brow_inner": (0.0, 6.0, 0.5), "brow_mid": (0.0, 2.5, 0.0), "forehead": (0.0, 2.0, 0.0)}),
+                       {"brow_inner": (0.0, 9.0, 0.5), "brow_mid": (0.0, 4.0, 0.0), "forehead": (0.0, 3.0, 0.0)}),
     2: ShapeDefinition("AU02", "outer brow raiser", 0.030, {"brow_outer": (0.0, 6.0, 0.0), "brow_mid": (0.0, 3.5, 0.0)}),
-    4: ShapeDefinition("AU04", "brow lowerer", 0.025, {"brow_inner": (-3.0, -4.0, 0.5), "brow_mid": (-1.5, -2.5, 0.0)}),
+    4: ShapeDefinition("AU04", "brow lowerer", 0.025, {"brow_inner": (-4.0, -6.0, 0.5), "brow_mid": (-2.0, -4.0, 0.0)}),
     5: ShapeDefinition("AU05", "upper lid raiser", 0.012, {"eye_upper": (0.0, 2.5, 0.3)}),
     6: ShapeDefinition("AU06", "cheek raiser", 0.030,
                        {"cheek": (0.0, 4.0, 1.5), "eye_lower": (0.0, 1.5, 0.0), "eye_outer": (0.0, 1.0, 0.0)}),

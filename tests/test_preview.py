@@ -280,6 +280,14 @@ def test_contact_sheet_grid(cache, tmp_path):
     sheet = np.asarray(Image.open(out).convert("RGB"))
     assert sheet.shape == (H, 3 * W, 3)
     assert not np.array_equal(sheet[:, :W], sheet[:, W:2 * W])  # different frames
+    # named tiles: the same images under other labels (a longer label darkens more of the corner)
+    named = preview(cache, str(tmp_path / "named.png"), frames=[1, 2, 3], width=W, height=H, columns=3,
+                    labels=["neutral", "a much longer label", "x"])
+    named = np.asarray(Image.open(named).convert("RGB"))
+    assert np.array_equal(named[H // 3:], sheet[H // 3:])
+    assert (named[:H // 3, W:2 * W] < 60).sum() > (sheet[:H // 3, W:2 * W] < 60).sum()
+    with pytest.raises(ValueError, match="one label per frame"):
+        preview(cache, str(tmp_path / "bad.png"), frames=[1, 2], width=W, height=H, labels=["one"])
 
 
 def test_views_side_by_side_are_the_single_views(cache, tmp_path):
