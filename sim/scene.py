@@ -451,10 +451,20 @@ class Scene:
                 self.cloth_detail = ClothDetail(self.cloth_model, config.cloth_detail, device)
         self.face_rig = self.face_animation = None
         if config.face.enabled:
-            self.face_rig = FaceRig(self._face_mesh(), device)
+            mesh = self._face_mesh()
+            if self.model is not None:  # where the face reaches over the scalp it takes the scalp's tint too
+                mesh.colors = self._tinted_over_scalp(mesh.colors, mesh.vertices)
+            self.face_rig = FaceRig(mesh, device)
             self.face_rig.attach(self.collider)
             self.face_animation = FaceAnimation(config.face.expressions, _mouth_track(config),
                                                 config.face.audio_start)
+
+    def _tinted_over_scalp(self, colors, points):
+        """colors (N, 3) of points lying over the head, plus the scalp's tint under each (head_colors)."""
+        _, face, bary = self.collider.closest_points(points)
+        tint = head_colors(self.head, self.config.hair.color) - np.asarray(SKIN_COLOR)
+        under = np.einsum("nk,nkj->nj", bary, tint[np.asarray(self.head.faces).reshape(-1, 3)[face]])
+        return np.clip(np.asarray(colors, np.float64) + under, 0.0, 1.0)
 
     def _face_mesh(self):
         cfg = self.config
@@ -1083,9 +1093,33 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
                      config.cloth_solver.substeps > 0, face, children)
 
 
+# the scalp under the hair is painted toward the shade of the hair's roots, as groomers tint a scalp: bare
+# skin showed through a parting and at the crown as a white line, and halfway to the hair's own colour
+# still read as light tan once lit
+SCALP_TINT = 0.9  # share of the way from the skin to the root shade
+ROOT_SHADE = 0.5  # the root shade: the hair's colour darkened this much, as the roots sit in its shadow
+
+
+def head_colors(head, hair_color=None):
+    """The collider's displayColor: the skin, or with hair (hair_color) per-vertex colours whose scalp,
+    head.scalp_faces, is tinted SCALP_TINT of the way to the roots' shade, easing off over the ring of
+    vertices at the scalp's edge (each vertex by the share of its faces on the scalp)."""
+    if hair_color is None:
+        return SKIN_COLOR
+    faces = np.asarray(head.faces).reshape(-1, 3)
+    on_scalp = np.asarray(head.scalp_faces, bool)
+    total = np.bincount(faces.ravel(), minlength=len(head.vertices))
+    scalp = np.bincount(faces[on_scalp].ravel(), minlength=len(head.vertices))
+    share = SCALP_TINT * scalp / np.maximum(total, 1)
+    skin, roots = np.asarray(SKIN_COLOR, np.float64), ROOT_SHADE * np.asarray(hair_color, np.float64)
+    return skin + share[:, None] * (roots - skin)
+
+
 def _add_prims(writer, scene):
     """Our own cache layout: one prim per object under /World."""
-    writer.add_mesh(scene.collider_name, "collider", scene.head.vertices, scene.head.faces, color=SKIN_COLOR)
+    hair_color = scene.config.hair.color if scene.model is not None else None
+    writer.add_mesh(scene.collider_name, "collider", scene.head.vertices, scene.head.faces,
+                    color=head_colors(scene.head, hair_color))
     if scene.model is not None:
         writer.add_curves("hair", "hair", scene.model.counts, scene.model.widths_np, color=scene.config.hair.color,
                           ids=scene.model.strand_ids)

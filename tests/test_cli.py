@@ -382,3 +382,43 @@ def test_a_run_says_when_the_curls_are_too_coarse_to_draw_as_curves(tmp_path, ca
     fine = coarse.replace("vertices = 8", f"vertices = {needed}")
     assert main(["run", write(tmp_path, fine, "fine.toml"), "-o", str(tmp_path / "fine.usdc"), "-q"]) == 0
     assert "zigzags" not in capsys.readouterr().err
+
+
+def test_the_scalp_under_the_hair_is_painted_toward_the_roots_shade(tmp_path):
+    """Bare skin showed through a parting as a white line: under the hair the head's displayColor is
+    SCALP_TINT of the way from the skin to the roots' shade, away from the scalp it is the skin, and a
+    head without hair is the skin all over."""
+    from pxr import Usd, UsdGeom
+
+    from sim.scene import ROOT_SHADE, SCALP_TINT, SKIN_COLOR, Scene, _build_config, head_colors
+
+    scene = Scene(_build_config("<test>", {"hair": {"count": 10}}, None))
+    colors = head_colors(scene.head, scene.config.hair.color)
+    faces = np.asarray(scene.head.faces).reshape(-1, 3)
+    scalp = np.asarray(scene.head.scalp_faces, bool)
+    inside = np.setdiff1d(faces[scalp].ravel(), faces[~scalp].ravel())
+    outside = np.setdiff1d(faces[~scalp].ravel(), faces[scalp].ravel())
+    skin, roots = np.asarray(SKIN_COLOR), ROOT_SHADE * np.asarray(scene.config.hair.color)
+    np.testing.assert_allclose(colors[inside], np.tile(skin + SCALP_TINT * (roots - skin), (len(inside), 1)))
+    np.testing.assert_allclose(colors[outside], np.tile(skin, (len(outside), 1)))
+    assert head_colors(scene.head) == SKIN_COLOR
+    out = str(tmp_path / "c.usdc")
+    assert main(["run", write(tmp_path, SMALL), "-o", out, "-q"]) == 0
+    stage = Usd.Stage.Open(out)
+    primvar = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/World/head")).GetPrimvar("displayColor")
+    assert primvar.GetInterpolation() == "vertex" and np.asarray(primvar.Get()).min() < 0.5 * min(SKIN_COLOR)
+
+
+def test_the_face_takes_the_scalps_tint_where_it_reaches_over_the_scalp():
+    """The face's top reaches over the scalp: there its colours take the tint under them, so the face's
+    edge does not draw a line of bare skin across the hairline; below the hairline they are unchanged."""
+    from sim.scene import Scene, _build_config
+
+    tables = {"face": {"resolution": 1}, "head": {"animation": "none"}}
+    bald = Scene(_build_config("<test>", dict(tables, hair={"enabled": False}), None)).face_rig.mesh
+    haired = Scene(_build_config("<test>", dict(tables, hair={"count": 10}), None)).face_rig.mesh
+    darker = (bald.colors - haired.colors).max(axis=1)
+    assert np.all(darker >= -1e-9) and darker.max() > 0.2  # toward the roots' shade, up to the full tint
+    height = bald.vertices[:, 1]
+    top, lower = height > np.percentile(height, 95), height < np.percentile(height, 70)
+    assert np.mean(darker[top] > 0.01) > 0.5 and np.all(darker[lower] < 1e-9)  # the hairline's, not the brows
