@@ -41,13 +41,14 @@ class LiveReader:
     def refresh(self):
         from io_usd.cache import CachePrim
 
-        from .scene import SKIN_COLOR
+        from .scene import SKIN_COLOR, head_colors
 
         s = self.scene
         head = s.head
+        tinted = head_colors(head, s.config.hair.color) if s.model is not None else None
         self.prims = {s.collider_name: CachePrim(s.collider_name, "", "collider", "mesh", len(head.vertices),
                                                  np.full(len(head.faces), 3), indices=head.faces.reshape(-1),
-                                                 color=SKIN_COLOR)}
+                                                 color=SKIN_COLOR, vertex_colors=tinted)}
         if s.model is not None:
             self.prims["hair"] = CachePrim("hair", "", "hair", "curves", s.model.num_particles, s.model.counts,
                                            widths=s.model.widths_np, color=s.config.hair.color)
@@ -287,14 +288,15 @@ def write_session_cache(session, path):
     from io_usd.cache import CacheWriter
 
     from . import __version__
-    from .scene import SKIN_COLOR
+    from .scene import head_colors
 
     s, t = session.scene, session.config.timing
     frames = session.frames
     _, _, counts, widths, ids, _ = frames.read(0)
     with CacheWriter(path, t.fps, frames.numbers[0], frames.numbers[-1], settings=session.config.settings(),
                      engine_version=__version__) as writer:
-        writer.add_mesh(s.collider_name, "collider", s.head.vertices, s.head.faces, color=SKIN_COLOR)
+        writer.add_mesh(s.collider_name, "collider", s.head.vertices, s.head.faces,
+                        color=head_colors(s.head, session.config.hair.color))
         writer.add_curves("hair", "hair", counts, widths, color=session.config.hair.color, ids=ids)
         for frame, hair, counts, widths, ids, collider in frames:
             writer.write_frame(frame, {s.collider_name: collider, "hair": hair},
