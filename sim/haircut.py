@@ -901,10 +901,11 @@ def run_event(scene, event):
 def wax_share(event, frame):
     """How much of a timeline wax's drag is done at `frame`: smoothstep over the frames from its
     frame to its until (all of it at once without until), so the tips start and stop gently."""
+    from .head import _smoothstep
+
     if event.until is None or event.until <= event.frame:
         return 1.0
-    t = min(max((frame - event.frame + 1) / (event.until - event.frame + 1), 0.0), 1.0)
-    return t * t * (3.0 - 2.0 * t)
+    return float(_smoothstep((frame - event.frame + 1) / (event.until - event.frame + 1)))
 
 
 def run_events(scene, events, frame):
