@@ -323,6 +323,12 @@ def cmd_info(args):
         else:
             detail = f"{len(prim.counts)} faces, {prim.num_points} points"
         print(f"  {prim.path:24s} role={prim.role:12s} {prim.kind:6s} {detail}")
+    from pxr import Usd, UsdSkel
+
+    for prim in reader.stage.Traverse():  # rigs carry no role: the same animation in the form DCCs retarget
+        if prim.IsA(UsdSkel.Root):
+            shapes = [p for p in Usd.PrimRange(prim) if p.IsA(UsdSkel.BlendShape)]
+            print(f"  {str(prim.GetPath()):24s} UsdSkel rig, {len(shapes)} blend shapes (invisible: retarget it)")
     stats = reader.metadata.get("cfx:stats")
     if stats:
         print("  stats: " + ", ".join(f"{k}={v:.6g}" for k, v in stats.items()))

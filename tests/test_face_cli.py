@@ -6,7 +6,7 @@ from io_usd import CacheReader
 from sim.cli import main
 
 
-def test_lipsync_writes_a_talking_face(tmp_path):
+def test_lipsync_writes_a_talking_face(tmp_path, capsys):
     from sim import lipsync
 
     wav = tmp_path / "line.wav"
@@ -24,6 +24,10 @@ def test_lipsync_writes_a_talking_face(tmp_path):
     moved = np.linalg.norm(p - p[:1], axis=2).max(axis=1)
     assert moved.max() > 0.004  # the mouth moves with the words
     assert png.stat().st_size > 10_000
+    capsys.readouterr()
+    assert main(["info", str(out)]) == 0  # the rig has no role, and info lists it all the same
+    rig = [line for line in capsys.readouterr().out.splitlines() if "/World/face_rig" in line]
+    assert len(rig) == 1 and "UsdSkel rig, 26 blend shapes" in rig[0]
 
 
 def test_lipsync_speaks_the_builtin_line(tmp_path):
