@@ -337,8 +337,8 @@ def _soft(d, width):
     return _smoothstep(1.0 - d / width)
 
 
-# sub-samples a side of the cell around each vertex that its colour averages (_paint)
-PAINT_SAMPLES = 5
+# samples a side of the tent around each vertex that its colour averages (_paint)
+PAINT_SAMPLES = 8
 
 
 def _paint_at(row, col):
@@ -370,12 +370,13 @@ def _paint_at(row, col):
 
 
 def _paint(rows, cols, index, lower, lining, mouth_row):
-    """Display colours of the face's vertices: _paint_at averaged over the grid cell around each vertex
-    (PAINT_SAMPLES^2 points from halfway to the row and column before it to halfway to the ones after).
-    Taken at the vertex alone, a brow's or an eye's edge falls between vertices all in or all out, and the
-    colours interpolated across the triangles draw it as a staircase of the grid's cells (2.7 mm at
-    resolution 2); averaged, an edge vertex takes the share of its cell the feature covers, and the
-    edge draws straight. Lip vertices are painted at the mouth row as their twins, the lining dark."""
+    """Display colours of the face's vertices: _paint_at averaged with the tent around each vertex,
+    1 at it and 0 at the rows and columns before and after it (PAINT_SAMPLES^2 points), the prefilter
+    that suits colours interpolated linearly across the triangles. Taken at the vertex alone, a brow's or
+    an eye's edge falls between vertices all in or all out, and the colours draw it as a staircase of the
+    grid's cells; averaged over the vertex's own cell (a box) a slanted brow still showed steps; with the
+    tent its edges draw soft and straight. Lip vertices are painted at the mouth row as their twins, the
+    lining dark."""
     nr, nc = index.shape
     k = len(lower)
     col = np.concatenate([np.tile(cols, nr), np.tile(cols[list(lower)], 3)])
@@ -392,12 +393,13 @@ def _paint(rows, cols, index, lower, lining, mouth_row):
     col_lo = np.concatenate([np.tile(left, nr), np.tile(left[list(lower)], 3)])
     col_hi = np.concatenate([np.tile(right, nr), np.tile(right[list(lower)], 3)])
     t = (np.arange(PAINT_SAMPLES) + 0.5) / PAINT_SAMPLES * 2.0 - 1.0  # -1 .. 1, the cell's centres
+    tent = 1.0 - np.abs(t)
     colors = np.zeros((len(row), 3))
-    for u in t:
-        r = row + np.where(u < 0.0, row_lo, row_hi) * u
-        for w in t:
-            colors += _paint_at(r, col + np.where(w < 0.0, col_lo, col_hi) * w)
-    colors /= PAINT_SAMPLES ** 2
+    for u, wu in zip(t, tent):
+        r = row + 2.0 * np.where(u < 0.0, row_lo, row_hi) * u
+        for w, ww in zip(t, tent):
+            colors += wu * ww * _paint_at(r, col + 2.0 * np.where(w < 0.0, col_lo, col_hi) * w)
+    colors /= tent.sum() ** 2
     colors[lining] = MOUTH_INSIDE
     return colors
 

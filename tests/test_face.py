@@ -370,11 +370,13 @@ def test_example_face_scene_loads():
     assert [k.emotion for k in config.face.expressions] == ["neutral", "happiness", "surprise"]
 
 
-def test_feature_colours_are_the_averages_of_the_paint_over_each_vertex_cell():
-    """The built-in face's vertex colours are _paint_at averaged over the grid cell around each vertex
-    (brows, eyes and lips drawn with straight edges, not in steps of the grid): against a 40 x 40
-    midpoint quadrature of the same cells, at every grid vertex near the brows and eyes, within 0.01 of
-    each channel (measured 0.0034); a colour taken at the vertex alone misses by up to 0.16 there."""
+def test_feature_colours_are_the_paint_filtered_by_the_tent_over_each_vertex():
+    """The built-in face's vertex colours are _paint_at averaged with the tent of the grid around each
+    vertex (1 at the vertex, 0 at its neighbours; the prefilter that suits colours interpolated linearly
+    across the triangles), so brows, eyes and lips draw soft straight edges, not steps of the grid
+    (a box over the vertex's own cell still left steps along slanted brows): against a 40 x 40 midpoint
+    quadrature of the same tent at every grid vertex near the brows and eyes, within 0.01 of each
+    channel; a colour taken at the vertex alone misses by more than 0.1 there."""
     from sim import face as face_module
 
     mesh = face_module.builtin_face(resolution=2)
@@ -385,16 +387,16 @@ def test_feature_colours_are_the_averages_of_the_paint_over_each_vertex_cell():
     i, j = i.ravel(), j.ravel()
     near = np.abs(rows[i] - 0.35) < 0.03  # brows and eyes
     i, j = i[near], j[near]
-    t = (np.arange(40) + 0.5) / 40.0
-    want = np.zeros((len(i), 3))
+    t = (np.arange(40) + 0.5) / 40.0 * 2.0 - 1.0
+    want, total = np.zeros((len(i), 3)), 0.0
     for u in t:
-        r = np.where(u < 0.5, rows[i] + (rows[i - 1] - rows[i]) * (1.0 - 2.0 * u) / 2.0,
-                     rows[i] + (rows[i + 1] - rows[i]) * (2.0 * u - 1.0) / 2.0)
+        r = rows[i] + np.where(u < 0.0, rows[i] - rows[i - 1], rows[i + 1] - rows[i]) * u
         for w in t:
-            c = np.where(w < 0.5, cols[j] + (cols[j - 1] - cols[j]) * (1.0 - 2.0 * w) / 2.0,
-                         cols[j] + (cols[j + 1] - cols[j]) * (2.0 * w - 1.0) / 2.0)
-            want += face_module._paint_at(r, c)
-    want /= len(t) ** 2
+            c = cols[j] + np.where(w < 0.0, cols[j] - cols[j - 1], cols[j + 1] - cols[j]) * w
+            weight = (1.0 - abs(u)) * (1.0 - abs(w))
+            want += weight * face_module._paint_at(r, c)
+            total += weight
+    want /= total
     got = mesh.colors[i * len(cols) + j]
     assert np.abs(got - want).max() < 0.01
     point = face_module._paint_at(rows[i], cols[j])
