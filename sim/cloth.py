@@ -333,6 +333,7 @@ class ClothSolver:
         z = lambda: wp.zeros(n, dtype=wp.vec3, device=d)  # noqa: E731
         self.x_stage, self.v_stage, self.x_scratch, self.v_scratch = z(), z(), z(), z()
         self.acc_x, self.acc_v = z(), z()
+        self.carried = z()  # how far following moved each particle this step (kernels.begin_step)
         self.set_parts(core_slices(n, d, per_core=COLLIDE_PARTICLES_PER_CORE) if parts is None else parts)
         # far particles re-seed their nearest vertex from the BVH only within this radius: beyond it
         # they neither collide nor follow the body
@@ -409,7 +410,7 @@ class ClothSolver:
                    int(body is not None and p.follow), state_in.follow, p.follow_full_within, p.follow_none_beyond,
                    int(pins),
                    m.particle_binding if pins else None, body.skin_binding(m) if pins else skinning.SkinBinding(), dt,
-                   self.step_count],
+                   self.step_count, self.carried],
                   device=dev)
         # RK4 on y = (x, v): stages at 0, dt/2, dt/2, dt, each a full force evaluation; stage states
         # ping-pong between two buffer pairs because neighbours read a stage while it is replaced, and
@@ -446,7 +447,7 @@ class ClothSolver:
             n, state_in.x, state_in.v, m.inv_mass, m.drag, m.springs, wp.vec3(*p.gravity), wp.vec3(*p.wind), self.gusts,
             p.damping, dt, self.x_stage, self.v_stage, self.x_scratch, self.v_scratch, self.acc_x, self.acc_v,
             int(body is not None and p.follow), state_in.follow, p.follow_full_within, p.follow_none_beyond, int(pins),
-            *binding, self.step_count,
+            *binding, self.step_count, self.carried,
             passes, p.strain_limit,
             int(body is not None), surface, self.contact_params(), state_in.nearest, state_in.clearance, state_out.x,
             state_out.v, state_out.nearest, state_out.clearance, candidates, state_out.contact, self.fallbacks,
@@ -490,7 +491,7 @@ class ClothSolver:
         surface = self.body_surface(body)
         inputs = [state.x, state_prev.x, state.v, m.inv_mass, surface, self.contact_params(), self.step_count,
                   int(first), dt, state_prev.nearest, state_prev.clearance, int(record), state.nearest, state.clearance,
-                  candidates, state.contact, self.fallbacks, state.follow]
+                  candidates, state.contact, self.fallbacks, state.follow, self.carried]
         cuts = self._collide_cuts
         # with a mesh given, its queries answer every closest point: the pass compiled without the boxes'
         kernel = kernels.BODY_COLLIDE[surface.mesh == 0]

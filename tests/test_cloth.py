@@ -228,6 +228,41 @@ def test_strain_limit_passes_match_a_float64_reference(passes):
     assert worst(x) > 0.1 and worst(want_x) < worst(x)
 
 
+def _on_a_moving_plane(velocity, follow, seconds=0.4, dt=1e-3, friction=0.5):
+    """One particle resting on a box's top face while the box moves at `velocity`: (its position less
+    the box's displacement and its start, its velocity) after `seconds`."""
+    steps = int(round(seconds / dt))
+    box = trimesh.creation.box(extents=(3.0, 0.4, 3.0)).subdivide().subdivide()
+    plane = rigid_body("plane", np.asarray(box.vertices), np.asarray(box.faces))
+    poses = np.repeat(np.eye(4)[None, None], steps + 1, axis=0)
+    poses[:, 0, :3, 3] = np.outer(np.arange(steps + 1) * dt, velocity)
+    plane.set_poses(poses)
+    params = ClothParams(friction=friction, air_drag=0.0, damping=0.0, gravity=(0.0, -9.81, 0.0), follow=follow)
+    start = np.array([0.0, 0.2 + params.collision_margin, 0.0])
+    model = ClothModel(start[None], np.zeros((0, 3)), [], [], [], [], params, masses=0.01)
+    solver, s0, s1 = ClothSolver(model), model.state(), model.state()
+    for k in range(1, steps + 1):
+        plane.apply_pose(k)
+        solver.step(s0, s1, plane, dt)
+        s0, s1 = s1, s0
+    moved = np.asarray(velocity) * steps * dt
+    return s0.x.numpy()[0].astype(np.float64) - moved - start, s0.v.numpy()[0].astype(np.float64)
+
+
+def test_a_particle_on_a_moving_body_is_carried_once_whether_it_follows_or_not():
+    """A particle at rest on a plane that starts sliding at 0.5 m/s: without following, friction
+    (mu 0.5) brings it up to the plane's speed after slipping back v^2 / (2 mu g) = 25.5 mm; following
+    carries it with the plane from the first step, so it does not slip at all. Following had counted the
+    plane's motion twice (its move and friction's velocity), and the particle slid 174 mm ahead over it.
+    On a plane rising at 0.5 m/s a followed particle rests at the margin (it bounced 4 mm above)."""
+    slip, _ = _on_a_moving_plane((0.5, 0.0, 0.0), follow=False)
+    assert abs(slip[0] + 0.5 ** 2 / (2.0 * 0.5 * 9.81)) < 1e-3 and abs(slip[1]) < 1e-3
+    carried, v = _on_a_moving_plane((0.5, 0.0, 0.0), follow=True)
+    assert np.abs(carried).max() < 1e-3 and np.abs(v).max() < 0.02  # its own velocity: the plane carries it
+    lifted, v = _on_a_moving_plane((0.0, 0.5, 0.0), follow=True)
+    assert np.abs(lifted).max() < 1e-3 and np.abs(v).max() < 0.02
+
+
 def test_cloth_draped_on_a_ball_ends_outside_it():
     body = sphere_body()
     pts, tris, edges, shear, bend = grid(20, 0.9, 0.35)
@@ -274,12 +309,12 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     wp.launch(kernels.nearest_vertex_brute_force, 50, [state.x, body.points, state.nearest])
     # a collision pass with no margin (nothing is inside the ball) records the follow coordinates
     steps, fallbacks = wp.zeros(1, dtype=wp.int32), wp.zeros(1, dtype=wp.int32)
-    before = state.x.numpy()
+    before = state.x.numpy().copy()  # on the CPU numpy() is a view of the array
     solver = ClothSolver(model, ClothParams(collision_margin=0.0, friction=0.0, teleport=1.0, walk_trust_distance=1.0))
     wp.launch(kernels.body_collide, 50,
               [state.x, state.x, state.v, model.inv_mass, solver.body_surface(body), solver.contact_params(), steps,
                1, 1e-3, state.nearest, state.clearance, 1, state.nearest, state.clearance, solver.candidates,
-               state.contact, fallbacks, state.follow, 0, 0])
+               state.contact, fallbacks, state.follow, solver.carried, 0, 0])
     np.testing.assert_array_equal(state.x.numpy(), before)
     assert np.all(state.follow.face.numpy() >= 0)
     angle = 0.8
@@ -290,9 +325,10 @@ def test_following_keeps_body_relative_coordinates_under_rigid_motion():
     body.apply_pose(0)
     wp.launch(kernels.begin_step, 50, [state.x, state.v, model.inv_mass, body.points, body.indices, 1, state.follow,
                                        0.02, 0.08, 0, None,
-                                       skinning.SkinBinding(), 1e-3, steps])
+                                       skinning.SkinBinding(), 1e-3, steps, solver.carried])
     assert steps.numpy()[0] == 1
     np.testing.assert_allclose(state.x.numpy(), pts @ R.T + M[:3, 3], atol=1e-5)
+    np.testing.assert_allclose(solver.carried.numpy(), state.x.numpy() - before, atol=1e-6)  # for the contact
 
 
 def test_collider_moved_is_the_largest_vertex_displacement_of_the_last_pose():

@@ -942,6 +942,7 @@ def _body_collide_for(boxes):
         contact: wp.array(dtype=wp.int32),
         fallbacks: wp.array(dtype=wp.int32),
         recorded: FollowRecord,
+        carried: wp.array(dtype=wp.vec3),
         part: int,
     ):
         """body_collide for particle p: its body, which step_in_block also runs."""
@@ -1069,7 +1070,9 @@ def _body_collide_for(boxes):
         clearance.body_motion[p] = body_motion
         if hit:
             x[p] = xp + depth * n
-            vb = (body.points[vtx] - body.prev_points[vtx]) / dt
+            # the body's velocity less what following already moved the particle by this step: counted in
+            # its velocity too, a particle resting on a moving body slid over it at the body's speed
+            vb = (body.points[vtx] - body.prev_points[vtx] - carried[p]) / dt
             rel = v[p] - vb
             vn = wp.dot(rel, n)
             if vn < 0.0:
@@ -1112,6 +1115,7 @@ def _body_collide(boxes):
         contact: wp.array(dtype=wp.int32),
         fallbacks: wp.array(dtype=wp.int32),
         recorded: FollowRecord,
+        carried: wp.array(dtype=wp.vec3),
         first: int,
         part: int,
     ):
@@ -1155,6 +1159,9 @@ def _body_collide(boxes):
           nearest_in (int32, per particle): cached nearest body vertex from the last step, -1 when unknown
           clearance_in (BodyClearance): the clearances from the last pass; may be clearance itself
           record (int, flag): non-zero records the follow data
+          carried (vec3, per particle, m): how far begin_step's following moved each particle this step;
+              the contact takes it off the body's motion, so a particle the body already carried keeps
+              still on it rather than being given the body's velocity a second time
           first (int, index): the range's first particle; thread t collides particle first + t
           part (int, index): the range's element of fallbacks
         In/out:
@@ -1171,7 +1178,7 @@ def _body_collide(boxes):
           recorded (FollowRecord): each particle's place on its nearest face; written only when record != 0
         """
         collide_body(wp.tid() + first, x, x_prev, v, inv_mass, body, params, step_count, first_pass, dt, nearest_in,
-                     clearance_in, record, nearest, clearance, candidates, contact, fallbacks, recorded, part)
+                     clearance_in, record, nearest, clearance, candidates, contact, fallbacks, recorded, carried, part)
 
     return body_collide
 
@@ -1300,10 +1307,12 @@ def _begin_step_at(
     pinned: SkinBinding,
     dt: float,
     step_count: wp.array(dtype=wp.int32),
+    carried: wp.array(dtype=wp.vec3),
 ):
     """begin_step for particle p: its body, which step_in_block also runs."""
     if p == 0:
         step_count[0] = step_count[0] + 1
+    carried[p] = wp.vec3(0.0)
     if inv_mass[p] == 0.0:
         if pins != 0:
             b = particle_binding[p]
@@ -1325,7 +1334,9 @@ def _begin_step_at(
     if w <= 0.0:
         return
     target = face_point(points, indices, f, recorded.barycentric[p]) + face_frame(points, indices, f) * offset
-    x[p] = x[p] + w * (target - x[p])
+    move = w * (target - x[p])
+    x[p] = x[p] + move
+    carried[p] = move
 
 
 @wp.kernel
@@ -1344,6 +1355,7 @@ def begin_step(
     pinned: SkinBinding,
     dt: float,
     step_count: wp.array(dtype=wp.int32),
+    carried: wp.array(dtype=wp.vec3),
 ):
     """Everything before the integration, in one pass over the particles.
 
@@ -1375,9 +1387,12 @@ def begin_step(
       x (vec3, per particle, m): positions, moved with the body where followed
       v (vec3, per particle, m/s): velocities; set for the bound pinned particles
       step_count (int32, 1 element): step counter, incremented by one
+    Outputs:
+      carried (vec3, per particle, m): how far following moved each particle (0 where it did not), which
+          body_collide takes off the body's motion: the particle's velocity is its own, not the body's
     """
     _begin_step_at(wp.tid(), x, v, inv_mass, points, indices, follow, recorded, full_within, none_beyond, pins,
-                   particle_binding, pinned, dt, step_count)
+                   particle_binding, pinned, dt, step_count, carried)
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -1420,6 +1435,7 @@ def _step_in_block(boxes):
         particle_binding: wp.array(dtype=wp.int32),
         pinned: SkinBinding,
         step_count: wp.array(dtype=wp.int32),
+        carried: wp.array(dtype=wp.vec3),
         strain_passes: int,
         max_stretch: float,
         collide: int,
@@ -1490,6 +1506,7 @@ def _step_in_block(boxes):
           acc_x (vec3, per particle, m/s): RK4 accumulator; zero before the step and after it
           acc_v (vec3, per particle, m/s^2): RK4 accumulator; likewise
           step_count (int32, 1 element): step counter, incremented by one
+          carried (vec3, per particle, m): scratch, begin_step's following for body_collide (begin_step)
           candidates (BodyCandidates): the triangles gathered near particles at concave vertices
           fallbacks (int32, 1 element): incremented once per BVH query or gathering
         Outputs:
@@ -1506,7 +1523,7 @@ def _step_in_block(boxes):
         while p < n:
             _begin_step_at(p, x0, v0, inv_mass, body.points, body.indices, follow, recorded_in, full_within,
                            none_beyond, pins, particle_binding,
-                           pinned, dt, step_count)
+                           pinned, dt, step_count, carried)
             p += stride
         _block_sync()
         # RK4 stages ping-pong as ClothSolver.step's launches: x0 -> stage -> scratch -> stage -> x
@@ -1535,7 +1552,7 @@ def _step_in_block(boxes):
                           dt, acc_x, acc_v, x, v)
             if collide != 0:  # its own particle only: no barrier after the stage
                 collide_body(p, x, x0, v, inv_mass, body, params, step_count, 1, dt, nearest_in, clearance_in,
-                             int(record), nearest, clearance, candidates, contact, fallbacks, recorded, 0)
+                             int(record), nearest, clearance, candidates, contact, fallbacks, recorded, carried, 0)
             p += stride
         if strain_passes == 0:
             return
@@ -1564,7 +1581,7 @@ def _step_in_block(boxes):
                 _limit_strain_at(p, src, inv_mass, springs, max_stretch, start, wp.where(last, dt, 0.0), v, dst)
                 if last and collide != 0:  # contact has the last word, in the same pose
                     collide_body(p, x, x, v, inv_mass, body, params, step_count, 0, dt, nearest, clearance, follow,
-                                 nearest, clearance, candidates, contact, fallbacks, recorded, 0)
+                                 nearest, clearance, candidates, contact, fallbacks, recorded, carried, 0)
                 p += stride
             if not last:
                 _block_sync()
