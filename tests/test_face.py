@@ -60,15 +60,15 @@ def test_action_unit_moves_its_features_exactly_and_nothing_outside(rig, au):
     expected = _expected_feature_moves(rig, ACTION_UNITS[au])
     for name, vec in expected.items():
         np.testing.assert_allclose(moved[rig.mesh.features[name]], vec, atol=1e-6)
-    # the feature points it holds (within its radius) stay put
-    for name in rig.constrained[k]:
+    # every other feature point stays put (the interpolant's own values: nothing overwrites them)
+    for name, vertex in rig.mesh.features.items():
         if name not in expected:
-            np.testing.assert_allclose(moved[rig.mesh.features[name]], 0.0, atol=1e-6)
+            np.testing.assert_allclose(moved[vertex], 0.0, atol=1e-6, err_msg=name)
     # vertices farther than the radius from every constrained point do not move at all
     uv = rig.mesh.surface_uv
     centres = uv[[rig.mesh.features[n] for n in rig.constrained[k]]]
     far = np.linalg.norm(uv[:, None] - centres[None], axis=-1).min(1) >= ACTION_UNITS[au].radius
-    assert far.sum() > 100
+    assert far.sum() >= 40  # the jaw's 4 cm reach holds nearly every feature point: 48 vertices lie beyond them all
     assert np.all(moved[far] == 0.0)
     # and it does move a neighbourhood, smoothly (no vertex beyond 1.5x the largest authored move)
     biggest = max(np.linalg.norm(v) for v in expected.values())
