@@ -319,6 +319,21 @@ def wind_gusts(
     gusts[i] = air_velocity(wind, turbulence, scale, rate, x[i], clock[0] + time_offset) - wind
 
 
+@wp.func
+def _stretched_springs(p: int, x: wp.array(dtype=wp.vec3), springs: SpringNetwork, max_stretch: float):
+    """How many of particle p's limited springs are stretched past (1 + max_stretch) rest."""
+    count = int(0)
+    for k in range(springs.adj_start[p], springs.adj_start[p + 1]):
+        s = springs.adj_spring[k]
+        if springs.spring_limited[s] != 0:
+            q = springs.spring_j[s]
+            if q == p:
+                q = springs.spring_i[s]
+            if wp.length(x[p] - x[q]) > springs.spring_rest[s] * (1.0 + max_stretch):
+                count += 1
+    return count
+
+
 # inlined: a call per particle made the kernels that share it about 1% slower on the CPU
 @wp.func(inline=True)
 def _limit_strain_at(
@@ -336,25 +351,27 @@ def _limit_strain_at(
     w = inv_mass[p]
     corrected = x[p]
     if w != 0.0:
-        # the mean of the over-stretched limited springs' corrections, each split by inverse mass
-        corr = wp.vec3(0.0)
-        count = float(0.0)
-        for k in range(springs.adj_start[p], springs.adj_start[p + 1]):
-            s = springs.adj_spring[k]
-            if springs.spring_limited[s] == 0:
-                continue
-            q = springs.spring_j[s]
-            if q == p:
-                q = springs.spring_i[s]
-            d = x[p] - x[q]
-            length = wp.length(d)
-            limit = springs.spring_rest[s] * (1.0 + max_stretch)
-            if length > limit:
-                wq = inv_mass[q]
-                corr -= (w / (w + wq)) * (length - limit) * d / length
-                count += 1.0
-        if count > 0.0:
-            corrected = x[p] + corr / count
+        count = _stretched_springs(p, x, springs, max_stretch)
+        if count > 0:
+            # each over-stretched limited spring's correction, split by inverse mass, shared out over the
+            # larger of its two ends' numbers of such springs: both ends divide by the same number, so
+            # the pass moves no momentum (each end dividing by its own made a free cloth drift)
+            corr = wp.vec3(0.0)
+            for k in range(springs.adj_start[p], springs.adj_start[p + 1]):
+                s = springs.adj_spring[k]
+                if springs.spring_limited[s] == 0:
+                    continue
+                q = springs.spring_j[s]
+                if q == p:
+                    q = springs.spring_i[s]
+                d = x[p] - x[q]
+                length = wp.length(d)
+                limit = springs.spring_rest[s] * (1.0 + max_stretch)
+                if length > limit:
+                    wq = inv_mass[q]
+                    shared = float(wp.max(count, _stretched_springs(q, x, springs, max_stretch)))
+                    corr -= (w / (w + wq)) * (length - limit) * d / (length * shared)
+            corrected = x[p] + corr
     if dt > 0.0:
         v[p] = v[p] + (corrected - x_start[p]) / dt
     x_out[p] = corrected
@@ -374,8 +391,9 @@ def limit_strain(
     """One Jacobi pass of strain limiting: over-stretched edges are shortened to (1 + max_stretch) rest.
 
     Explicit springs soft enough to be stable let the cloth sag; this caps the stretch of the limited
-    springs directly. Each correction is split by inverse mass and a particle's corrections from its
-    edges are averaged, so the pass is order-independent. Run a few passes, ping-ponging between
+    springs directly. Each correction is split by inverse mass and shared out over the larger of its two
+    ends' counts of over-stretched springs, the same at both ends, so the pass is order-independent and
+    moves no momentum (a particle averaging its own corrections did). Run a few passes, ping-ponging between
     buffers; the last (dt > 0) also adds the velocity change of all the passes' correction, the
     displacement from x_start over dt. Without it the velocities would keep carrying the particles
     toward the stretch the passes just removed.
