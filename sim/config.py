@@ -16,6 +16,8 @@ def _coerce(value, default, source, key):
     if isinstance(default, int):
         if isinstance(value, bool) or not isinstance(value, int):
             raise InputError(source, key, f"expected an integer, got {value!r}")
+        if not -2 ** 31 <= value < 2 ** 31:  # the kernels' ints are 32-bit: larger ones wrapped silently
+            raise InputError(source, key, f"must lie within 32-bit integers, got {value!r}")
         return value
     if isinstance(default, float):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -36,6 +38,21 @@ def _coerce(value, default, source, key):
     return value
 
 
+# the largest values that still make a scene a machine can run: beyond them a run hangs for hours or is
+# killed for memory (substeps 2^31 took 24 GB; a detail level of 100,000 likewise) instead of failing at once
+LIMITS = {
+    ("scene", "frames"): 1_000_000,
+    ("scene", "preroll"): 3600.0,
+    ("solver", "substeps"): 10_000,
+    ("cloth.solver", "substeps"): 10_000,
+    ("cloth.solver", "body_candidates"): 4096,
+    ("cloth.detail", "level"): 64,
+    ("cloth", "particles"): 1_000_000,
+    ("hair", "vertices"): 4096,
+    ("hair", "count"): 10_000_000,
+}
+
+
 def from_table(cls, table, source, section, overrides=None):
     """Build dataclass `cls` from a TOML table; unknown keys, wrong types and bad values raise InputError."""
     from .errors import InputError
@@ -53,6 +70,11 @@ def from_table(cls, table, source, section, overrides=None):
             raise InputError(source, where, f"unknown key{hint}")
         kwargs[key] = _coerce(value, getattr(defaults, key), source, where)
     kwargs.update(overrides or {})
+    for key, value in kwargs.items():
+        top = LIMITS.get((section, key))
+        if top is not None and isinstance(value, (int, float)) and value > top:
+            raise InputError(source, f"{section}.{key}", f"at most {top:,} (a larger value would not finish), "
+                                                          f"got {value!r}")
     try:
         return cls(**kwargs)
     except ValueError as err:

@@ -16,6 +16,8 @@ Y up, the face looks down +Z, +X is the character's left.
 
 from dataclasses import dataclass, field
 
+import math
+
 import numpy as np
 import warp as wp
 
@@ -690,8 +692,8 @@ def parse_expressions(entries, source):
         if unknown:
             raise InputError(source, f"{where}.{sorted(unknown)[0]}", "unknown key (known: frame, emotion, weight, aus)")
         frame = entry.get("frame")
-        if isinstance(frame, bool) or not isinstance(frame, (int, float)):
-            raise InputError(source, f"{where}.frame", f"expected a number, got {frame!r}")
+        if isinstance(frame, bool) or not isinstance(frame, (int, float)) or not math.isfinite(frame):
+            raise InputError(source, f"{where}.frame", f"expected a finite number, got {frame!r}")
         emotion = entry.get("emotion", "neutral")
         if emotion not in EMOTIONS:
             raise InputError(source, f"{where}.emotion", f"unknown emotion {emotion!r} (known: {', '.join(EMOTIONS)})")

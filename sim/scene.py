@@ -973,6 +973,26 @@ class RunResult:
     children: int = 0  # render children written beside the strands (hair_children)
 
 
+def _check_not_an_input(config, out_path):
+    """InputError if out_path (or a link to it) is a file the scene reads: the cache would replace it."""
+    if config.source == "<demo>" or config.given_geometry:
+        return
+    base = os.path.dirname(os.path.abspath(config.source))
+    inputs = {"scene": config.source}
+    for section, keys in (("head", ("mesh", "scalp_faces", "roots")), ("body", ("mesh", "points")),
+                          ("cloth", ("pinned", "garment")), ("hair", ("guides",)),
+                          ("face", ("mesh", "features", "mouth", "audio"))):
+        for key in keys:
+            value = getattr(getattr(config, SECTIONS[section][0]), key, None)
+            if isinstance(value, str) and value and value != "builtin":
+                inputs[f"{section}.{key}"] = os.path.join(base, value)
+    out = os.path.realpath(out_path)
+    for key, path in inputs.items():
+        if os.path.exists(path) and os.path.realpath(path) == out:
+            raise InputError(out_path, None, f"is the scene's {key} input: the cache would replace it; "
+                                             "choose another output")
+
+
 def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     """Simulate `config` and stream it to a USD cache at out_path. Returns a RunResult.
 
@@ -984,6 +1004,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     from io_usd.cache import CacheWriter, check_cache_path
 
     check_cache_path(out_path)  # before minutes of simulation, not after
+    _check_not_an_input(config, out_path)
     started = time.perf_counter()
     quiet_warp()
     scene = Scene(config, stage.assets if stage is not None else None, announce=progress)
@@ -1147,6 +1168,9 @@ def _check_finite(points, frame, prim):
         raise SimulationError(frame, prim, "non-finite positions")
 
 
+MOUTH_LIMIT_MM = 100.0  # a mouth parameter this large would move the lips off the head
+
+
 def _mouth_track(config):
     """Mouth parameters (T, 13) [mm] per frame from the face's audio, or None without audio."""
     f = config.face
@@ -1158,6 +1182,9 @@ def _mouth_track(config):
             raise InputError(config.source, "face.mouth", f"cannot read {f.mouth}: {err}") from None
         if track.ndim != 2 or track.shape[1] != 13 or not np.all(np.isfinite(track)):
             raise InputError(config.source, "face.mouth", f"expected (frames, 13) finite mouth parameters, got {track.shape}")
+        if np.abs(track).max(initial=0.0) > MOUTH_LIMIT_MM:  # 1e30 mm blew the face up in a cache marked complete
+            raise InputError(config.source, "face.mouth", f"mouth parameters are millimetres: at most "
+                                                          f"{MOUTH_LIMIT_MM:g} in size, got {np.abs(track).max():.3g}")
         return track.astype(np.float64)
     if not f.audio:
         return None

@@ -422,3 +422,28 @@ def test_the_face_takes_the_scalps_tint_where_it_reaches_over_the_scalp():
     height = bald.vertices[:, 1]
     top, lower = height > np.percentile(height, 95), height < np.percentile(height, 70)
     assert np.mean(darker[top] > 0.01) > 0.5 and np.all(darker[lower] < 1e-9)  # the hairline's, not the brows
+
+
+def test_a_cache_never_replaces_one_of_the_scenes_inputs_and_absurd_sizes_are_refused(tmp_path, capsys):
+    """The output named as the scene's garment file (or a link to it) would have been overwritten by the
+    cache; integers past 32 bits wrapped silently in the kernels, and substeps of 2^31 ran out of memory
+    after a minute: each is one line naming the file and key, exit 2, nothing written."""
+    garment = tmp_path / "g.usda"
+    garment.write_text("#usda 1.0\n")
+    scene = write(tmp_path, '[body]\n[hair]\nenabled = false\n[cloth]\ngarment = "g.usda"\nprim = "/G"\n')
+    (tmp_path / "link.usda").symlink_to(garment)
+    for out in (garment, tmp_path / "link.usda"):
+        assert main(["run", scene, "-o", str(out), "-q"]) == 2
+        assert "is the scene's cloth.garment input" in capsys.readouterr().err
+    assert garment.read_text() == "#usda 1.0\n"
+    for old, new, reason in (("substeps = 4", "substeps = 4294967297", "solver.substeps: must lie within 32-bit"),
+                             ("substeps = 4", "substeps = 20000", "solver.substeps: at most 10,000"),
+                             ("[solver]", "[cloth.detail]\nlevel = 100000\n[solver]",
+                              "cloth.detail.level: at most 64")):
+        bad = write(tmp_path, SMALL.replace(old, new), "bad.toml")
+        assert main(["run", bad, "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert reason in err and err.count("\n") == 1, err
+    assert main(["run", write(tmp_path, SMALL), "-o", str(tmp_path / "x.usdc"), "--frames", "2000000", "-q"]) == 2
+    assert "scene.frames: at most 1,000,000" in capsys.readouterr().err
+    assert not (tmp_path / "x.usdc").exists()

@@ -358,6 +358,9 @@ def test_a_mouth_track_drives_the_mouth_and_bad_tracks_are_named(tmp_path):
     np.save(tmp_path / "mouth.npy", np.zeros((6, 12)))
     with pytest.raises(InputError, match=r"face.mouth.*\(6, 12\)"):
         Scene(load_scene(path))
+    np.save(tmp_path / "mouth.npy", np.full((6, 13), 1e30))  # it blew the face up in a cache marked complete
+    with pytest.raises(InputError, match=r"face.mouth: mouth parameters are millimetres: at most 100"):
+        Scene(load_scene(path))
 
 
 def test_example_face_scene_loads():
