@@ -276,6 +276,8 @@ def cmd_view(args):
         return _fail("cfx view needs a display (set DISPLAY); use cfx preview for images and movies", EXIT_INPUT)
     try:
         view(args.cache)
+    except Stopped:
+        raise  # SIGTERM / SIGHUP: said and exited as for any command (main)
     except KeyboardInterrupt:
         return _fail("interrupted", 130)
     return 0
