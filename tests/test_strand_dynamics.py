@@ -30,7 +30,7 @@ def upward_crossings(x, dt):
 
 def dftl_reference(x, v, rest, pinned, params, dt, substeps):
     """A float64 NumPy model of a free strand's substep without shape matching or collider: gravity,
-    drag toward the wind and damping integrated (symplectic Euler), every particle past the pinned
+    drag toward the wind (implicit) and damping integrated (symplectic Euler), every particle past the pinned
     ones put at its rest distance from its parent, root to tip, then velocities from the moves minus
     ftl_damping of the child's correction (dynamic follow-the-leader, Mueller et al. 2012). Returns
     the positions after each substep, (substeps, particles, 3)."""
@@ -38,7 +38,7 @@ def dftl_reference(x, v, rest, pinned, params, dt, substeps):
     x, v, out = x.astype(float), v.astype(float), []
     for _ in range(substeps):
         free = np.arange(len(x)) >= pinned
-        v = np.where(free[:, None], v + dt * (g + params.air_drag * (wind - v)), v)
+        v = np.where(free[:, None], (v + dt * (g + params.air_drag * wind)) / (1.0 + params.air_drag * dt), v)
         v = np.where(free[:, None], v * max(0.0, 1.0 - params.damping * dt), v)
         p = np.where(free[:, None], x + dt * v, x)
         predicted = p.copy()
