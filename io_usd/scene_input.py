@@ -21,6 +21,7 @@ the stage's default prim (at the root without one), in that prim's space (it spa
 a reference to the cache brings it along.
 """
 
+import math
 import os
 from dataclasses import dataclass, field
 
@@ -157,7 +158,12 @@ def read_usd_scene(path, overrides=None):
     if stage.GetRootLayer().customLayerData.get("cfx:engine") == ENGINE:
         raise InputError(path, "cfx:engine", "this is a cache cfx wrote, not a shot: run the scene or stage it was "
                                              "made from (cfx info lists what it holds)")
-    frame_space = HostFrame(str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage))
+    up, meters = str(UsdGeom.GetStageUpAxis(stage)), UsdGeom.GetStageMetersPerUnit(stage)
+    if up not in ("Y", "Z"):
+        raise InputError(path, "upAxis", f"must be Y or Z, got {up!r}")
+    if not (math.isfinite(meters) and meters > 0.0):
+        raise InputError(path, "metersPerUnit", f"must be a positive number, got {meters!r}")
+    frame_space = HostFrame(up, meters)
     tagged = _tagged_prims(path, stage)
     colliders = [p for p in tagged if p.role == "collider"]
     hair = [p for p in tagged if p.role == "hair"]
@@ -169,8 +175,11 @@ def read_usd_scene(path, overrides=None):
 
     start = int(round(stage.GetStartTimeCode())) if stage.HasAuthoredTimeCodeRange() else 1
     end = int(round(stage.GetEndTimeCode())) if stage.HasAuthoredTimeCodeRange() else start
-    frames = max(end - start + 1, 1)
+    if end < start:  # a range typed backwards ran a single frame without a word
+        raise InputError(path, "endTimeCode", f"{end} is before startTimeCode {start}")
+    frames = end - start + 1
     tables, origins = _settings(path, tagged, frame_space)
+    origins.setdefault("scene.fps", "timeCodesPerSecond")
     scene_table = tables.setdefault("scene", {})
     scene_table.setdefault("start_frame", start)
     scene_table.setdefault("frames", frames)
@@ -185,22 +194,30 @@ def read_usd_scene(path, overrides=None):
     collider_frames, faces, offset = [], [], 0
     times = [Usd.TimeCode(float(start + k)) for k in range(config.timing.frames)]
     for prim in colliders:
-        mesh = UsdGeom.Mesh(prim.geometry)
-        tri = _triangles(path, prim, mesh, first)
+        frames_of_prim = [_world_points(path, prim, frame_space, t) for t in times]
+        for t, points in zip(times, frames_of_prim):
+            if len(points) != len(frames_of_prim[0]):
+                raise InputError(path, f"{prim.path}.points", f"{len(points)} points at time {t.GetValue():g}, "
+                                 f"{len(frames_of_prim[0])} at {start}: a collider keeps its points")
+        tri = _triangles(path, prim, UsdGeom.Mesh(prim.geometry), first, frames_of_prim[0])
         faces.append(tri + offset)
-        collider_frames.append([_world_points(path, prim, frame_space, t) for t in times])
-        offset += len(collider_frames[-1][0])
+        collider_frames.append(frames_of_prim)
+        offset += len(frames_of_prim[0])
     motion = PointCacheMotion([np.concatenate([c[k] for c in collider_frames]) for k in range(len(times))],
                               config.timing.fps)
     strands = None
     if hair:
         points = [_world_points(path, p, frame_space, first) for p in hair]
-        counts = [np.asarray(UsdGeom.BasisCurves(p.geometry).GetCurveVertexCountsAttr().Get(first), np.int64)
-                  for p in hair]
-        for prim, c, pts in zip(hair, counts, points):
-            if c.sum() != len(pts):
-                raise InputError(path, f"{prim.path}.curveVertexCounts", f"sum to {c.sum()}, the curves have {len(pts)} points")
-        widths = [_widths(p.geometry, len(pts), first) for p, pts in zip(hair, points)]
+        counts = []
+        for prim, pts in zip(hair, points):
+            c = UsdGeom.BasisCurves(prim.geometry).GetCurveVertexCountsAttr().Get(first)
+            if c is None or len(c) == 0:
+                raise InputError(path, f"{prim.path}.curveVertexCounts", "not authored")
+            counts.append(np.asarray(c, np.int64))
+            if counts[-1].sum() != len(pts):
+                raise InputError(path, f"{prim.path}.curveVertexCounts",
+                                 f"sum to {counts[-1].sum()}, the curves have {len(pts)} points")
+        widths = [_widths(path, p, c, first) for p, c in zip(hair, counts)]
         widths = None if any(w is None for w in widths) else np.concatenate(widths) * frame_space.meters_per_unit
         strands = (np.concatenate(points), np.concatenate(counts), widths)
     garment = _garment(path, cloth, frame_space, first) if cloth else None
@@ -308,7 +325,8 @@ def _world_points(path, prim, frame_space, time):
     return frame_space.to_engine(p)
 
 
-def _triangles(path, prim, mesh, time):
+def _triangles(path, prim, mesh, time, points):
+    """The collider's faces as triangles, checked against its points (engine metres)."""
     from .cache import fan_triangles
 
     counts, indices = mesh.GetFaceVertexCountsAttr().Get(time), mesh.GetFaceVertexIndicesAttr().Get(time)
@@ -317,15 +335,29 @@ def _triangles(path, prim, mesh, time):
     counts, indices = np.asarray(counts, np.int64), np.asarray(indices, np.int64)
     if counts.sum() != len(indices) or counts.min() < 3:
         raise InputError(path, f"{prim.path}.faceVertexCounts", "does not match faceVertexIndices")
-    return fan_triangles(counts, indices)
+    if indices.min() < 0 or indices.max() >= len(points):
+        raise InputError(path, f"{prim.path}.faceVertexIndices", f"must lie in [0, {len(points)})")
+    tri = fan_triangles(counts, indices)
+    a, b, c = (points[tri[:, k]] for k in range(3))
+    if not np.linalg.norm(np.cross(b - a, c - a), axis=1).max() > 0.0:  # a zero scale, or every face collapsed
+        raise InputError(path, prim.path, f"no face has any area at time {time.GetValue():g}: nothing to collide with")
+    return tri
 
 
-def _widths(prim, count, time):
-    widths = UsdGeom.BasisCurves(prim).GetWidthsAttr().Get(time)
+def _widths(path, prim, counts, time):
+    """Per-vertex widths of a curves prim (host units) from vertex, uniform (per curve) or constant
+    values; None when not authored."""
+    widths = UsdGeom.BasisCurves(prim.geometry).GetWidthsAttr().Get(time)
     if widths is None or len(widths) == 0:
         return None
     widths = np.asarray(widths, np.float64)
-    return widths if len(widths) == count else np.full(count, widths[0])
+    if not (np.all(np.isfinite(widths)) and widths.min() >= 0.0):  # tapered tips may be 0
+        raise InputError(path, f"{prim.path}.widths", "must be finite and zero or positive")
+    if len(widths) == counts.sum():
+        return widths
+    if len(widths) == len(counts):
+        return np.repeat(widths, counts)
+    return np.full(counts.sum(), widths[0])
 
 
 def _garment(path, prims, frame_space, time):

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .config import require_nonnegative, require_within
 from .errors import InputError
 
 STRIPE_COLORS = ("red", "green", "blue")
@@ -82,14 +83,15 @@ class CaptureConfig:
             raise ValueError("ring_elevation must be within [-80, 80] degrees")
         if self.fov != 0.0 and not 1.0 <= self.fov <= 150.0:
             raise ValueError("fov must be 0 (automatic) or within [1, 150] degrees")
-        if not (16 <= self.width <= 8192 and 16 <= self.height <= 8192):
-            raise ValueError("width must be within [16, 8192] pixels, and so must height")
+        require_within(self, "width", 16, 8192)
+        require_within(self, "height", 16, 8192)
         if self.noise < 0.0:
             raise ValueError("noise must be zero or positive")
         if not 0.0 <= self.occlusion < 1.0:
             raise ValueError("occlusion must be within [0, 1)")
         if self.occlusion_frames < 1:
             raise ValueError("occlusion_frames must be at least 1")
+        require_nonnegative(self, "seed")  # NumPy's generators take no negative seeds
 
 
 # -- cameras ----------------------------------------------------------------------------------------

@@ -78,12 +78,14 @@ def _report(result, config=None):
         parts.append(f"{result.cloth_particles} cloth particles")
     if result.face_vertices:
         parts.append("a face")
-    print(f"wrote {result.path}: {result.frames} frames, {', '.join(parts)} in {result.seconds:.1f} s",
+    print(f"wrote {result.path}: {result.frames} frames, {', '.join(parts) or 'the collider alone'} in "
+          f"{result.seconds:.1f} s",
           file=sys.stderr)
     if "max_stretch" in s:
         print(f"  hair: max segment stretch {100 * s['max_stretch']:.3f}%, roots within 5 mm of the surface "
               f"{100 * s['root_within_5mm']:.2f}%, points >1 mm inside {100 * s['inside_1mm']:.3f}%", file=sys.stderr)
         _sampling_hint(config)
+    _timeline_hint(config, result.idle_events)
     if result.face_vertices:
         print(f"  face: {result.face_vertices} vertices, largest move from rest {1e3 * s.get('face_max_offset', 0.0):.1f} mm",
               file=sys.stderr)
@@ -117,6 +119,22 @@ def _sampling_hint(config):
         print(f"  hair: the {what} turn up to {np.degrees(turn):.0f} degrees between vertices and draw as zigzags; "
               f"{np.degrees(SMOOTH_TURN):.0f} or less reads as a curve ([hair] vertices = "
               f"{hair.vertices_for_smooth_curves()})", file=sys.stderr)
+
+
+def _timeline_hint(config, idle=()):
+    """Lines naming the [[haircut]] events that did nothing: after the last frame written (a shorter
+    --frames, or a typo), or missing every strand (a cut line above the hair, a stroke off the head)."""
+    timing = getattr(config, "timing", None)
+    if timing is None:
+        return
+    listed = lambda names: f"{', '.join(names[:3])}{', ...' if len(names) > 3 else ''}"  # noqa: E731
+    last = timing.start_frame + timing.frames - 1
+    late = [f"haircut[{i}] at frame {e.frame}" for i, e in enumerate(config.haircut) if e.frame > last]
+    if late:
+        print(f"  hair: {len(late)} haircut event(s) after the last frame ({last}) did not happen: {listed(late)}",
+              file=sys.stderr)
+    if idle:
+        print(f"  hair: {len(idle)} haircut event(s) changed no strands: {listed(list(idle))}", file=sys.stderr)
 
 
 def _check_preview(path):
@@ -172,10 +190,12 @@ def cmd_lipsync(args):
     from sim import lipsync
     from sim.scene import _build_config
 
+    from .config import LIMITS
     from .errors import InputError
 
-    if not (math.isfinite(args.fps) and args.fps > 0.0):
-        raise InputError("--fps", None, f"must be a positive number of frames a second, got {args.fps:g}")
+    top = LIMITS[("scene", "fps")]
+    if not (math.isfinite(args.fps) and 1.0 <= args.fps <= top):  # the scene's own range ([scene] fps)
+        raise InputError("--fps", None, f"must be from 1 to {top:g} frames a second, got {args.fps:g}")
     if not 0.0 <= args.intensity <= 1.0:
         raise InputError("--intensity", None, f"must be from 0 to 1, got {args.intensity:g}")
     _check_preview(args.preview)

@@ -15,6 +15,7 @@ import warp as wp
 from warp_kernels import cloth as kernels
 from warp_kernels import collision, skinning
 
+from .config import require_length_at_most, require_nonnegative, require_positive
 from .errors import SimulationError
 from .graphs import core_slices, run_parallel
 
@@ -72,18 +73,15 @@ class ClothParams:
     max_speed: float = 50.0  # m/s, faster particles are reported as an explosion
 
     def __post_init__(self):
-        for name in ("density", "stretch_stiffness"):
-            if getattr(self, name) <= 0.0:
-                raise ValueError(f"{name} must be positive")
-        for name in ("compress_stiffness", "shear_stiffness", "bend_stiffness", "spring_damping", "damping",
-                     "air_drag", "friction", "collision_margin", "body_proxy", "strain_limit", "reseed_drift",
-                     "candidate_slack", "wind_turbulence", "wind_turbulence_scale", "wind_turbulence_rate"):
-            if getattr(self, name) < 0.0:
-                raise ValueError(f"{name} must be zero or positive")
-        if self.substeps < 0:
-            raise ValueError("substeps must be 0 (automatic) or positive")
-        if self.body_candidates < 0:
-            raise ValueError("body_candidates must be 0 (off) or positive")
+        require_positive(self, "density", "stretch_stiffness", "teleport", "walk_refresh", "max_speed")
+        # 100 g and a wind of 200 m/s are past any shot; beyond, a frame moved the particles kilometres
+        require_length_at_most(self, "gravity", 1000.0)
+        require_length_at_most(self, "wind", 200.0)
+        require_nonnegative(self, "compress_stiffness", "shear_stiffness", "bend_stiffness", "spring_damping",
+                            "damping", "air_drag", "friction", "collision_margin", "body_proxy", "strain_limit",
+                            "strain_iterations", "reseed_drift", "candidate_slack", "wind_turbulence",
+                            "wind_turbulence_scale", "wind_turbulence_rate", "walk_steps", "walk_trust_distance",
+                            "follow_full_within", "substeps", "body_candidates")
         if self.follow_none_beyond < self.follow_full_within:
             raise ValueError("follow_none_beyond must be at least follow_full_within")
 

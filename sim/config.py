@@ -38,6 +38,37 @@ def _coerce(value, default, source, key):
     return value
 
 
+
+# Range checks for the settings' dataclasses (their __post_init__): the ValueError starts with the field's
+# name, which from_table turns into the scene file's key.
+def require_positive(settings, *names):
+    for name in names:
+        value = getattr(settings, name)
+        if not value > 0:
+            raise ValueError(f"{name} must be positive, got {value!r}")
+
+
+def require_nonnegative(settings, *names):
+    for name in names:
+        value = getattr(settings, name)
+        if not value >= 0:
+            raise ValueError(f"{name} must be zero or positive, got {value!r}")
+
+
+def require_length_at_most(settings, name, top):
+    """A vector setting (gravity, wind) no longer than top."""
+    value = getattr(settings, name)
+    if math.hypot(*value) > top:
+        raise ValueError(f"{name} must be at most {top:g} long, got {list(value)}")
+
+
+def require_within(settings, name, low, high, high_open=False):
+    """low <= value <= high (value < high when high_open)."""
+    value = getattr(settings, name)
+    if not (low <= value and (value < high if high_open else value <= high)):
+        raise ValueError(f"{name} must be within [{low:g}, {high:g}{')' if high_open else ']'}, got {value!r}")
+
+
 # the largest values that still make a scene a machine can run: beyond them a run hangs for hours or is
 # killed for memory (substeps 2^31 took 24 GB; a detail level of 100,000 likewise) instead of failing at once
 LIMITS = {
@@ -50,6 +81,39 @@ LIMITS = {
     ("cloth", "particles"): 1_000_000,
     ("hair", "vertices"): 4096,
     ("hair", "count"): 10_000_000,
+    ("scene", "fps"): 10_000.0,
+    ("head", "sphere_leaves"): 1_000_000,
+    ("solver", "shape_iterations"): 1000,
+    ("solver", "rotation_iterations"): 1000,
+    ("cloth.solver", "strain_iterations"): 1000,
+    ("cloth.solver", "walk_steps"): 100_000,
+    ("cloth.detail", "smoothing"): 1000,
+    ("capture", "guides"): 10_000,
+    ("capture", "ring_cameras"): 1000,
+}
+# settings past which a scene is no longer a character's: hair grown or pushed metres out, a garment fitted a
+# room away, gusts faster than the wind by orders: such runs blew up or left the frame
+SCALE_LIMITS = {
+    ("hair", "length"): 10.0,
+    ("hair", "density"): 1000.0,
+    ("hair", "wave_amplitude"): 1.0,
+    ("hair", "curl_radius"): 1.0,
+    ("hair", "root_width"): 0.1,
+    ("hair", "tip_width"): 0.1,
+    ("hair", "clearance"): 0.1,
+    ("solver", "collision_margin"): 0.1,
+    ("solver", "wind_turbulence"): 10.0,
+    ("solver", "wind_turbulence_scale"): 1000.0,
+    ("solver", "wind_turbulence_rate"): 1000.0,
+    ("cloth", "ease"): 0.2,
+    ("cloth.solver", "collision_margin"): 0.1,
+    ("cloth.solver", "body_proxy"): 1.0,
+    ("cloth.solver", "wind_turbulence"): 10.0,
+    ("cloth.solver", "wind_turbulence_scale"): 1000.0,
+    ("cloth.solver", "wind_turbulence_rate"): 1000.0,
+    ("cloth.detail", "margin"): 0.1,
+    ("cloth.detail", "reference_fps"): 10_000.0,
+    ("face", "lift"): 0.05,
 }
 
 
@@ -71,10 +135,10 @@ def from_table(cls, table, source, section, overrides=None):
         kwargs[key] = _coerce(value, getattr(defaults, key), source, where)
     kwargs.update(overrides or {})
     for key, value in kwargs.items():
-        top = LIMITS.get((section, key))
-        if top is not None and isinstance(value, (int, float)) and value > top:
-            raise InputError(source, f"{section}.{key}", f"at most {top:,} (a larger value would not finish), "
-                                                          f"got {value!r}")
+        for limits, why in ((LIMITS, "a larger value would not finish"), (SCALE_LIMITS, "beyond a character's scale")):
+            top = limits.get((section, key))
+            if top is not None and isinstance(value, (int, float)) and value > top:
+                raise InputError(source, f"{section}.{key}", f"at most {top:,} ({why}), got {value!r}")
     try:
         return cls(**kwargs)
     except ValueError as err:

@@ -18,6 +18,7 @@ import warp as wp
 
 from warp_kernels import detail as kernels
 
+from .config import require_nonnegative, require_positive
 from .graphs import cpu_cores, run_parallel
 from .mesh_topology import unique_pairs
 
@@ -298,11 +299,8 @@ class DetailParams:
             raise ValueError("height_carry must be in [0, 1]")
         if self.smoothing < 0:
             raise ValueError("smoothing must be zero or positive")
-        for name in ("margin", "band", "k_out_plane", "max_slope", "h_normal"):
-            if getattr(self, name) < 0.0:
-                raise ValueError(f"{name} must be zero or positive")
-        if self.reference_fps <= 0.0:
-            raise ValueError("reference_fps must be positive")
+        require_nonnegative(self, "margin", "band", "k_out_plane", "max_slope", "h_normal")
+        require_positive(self, "reference_fps")
 
 
 class ClothDetail:

@@ -711,6 +711,8 @@ def parse_expressions(entries, source):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v <= 1.0:
                 raise InputError(source, f"{where}.aus.{k}", f"expected an intensity from 0 to 1, got {v!r}")
             pairs.append((int(k), float(v)))
+        if any(k.frame == frame for k in keys):  # one would silently win over the other
+            raise InputError(source, f"{where}.frame", f"another expression is keyed at frame {frame:g}")
         keys.append(ExpressionKey(float(frame), emotion, float(weight), tuple(pairs)))
     return tuple(keys)
 

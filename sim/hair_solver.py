@@ -11,6 +11,7 @@ import warp as wp
 
 from warp_kernels import collision, skinning, strands
 
+from .config import require_length_at_most, require_nonnegative, require_positive
 from .errors import SimulationError
 from .graphs import cpu_cores, refit_bvh, run_parallel
 
@@ -214,8 +215,12 @@ class HairParams:
             raise ValueError("shape_iterations must be at least 1")
         if self.substeps < 1:
             raise ValueError("substeps must be at least 1")
-        if self.guide_stiffness < 0.0:
-            raise ValueError("guide_stiffness must be zero or positive")
+        require_positive(self, "collision_search", "max_speed")
+        # 100 g and a wind of 200 m/s are past any shot; beyond, a frame moved the particles kilometres
+        require_length_at_most(self, "gravity", 1000.0)
+        require_length_at_most(self, "wind", 200.0)
+        require_nonnegative(self, "damping", "air_drag", "wind_turbulence", "wind_turbulence_scale",
+                            "wind_turbulence_rate", "root_hold_length", "collision_margin", "guide_stiffness")
 
     def as_dict(self):
         return asdict(self)

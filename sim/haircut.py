@@ -397,6 +397,7 @@ class Edit:
     strands: np.ndarray
     surface: CutSurface = None  # the cut surface of a cut
     targets: np.ndarray = None  # where wax put the tips (W, 3)
+    event: int = None  # the [[haircut]] event that made it, in a timeline (run_events)
 
 
 # -- tools on arrays --------------------------------------------------------------------------------
@@ -920,6 +921,9 @@ def run_events(scene, events, frame):
                 edits.append(scene.wax_drags[id(event)].to(scene, wax_share(event, frame)))
                 if frame == event.until:
                     del scene.wax_drags[id(event)]
+            else:
+                continue
+            edits[-1].event = k
         except ValueError as err:
             raise InputError(scene.config.source, f"haircut[{k}]", f"frame {frame}: {err}") from None
     return edits
@@ -984,8 +988,12 @@ def _parse_event(entry, source, where, timing):
             fail(key, f"expected a finite number, got {value!r}")
         if positive and value <= 0:
             fail(key, f"must be positive, got {value!r}")
-        if (lo is not None and value < lo) or (hi is not None and value > hi):
+        if lo is not None and hi is not None and not lo <= value <= hi:
             fail(key, f"must be in [{lo}, {hi}], got {value!r}")
+        if lo is not None and value < lo:
+            fail(key, f"must be at least {lo}, got {value!r}")
+        if hi is not None and value > hi:
+            fail(key, f"must be at most {hi}, got {value!r}")
         return float(value)
 
     def vector(value, n, key):
@@ -1010,8 +1018,8 @@ def _parse_event(entry, source, where, timing):
     def sphere(key):
         t = table(key, ("center", "radius"))
         radius = t["radius"]
-        if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not radius > 0:
-            fail(f"{key}.radius", f"expected a positive number, got {radius!r}")
+        if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not 0 < radius <= 10.0:
+            fail(f"{key}.radius", f"expected metres, more than 0 and at most 10, got {radius!r}")
         return (vector(t["center"], 3, f"{key}.center"), float(radius))
 
     if "plane" in entry:
@@ -1042,15 +1050,20 @@ def _parse_event(entry, source, where, timing):
         if not isinstance(s, list) or not s:
             fail("stroke", "expected a list of [u, v] pixel points")
         kw["stroke"] = tuple(vector(p, 2, "stroke") for p in s)
+        if tool in ("blunt", "chop", "thinning", "comb") and len(set(kw["stroke"])) < 2:
+            fail("stroke", "a cut or comb line needs two distinct points")
         if "camera" not in kw:
             fail("camera", "a stroke needs the camera it was drawn in")
     if "sphere" in entry:
         kw["sphere"] = sphere("sphere")
     if "section" in entry:
         kw["section"] = sphere("section")
-    for key in ("radius", "amplitude", "period", "length"):
+    # a grow past 10 m is no character's; a brush's radius is pixels, a chop's teeth metres (pixels along a
+    # stroke), one tooth per period across the hair: a period of a nanometre asked for 10^8 of them
+    ranges = (("radius", None, 1e4), ("length", None, 10.0), ("amplitude", None, 1e4), ("period", 1e-3, 1e4))
+    for key, lo, hi in ranges:
         if key in entry:
-            kw[key] = number(key, positive=True)
+            kw[key] = number(key, lo, hi, positive=True)
     for key in ("jitter", "fraction", "strength"):
         if key in entry:
             kw[key] = number(key, 0.0, 1.0)

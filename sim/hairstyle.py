@@ -12,6 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import trimesh
 
+from .config import require_nonnegative, require_positive, require_within
+
 STYLES = ("straight", "wavy", "curly")
 # rad: a strand whose segments turn by more than this draws its curls or waves as zigzags (the curly example
 # at 32 vertices a strand turned 61 degrees a segment and drew as one; at 64, 30 degrees, its curls read round)
@@ -62,6 +64,10 @@ class HairstyleParams:
             raise ValueError("length must be positive")
         if self.count < 1 and self.density <= 0.0:
             raise ValueError("count must be at least 1")
+        # a jitter of 1 or more grows strands of zero or negative length
+        require_within(self, "length_jitter", 0.0, 1.0, high_open=True)
+        require_positive(self, "bend_length", "wavelength", "curl_pitch", "root_width")
+        require_nonnegative(self, "density", "wave_amplitude", "curl_radius", "tip_width", "clearance", "seed")
         if not 0.0 < self.root_lift <= 90.0:
             raise ValueError("root_lift must be more than 0 and at most 90 degrees")
         check_color(self.color)

@@ -32,6 +32,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import warnings
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -78,14 +79,21 @@ def load_audio(path):
     if not path.is_file():
         raise InputError(path, "audio", "file not found" if not path.exists() else "not a file")
     try:
-        rate, data = wavfile.read(path)
+        with warnings.catch_warnings(record=True) as caught:  # chunks it skips (metadata) are no concern
+            warnings.simplefilter("always", wavfile.WavFileWarning)
+            rate, data = wavfile.read(path)
     except (ValueError, OSError) as err:
         raise InputError(path, "audio", f"not a readable WAV file ({err})") from None
+    for warning in caught:
+        if "EOF" in str(warning.message):  # a cut-off download or copy: the line would end early, unsaid
+            raise InputError(path, "audio", f"truncated: {warning.message}")
     samples = _to_float(np.asarray(data))
     if samples.ndim == 2:
         samples = samples.mean(axis=1)
     if samples.size == 0:
         raise InputError(path, "audio", "the file holds no samples")
+    if not np.all(np.isfinite(samples)):  # a float WAV can hold them; the mouth would follow them to NaN
+        raise InputError(path, "audio", "samples that are NaN or infinite")
     return resample(samples, rate)
 
 

@@ -11,6 +11,7 @@ import os
 import sys
 import threading
 import time
+import warnings
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -22,7 +23,7 @@ from . import __version__
 from .cloth import ClothModel, ClothParams, ClothSolver
 from .collider import Collider
 from .detail import ClothDetail, DetailParams, pn_surface_points
-from .config import from_table, load_toml
+from .config import LIMITS, from_table, load_toml, require_positive, require_within
 from .graphs import AsyncReadback, FrameGraphs, cpu_cores, run_parallel, run_side_by_side
 from .errors import InputError
 from .asset_cache import cached_arrays
@@ -58,8 +59,9 @@ class TimingConfig:
     def __post_init__(self):
         if self.hair_frames not in HAIR_FRAMES:
             raise ValueError('hair_frames must be "substeps", "in_block" or "in_warps"')
-        if self.fps <= 0.0:
-            raise ValueError("fps must be positive")
+        # a frame longer than a second is no shot's rate; near zero a frame's step overflowed float32 (fps 1e-300)
+        if self.fps < 1.0:
+            raise ValueError(f"fps must be at least 1, got {self.fps!r}")
         if self.frames < 1:
             raise ValueError("frames must be at least 1")
         if self.preroll < 0.0:
@@ -81,8 +83,9 @@ class HeadConfig:
     def __post_init__(self):
         if self.animation not in ("turn_nod", "turn", "nod", "none"):
             raise ValueError("animation must be one of turn_nod, turn, nod, none")
-        if self.turn_period <= 0.0 or self.nod_period <= 0.0:
-            raise ValueError("turn_period and nod_period must be positive")
+        require_positive(self, "turn_period", "nod_period")
+        require_within(self, "turn_degrees", -180.0, 180.0)
+        require_within(self, "nod_degrees", -90.0, 90.0)
         if self.sphere_leaves < 1:
             raise ValueError("sphere_leaves must be at least 1")
 
@@ -256,6 +259,9 @@ def _build_config(source, data, overrides, check_files=True):
                                               else config.body.mesh != "builtin"):
         raise InputError(source, "face.mesh", "the built-in face fits only the built-in head and body: give "
                                               "face.mesh and face.features for your own head")
+    if f.enabled and f.mesh == "builtin" and f.features:
+        raise InputError(source, "face.features", "the built-in face has its own feature points: features go with "
+                                                  "a face.mesh file")
     if f.enabled and f.mesh != "builtin" and not f.features:
         raise InputError(source, "face.features", "a face mesh needs its feature-point map (JSON name -> vertex)")
     if config.cloth.enabled and not config.body.enabled and config.cloth.garment in _garment_names():
@@ -286,9 +292,15 @@ def _load_head(config):
             raise InputError(config.source, "head.mesh", f"cannot read {h.mesh}: {err}") from None
         if len(mesh.faces) == 0 or not np.all(np.isfinite(mesh.vertices)):
             raise InputError(config.source, "head.mesh", f"{h.mesh} has no faces or non-finite vertices")
+        _check_collider_frames(config, "head.mesh", h.mesh, np.asarray(mesh.vertices)[None], mesh.faces)
         if not mesh.is_watertight:
             raise InputError(config.source, "head.mesh",
                              f"{h.mesh} is not closed (watertight); collisions need an inside and an outside")
+        with warnings.catch_warnings():  # trimesh divides by the volume for the centre of mass
+            warnings.simplefilter("ignore")
+            volume = abs(mesh.volume)
+        if not volume > 1e-9:  # flat: closed, but with no inside either
+            raise InputError(config.source, "head.mesh", f"{h.mesh} encloses no volume; collisions need an inside")
         scalp = None
         if h.scalp_faces:
             scalp = _load_face_mask(config, len(mesh.faces))
@@ -309,6 +321,8 @@ def _load_face_mask(config, face_count):
             raise InputError(config.source, "head.scalp_faces",
                              f"mask has {data.size} entries, the mesh has {face_count} faces")
         return data
+    if not (np.issubdtype(data.dtype, np.number) and np.all(np.isfinite(data))):
+        raise InputError(config.source, "head.scalp_faces", "expected face indices (integers) or a boolean face mask")
     idx = data.astype(np.int64).ravel()
     if idx.size == 0 or idx.min() < 0 or idx.max() >= face_count:
         raise InputError(config.source, "head.scalp_faces", f"face indices must lie in [0, {face_count})")
@@ -320,7 +334,9 @@ def _load_face_mask(config, face_count):
 def _load_roots(config):
     path = _resolve(config, config.head.roots)
     try:
-        roots = np.load(path) if path.endswith(".npy") else np.loadtxt(path, ndmin=2)
+        with warnings.catch_warnings():  # an empty file is reported below, in one line
+            warnings.simplefilter("ignore")
+            roots = np.load(path) if path.endswith(".npy") else np.loadtxt(path, ndmin=2)
     except (OSError, ValueError) as err:
         raise InputError(config.source, "head.roots", f"cannot read {config.head.roots}: {err}") from None
     if roots.ndim != 2 or roots.shape[1] != 3 or len(roots) == 0 or not np.all(np.isfinite(roots)):
@@ -447,6 +463,12 @@ class Scene:
             self.cloth_solver = ClothSolver(self.cloth_model, parts=1 if self.model is not None else None)
             self.cloth_state, self._cloth_scratch = self.cloth_model.state(), self.cloth_model.state()
             self.cloth_substeps = self.cloth_model.substeps_for(1.0 / config.timing.fps)
+            top = LIMITS[("cloth.solver", "substeps")]
+            if self.cloth_substeps > top:  # stiff springs on light cloth: the run would not finish
+                step = 1e6 * self.cloth_model.stable_dt
+                raise InputError(config.source, "cloth.solver",
+                                 f"stable steps of {step:.3g} us need {self.cloth_substeps:,} substeps a frame, at "
+                                 f"most {top:,}: soften the springs or damping, or make the cloth heavier (density)")
             if config.cloth_detail.level > 0:
                 self.cloth_detail = ClothDetail(self.cloth_model, config.cloth_detail, device)
         self.face_rig = self.face_animation = None
@@ -596,6 +618,12 @@ class Scene:
         import trimesh
 
         closest, face, bary = self.collider.closest_points(roots)
+        off = np.linalg.norm(closest - roots, axis=1)
+        far = ~(off <= ROOT_REACH)  # NaN too: a root beyond the closest-point query's reach
+        if far.any():
+            raise InputError(self.config.source, "head.roots", f"{far.sum()} of {len(roots)} roots lie more than "
+                             f"{100 * ROOT_REACH:g} cm off the head (farthest {np.nanmax(off):.3g} m): roots are "
+                             "points on the scalp, in metres")
         normals = trimesh.Trimesh(self.head.vertices, self.head.faces, process=False).vertex_normals
         n = np.einsum("nk,nkj->nj", bary, normals[self.head.faces[face]])
         return closest, n / np.linalg.norm(n, axis=1, keepdims=True)
@@ -910,6 +938,9 @@ def _load_body(config):
                                  f"expected finite (frames, {len(vertices)}, 3) positions, got {frames.shape}")
     if len(faces) == 0 or not np.all(np.isfinite(vertices)):
         raise InputError(config.source, "body.mesh", f"{b.mesh} has no faces or non-finite points")
+    if len(frames) == 0:
+        raise InputError(config.source, "body.points" if b.points else "body.mesh", "holds no frames")
+    _check_collider_frames(config, "body.points" if b.points else "body.mesh", b.points or b.mesh, frames, faces)
     h = config.head
     if config.hair.enabled and not (h.scalp_faces or h.roots):
         raise InputError(config.source, "head.scalp_faces", "hair on a body from a file needs head.scalp_faces or "
@@ -929,10 +960,39 @@ def _read_usd_body(config, path):
     if prim is None or not prim.IsValid() or not prim.IsA(UsdGeom.Mesh):
         raise InputError(config.source, "body.prim", f"no UsdGeom.Mesh at '{config.body.prim}' in {config.body.mesh}")
     mesh = UsdGeom.Mesh(prim)
-    faces = fan_triangles(mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get())
+    counts, indices = mesh.GetFaceVertexCountsAttr().Get(), mesh.GetFaceVertexIndicesAttr().Get()
     times = mesh.GetPointsAttr().GetTimeSamples() or [Usd.TimeCode.Default()]
-    frames = np.stack([np.asarray(mesh.GetPointsAttr().Get(t), np.float64) for t in times])
-    return frames[0], faces, frames, stage.GetTimeCodesPerSecond()
+    frames = [mesh.GetPointsAttr().Get(t) for t in times]
+    if not counts or not indices or any(f is None or len(f) != len(frames[0]) for f in frames) or not len(frames[0]):
+        raise InputError(config.source, "body.prim", f"{config.body.prim} in {config.body.mesh} needs faces and "
+                                                     "points, the same number of points at every time sample")
+    frames = np.stack([np.asarray(f, np.float64) for f in frames])
+    return frames[0], fan_triangles(counts, indices), frames, stage.GetTimeCodesPerSecond()
+
+
+# m: a collider larger than this is no character in metres (a mesh in centimetres is 100 times too large)
+COLLIDER_SPAN = 10.0
+# m: roots farther off the head than this are not on its scalp
+ROOT_REACH = 0.05
+
+
+def _check_collider_frames(config, key, name, frames, faces):
+    """InputError unless every frame (F, V, 3) of a head or body mesh indexes its points, has a face
+    with area, and spans at most COLLIDER_SPAN (all points at one spot, or a scale of 0, exploded the
+    hair; a mesh in centimetres flung it off)."""
+    faces = np.asarray(faces, np.int64)
+    if faces.min() < 0 or faces.max() >= frames.shape[1]:
+        raise InputError(config.source, key, f"{name}: face indices must lie in [0, {frames.shape[1]})")
+    span = float(np.max(frames.max(axis=1) - frames.min(axis=1)))
+    if span > COLLIDER_SPAN:
+        raise InputError(config.source, key, f"{name} spans {span:.3g} m; meshes are read in metres (at most "
+                                             f"{COLLIDER_SPAN:g} m): scale one in centimetres by 0.01")
+    a, b, c = (frames[:, faces[:, k]] for k in range(3))
+    area = np.linalg.norm(np.cross(b - a, c - a), axis=2).max(axis=1)
+    if not np.all(area > 0.0):
+        first = int(np.argmin(area > 0.0))
+        raise InputError(config.source, key, f"{name}: no face has any area in frame index {first} (every point in "
+                                             "one spot?)")
 
 
 def _load_garment(config, body):
@@ -971,6 +1031,7 @@ class RunResult:
     cloth_substeps_fixed: bool = False
     face_vertices: int = 0
     children: int = 0  # render children written beside the strands (hair_children)
+    idle_events: tuple = ()  # "haircut[k] (tool at frame f)" of the timeline's events that changed no strands
 
 
 def _check_not_an_input(config, out_path):
@@ -1035,6 +1096,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
         readback, pending = AsyncReadback(scene.device), None
 
         first_counts = scene.model.counts if scene.model is not None else None
+        idle = []
 
         def write(frame, wait, weights, hair, finish_stats):
             data = wait()
@@ -1083,7 +1145,10 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
                     comb_before_frame(scene, config.haircut, frame)
                 scene.advance(1.0 / t.fps, detail=True)
             if config.haircut:
-                run_events(scene, config.haircut, frame)
+                for edit in run_events(scene, config.haircut, frame):
+                    event = config.haircut[edit.event]
+                    if event.frame == frame and edit.tool != "initialise" and not len(edit.strands):
+                        idle.append(f"haircut[{edit.event}] ({event.tool} at frame {frame})")
             arrays, weights = scene.queue_outputs(frame)
             hair = (scene.model, scene.solver) if scene.model is not None else None
             finish_stats = None
@@ -1111,7 +1176,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     face = scene.face_rig.mesh.num_vertices if scene.face_rig is not None else 0
     children = scene.children.count if scene.children is not None else 0
     return RunResult(os.fspath(out_path), t.frames, strands, particles, time.perf_counter() - started, worst, cloth,
-                     config.cloth_solver.substeps > 0, face, children)
+                     config.cloth_solver.substeps > 0, face, children, tuple(idle))
 
 
 # the scalp under the hair is painted toward the shade of the hair's roots, as groomers tint a scalp: bare
@@ -1177,7 +1242,9 @@ def _mouth_track(config):
     if f.mouth:
         path = _resolve(config, f.mouth)
         try:
-            track = np.load(path) if path.endswith(".npy") else np.loadtxt(path, delimiter=",", ndmin=2)
+            with warnings.catch_warnings():  # an empty file is reported below, in one line
+                warnings.simplefilter("ignore")
+                track = np.load(path) if path.endswith(".npy") else np.loadtxt(path, delimiter=",", ndmin=2)
         except (OSError, ValueError) as err:
             raise InputError(config.source, "face.mouth", f"cannot read {f.mouth}: {err}") from None
         if track.ndim != 2 or track.shape[1] != 13 or not np.all(np.isfinite(track)):

@@ -202,7 +202,7 @@ def test_missing_scene_file_exits_2(tmp_path, capsys):
 
 
 def test_exploding_simulation_is_reported_with_frame_and_prim(tmp_path, capsys):
-    scene = write(tmp_path, SMALL.replace("[solver]", "[solver]\ngravity = [0.0, -1.0e9, 0.0]\nmax_speed = 50.0"))
+    scene = write(tmp_path, SMALL.replace("[solver]", "[solver]\ngravity = [0.0, -1000.0, 0.0]\nmax_speed = 5.0"))
     out = tmp_path / "boom.usdc"
     assert main(["run", scene, "-o", str(out), "-q"]) == 3
     err = capsys.readouterr().err
@@ -223,6 +223,37 @@ def test_scene_can_use_its_own_head_mesh_and_roots(tmp_path, head):
     assert len(reader.prims["hair"].counts) == 12
     first = reader.points("hair", 1).reshape(12, 8, 3)[:, 0]
     np.testing.assert_allclose(first, top[:12], atol=1e-4)
+
+
+def test_collider_and_root_files_a_qa_pass_broke_are_refused_in_one_line(tmp_path, head, capsys):
+    """A head in centimetres, a flat head, roots off the head, a body whose points all sit in one spot
+    or that has no frames: each exploded the hair (exit 3), ran in silence or raised a traceback."""
+    import trimesh
+
+    trimesh.Trimesh(head.vertices, head.faces).export(tmp_path / "bust.obj")
+    trimesh.Trimesh(100.0 * head.vertices, head.faces).export(tmp_path / "bust_cm.obj")
+    trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0]], [[0, 1, 2], [0, 2, 3], [0, 3, 1], [1, 3, 2]],
+                    process=False).export(tmp_path / "flat.obj")
+    np.save(tmp_path / "far.npy", [[0.0, 3.0, 0.0]])
+    box = trimesh.creation.box()
+    box.export(tmp_path / "box.obj")
+    np.save(tmp_path / "still.npy", np.zeros((2, len(box.vertices), 3)))
+    np.save(tmp_path / "none.npy", np.zeros((0, len(box.vertices), 3)))
+    no_hair = SMALL.replace("[hair]", "[hair]\nenabled = false")
+    for text, reason in (
+        (SMALL.replace("[head]", '[head]\nmesh = "bust_cm.obj"'), "head.mesh: bust_cm.obj spans 47.2 m; meshes are "
+                                                                  "read in metres"),
+        (SMALL.replace("[head]", '[head]\nmesh = "flat.obj"'), "head.mesh: flat.obj encloses no volume"),
+        (SMALL.replace("[head]", '[head]\nmesh = "bust.obj"\nroots = "far.npy"'),
+         "head.roots: 1 of 1 roots lie more than 5 cm off the head"),
+        (no_hair + '[body]\nmesh = "box.obj"\npoints = "still.npy"\n', "body.points: still.npy: no face has any area"),
+        (no_hair + '[body]\nmesh = "box.obj"\npoints = "none.npy"\n', "body.points: holds no frames"),
+    ):
+        scene = write(tmp_path, text)
+        assert main(["run", scene, "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+        err = capsys.readouterr().err
+        assert reason in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x.usdc").exists()
 
 
 def test_cfx_entry_point_runs_as_a_module():
@@ -447,3 +478,14 @@ def test_a_cache_never_replaces_one_of_the_scenes_inputs_and_absurd_sizes_are_re
     assert main(["run", write(tmp_path, SMALL), "-o", str(tmp_path / "x.usdc"), "--frames", "2000000", "-q"]) == 2
     assert "scene.frames: at most 1,000,000" in capsys.readouterr().err
     assert not (tmp_path / "x.usdc").exists()
+
+
+def test_a_run_names_the_haircut_events_that_did_nothing(tmp_path, capsys):
+    """A cut above every strand, or an event past a shorter --frames, was silently no edit at all; the run
+    says which events did not happen and which changed no strands."""
+    cut = '[[haircut]]\nframe = {}\ntool = "blunt"\nplane = {{ point = [0.0, {}, 0.0], normal = [0.0, 1.0, 0.0] }}\n'
+    scene = write(tmp_path, SMALL + cut.format(2, 5.0) + cut.format(3, 0.2) + cut.format(9, 0.1))
+    assert main(["run", scene, "-o", str(tmp_path / "c.usdc"), "--frames", "4"]) == 0
+    err = capsys.readouterr().err
+    assert "1 haircut event(s) after the last frame (4) did not happen: haircut[2] at frame 9" in err
+    assert "1 haircut event(s) changed no strands: haircut[0] (blunt at frame 2)\n" in err

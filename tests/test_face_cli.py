@@ -68,7 +68,7 @@ def test_lipsync_names_the_option_a_bad_value_came_from(tmp_path, capsys):
     out = tmp_path / "x.usdc"
     for options, named in [(["--intensity", "3", "--expression", "happiness"], "--intensity: must be from 0 to 1"),
                            (["--intensity=-0.5"], "--intensity: must be from 0 to 1"),
-                           (["--fps", "0"], "--fps: must be a positive number"),
+                           (["--fps", "0"], "--fps: must be from 1 to 10000 frames a second"),
                            (["--voice", str(tmp_path / "no_such_speaker")], "--voice: expected one of")]:
         assert main(["lipsync", str(wav), "-o", str(out), "-q", *options]) == 2, options
         err = capsys.readouterr().err

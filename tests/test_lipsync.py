@@ -150,6 +150,22 @@ def test_load_audio_names_the_file_when_missing_not_a_wav_or_empty(tmp_path):
         lipsync.load_audio(empty)
 
 
+def test_load_audio_refuses_a_cut_off_file_and_non_finite_samples(tmp_path, recwarn):
+    """A truncated WAV printed SciPy's warning twice and spoke half a line; a float WAV with NaN took
+    the face to NaN and failed as a simulation (exit 3)."""
+    whole = tmp_path / "whole.wav"
+    wavfile.write(whole, 16000, (1000 * np.sin(np.arange(8000) * 0.1)).astype(np.int16))
+    cut = tmp_path / "cut.wav"
+    cut.write_bytes(whole.read_bytes()[:100])
+    with pytest.raises(InputError, match="cut.wav: audio: truncated"):
+        lipsync.load_audio(cut)
+    nan = tmp_path / "nan.wav"
+    wavfile.write(nan, 16000, np.array([0.0, np.nan, 0.5], np.float32))
+    with pytest.raises(InputError, match="nan.wav: audio: samples that are NaN or infinite"):
+        lipsync.load_audio(nan)
+    assert len(lipsync.load_audio(whole)) == 8000 and not recwarn.list
+
+
 # ---------------------------------------------------------------------------------- net and bank
 
 def test_train_net_learns_six_separable_classes():

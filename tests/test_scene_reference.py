@@ -55,3 +55,59 @@ def test_every_key_listed_loads_and_an_unlisted_one_does_not(tmp_path, table, cl
     scene.write_text(header + "not_a_key = 1\n")
     with pytest.raises(InputError, match="not_a_key"):
         load_scene(scene)
+
+
+# the settings a negative value is meaningful for: frame numbers
+SIGNED = {("scene", "start_frame"), ("face", "audio_start")}
+
+
+def _load_one(tmp_path, table, key, value):
+    header = ("[body]\n" if table.startswith("cloth") else "") + f"[{table}]\n"
+    scene = tmp_path / "scene.toml"
+    scene.write_text(header + f"{key} = {value!r}\n".replace("'", '"'))
+    return load_scene(scene)
+
+
+@pytest.mark.parametrize("table,cls", scene_tables(), ids=[t for t, _ in scene_tables()])
+def test_every_number_has_a_range_and_the_error_names_its_key(tmp_path, table, cls):
+    """A setting that is a count, a length, a rate or a stiffness refuses a negative value with one line
+    naming it (a QA pass had found negative widths, margins and drags accepted silently, and a negative
+    seed blamed on head.scalp_faces); the default is in range."""
+    defaults = cls()
+    for f in dataclasses.fields(cls):
+        default = getattr(defaults, f.name)
+        if not f.init or isinstance(default, bool) or not isinstance(default, (int, float)):
+            continue
+        low = -2 ** 31 + 1 if isinstance(default, int) else -1e30
+        if (table, f.name) not in SIGNED:
+            with pytest.raises(InputError, match=f"{table}.{f.name}: "):
+                _load_one(tmp_path, table, f.name, low)
+        _load_one(tmp_path, table, f.name, default)
+
+
+@pytest.mark.parametrize("table,key,value,reason", [
+    ("hair", "length_jitter", 1.0, "within [0, 1)"),  # strands of no length: a traceback
+    ("hair", "seed", -1, "zero or positive"),
+    ("hair", "root_width", -1e-4, "positive"),
+    ("hair", "wavelength", 0.0, "positive"),  # NaN strand points
+    ("hair", "clearance", 1e3, "beyond a character's scale"),
+    ("hair", "length", 1e30, "beyond a character's scale"),  # exploded: exit 3
+    ("scene", "fps", 1e-300, "at least 1"),  # the frame's step overflowed float32: exit 3
+    ("scene", "fps", 1e300, "at most 10,000"),
+    ("solver", "max_speed", 0.0, "positive"),  # every frame reported as an explosion
+    ("solver", "collision_search", 0.0, "positive"),
+    ("solver", "wind", [0.0, 0.0, 1e6], "at most 200 long"),
+    ("solver", "gravity", [0.0, -1e30, 0.0], "at most 1000 long"),
+    ("solver", "rotation_iterations", 2 ** 31 - 1, "would not finish"),
+    ("head", "turn_degrees", 1e6, "within [-180, 180]"),
+    ("cloth.solver", "walk_refresh", 0, "positive"),  # re-seeded every step modulo zero
+    ("cloth.solver", "strain_iterations", -1, "zero or positive"),
+    ("cloth.solver", "collision_margin", 5.0, "beyond a character's scale"),
+    ("cloth.detail", "margin", -0.01, "zero or positive"),
+    ("capture", "height", 8, "within [16, 8192]"),
+    ("capture", "seed", -1, "zero or positive"),
+])
+def test_values_a_qa_pass_found_accepted_or_crashing_are_refused(tmp_path, table, key, value, reason):
+    with pytest.raises(InputError) as err:
+        _load_one(tmp_path, table, key, value)
+    assert f"{table}.{key}: " in str(err.value) and reason in str(err.value), str(err.value)

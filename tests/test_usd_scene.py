@@ -319,6 +319,53 @@ def test_stage_without_collider_or_cache_over_itself(tmp_path, capsys):
         read_usd_scene(scene)
 
 
+def _edit(stage):
+    hair, head = UsdGeom.BasisCurves(stage.GetPrimAtPath("/root/Hair/HairData")), stage.GetPrimAtPath("/root/Head")
+    mesh = UsdGeom.Mesh(stage.GetPrimAtPath("/root/Head/Sphere"))
+    faces = list(mesh.GetFaceVertexIndicesAttr().Get())
+    return {
+        "no counts": lambda: hair.GetCurveVertexCountsAttr().Clear(),
+        "nan widths": lambda: hair.CreateWidthsAttr([float("nan")]),
+        "index": lambda: mesh.GetFaceVertexIndicesAttr().Set([0, 1, 100000] + faces[3:]),
+        "flat": lambda: UsdGeom.Xformable(head).AddScaleOp().Set(Gf.Vec3f(0.0, 0.0, 0.0)),
+        "backwards": lambda: (stage.SetStartTimeCode(FRAMES), stage.SetEndTimeCode(1)),
+        "metres": lambda: UsdGeom.SetStageMetersPerUnit(stage, 0.0),
+        "rate": lambda: stage.SetTimeCodesPerSecond(1e-9),
+    }
+
+
+@pytest.mark.parametrize("case, key, reason", [
+    ("no counts", "/root/Hair/HairData.curveVertexCounts", "not authored"),  # a traceback
+    ("nan widths", "/root/Hair/HairData.widths", "finite"),  # written to the cache as NaN
+    ("index", "/root/Head/Sphere.faceVertexIndices", "must lie in [0, "),  # a traceback
+    ("flat", "/root/Head/Sphere", "no face has any area"),  # exploded: exit 3
+    ("backwards", "endTimeCode", "before startTimeCode"),  # ran one frame without a word
+    ("metres", "metersPerUnit", "positive"),  # the error named no file or key
+    ("rate", "timeCodesPerSecond", "at least 1"),  # named scene.fps, which the stage has not
+])
+def test_stage_defects_a_qa_pass_found_are_named(tmp_path, case, key, reason):
+    scene = build_stage(tmp_path / "shot.usda")
+    stage = Usd.Stage.Open(str(scene))
+    _edit(stage)[case]()
+    stage.GetRootLayer().Save()
+    with pytest.raises(InputError) as err:
+        read_usd_scene(scene)
+    assert err.value.key == key and reason in err.value.reason, str(err.value)
+
+
+def test_uniform_curve_widths_are_spread_over_each_curves_vertices(tmp_path):
+    scene = build_stage(tmp_path / "shot.usda")
+    stage = Usd.Stage.Open(str(scene))
+    curves = UsdGeom.BasisCurves(stage.GetPrimAtPath("/root/Hair/HairData"))
+    counts = np.asarray(curves.GetCurveVertexCountsAttr().Get())
+    per_curve = 1e-4 * (1.0 + np.arange(len(counts)))
+    curves.CreateWidthsAttr(Vt.FloatArray.FromNumpy(per_curve.astype(np.float32)))
+    curves.SetWidthsInterpolation(UsdGeom.Tokens.uniform)
+    stage.GetRootLayer().Save()
+    widths = read_usd_scene(scene).assets.hair[2]
+    np.testing.assert_allclose(widths, np.repeat(per_curve, counts), rtol=1e-6)
+
+
 def test_curves_drawn_from_the_strands_are_not_simulated(tmp_path):
     """Hair curves marked `cfx:interpolatedFrom` (a cache's render children, carried into a DCC's shot)
     are left out of the strands a stage gives; the tagged strands are read as before."""
