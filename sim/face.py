@@ -657,15 +657,16 @@ class FaceConfig:
     enabled: bool = False  # set by the presence of a [face] table
     mesh: str = "builtin"  # "builtin" (fits the built-in head and body) or a face mesh file
     features: str = ""  # JSON {feature name: vertex index} for a face mesh file
-    # built-in face: grid refinement (1: ~830 vertices, 2: ~3,500, 3: ~7,800, 4: ~13,800); 3 draws brows and eyes
+    # built-in face: grid refinement (1: ~930 vertices, 2: ~3,500, 3: ~7,800, 4: ~13,800); 3 draws brows and eyes
     # crisp in a close-up (vertex colours are no finer than the grid), 4 crisper still
     resolution: int = 3
     lift: float = 0.002  # m the face floats off the head surface, so it draws over it
     audio: str = ""  # a WAV the character speaks (lip sync); "builtin" for the demo line
     mouth: str = ""  # instead of audio: .npy or .csv of (T, 13) mouth parameters [mm], one row per frame
     audio_start: float = 1.0  # frame at which the audio (or the mouth track) starts
-    voice: str = "general"  # lip-sync weights: "general", a training voice's name, or a folder of
-    #                         a.wav i.wav u.wav e.wav o.wav to choose the best set for (speaker adaptation)
+    # lip-sync weights: "general", a training voice's name, or a folder of a.wav i.wav u.wav e.wav o.wav to
+    # choose the best set for (speaker adaptation)
+    voice: str = "general"
     expressions: tuple = ()  # ExpressionKey, from [[face.expressions]]
 
     def __post_init__(self):

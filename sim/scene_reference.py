@@ -5,7 +5,7 @@
 Each table of a scene file is a dataclass (sim.scene.SECTIONS, and ClothParams and DetailParams for
 [cloth.solver] and [cloth.detail]); a key's meaning is the comment on its field's line, or the
 comment lines just above it. The reference is generated so that it cannot fall behind the loader:
-tests/test_docs.py checks docs/scene_reference.md against this output and that no key goes
+tests/test_scene_reference.py checks docs/scene_reference.md against this output and that no key goes
 unexplained.
 """
 

@@ -24,7 +24,8 @@ import numpy as np
 from .errors import InputError
 
 KEY_TOOLS = {"c": "comb", "b": "blunt", "h": "chop", "t": "thinning", "w": "wax", "e": "erase", "g": "grow"}
-VIEWS = {"1": 0.0, "2": -90.0, "3": 90.0, "4": 180.0}  # yaw of front, left, right, back (the head faces +Z)
+VIEWS = {"1": 0.0, "2": 90.0, "3": -90.0, "4": 180.0}  # yaw of front, left, right, back as in cfx preview: the head
+# faces +Z, so its left side is +X
 BRUSH_RADIUS = 30.0  # px, erase / grow / wax brushes
 GROW_LENGTH = 0.02  # m added by a grow stroke
 CHOP = {"amplitude": 8.0, "period": 24.0}  # px zigzag of a chop stroke
