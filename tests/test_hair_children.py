@@ -156,8 +156,9 @@ def test_a_scene_writes_children_outside_the_head_at_their_lengths(tmp_path, cap
         segments = np.linalg.norm(np.diff(points.reshape(-1, VERTICES, 3), axis=1), axis=2)
         lengths = segments if lengths is None else lengths
         change = np.abs(segments / lengths - 1.0)
-        # the walk keeps the lengths; the push out of the head after it moves a few vertices a little
-        assert np.median(change) < 1e-5 and change.max() < 0.02
+        # the walk keeps the lengths; the push out of the head after it moves a few vertices a little (3 of
+        # 840 segments by 1-3.1% here since the shape pass moves no momentum: 1.1% at most before)
+        assert np.median(change) < 1e-5 and change.max() < 0.05 and np.mean(change > 0.01) < 0.01
     # marked as drawn from the strands: scoring compares the strands alone (a cache with children
     # scores as the same hair without them)
     assert kids.interpolated_from == "/World/hair" and reader.prims["hair"].interpolated_from is None

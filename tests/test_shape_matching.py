@@ -30,14 +30,16 @@ def reference_targets(x, first, size, rest, offsets, variant):
 
 
 def reference_apply(x, inv_mass, first, size, targets, stiffness):
-    goal = np.zeros_like(x, dtype=np.float64)
-    count = np.zeros(len(x))
+    """Each free particle moves by stiffness times the sum of its windows' pulls (goal - x) over the
+    window size: a particle held by fewer windows (near the tip) moves less, so each window's pulls,
+    which sum to no net force or torque, keep doing so (an average over the windows holding each
+    particle gave the ends more weight and left strands swinging without end)."""
+    pull = np.zeros_like(x, dtype=np.float64)
     for w, f in enumerate(first):
-        goal[f:f + size] += targets[w * size:(w + 1) * size]
-        count[f:f + size] += 1
+        pull[f:f + size] += targets[w * size:(w + 1) * size] - x[f:f + size]
     out = x.astype(np.float64).copy()
-    move = (inv_mass > 0) & (count > 0)
-    out[move] += stiffness * (goal[move] / count[move, None] - out[move])
+    move = inv_mass > 0
+    out[move] += stiffness * pull[move] / size
     return out
 
 
@@ -269,3 +271,27 @@ def test_rotation_matrix_of_a_quaternion_matches_scipy():
     out = wp.zeros(len(q), dtype=wp.mat33)
     wp.launch(_rotation_matrices, len(q), [wp.array(q.astype(np.float32), dtype=wp.quat), out])
     np.testing.assert_allclose(out.numpy(), Rotation.from_quat(q).as_matrix(), atol=5e-7)  # (x, y, z, w) order
+
+
+@pytest.mark.parametrize("variant,size", [(0, 3), (1, 4), (1, 6)], ids=["simplified 3", "full 4", "full 6"])
+def test_a_pass_moves_no_momentum(variant, size):
+    """With every particle free, a pass moves each strand's centre of mass nowhere, and full shape
+    matching (exact rotations) turns no strand about it: each window's pulls sum to no net force
+    or torque, and every particle's move is its windows' pulls over the window size. Averaged over
+    the windows holding each particle instead, the ends counted more and a strand on a still head
+    kept swinging: 9 of 12 wavy strands still swept up to 93 mm after 10 s, every curl 180-260 mm."""
+    rng = np.random.default_rng(5)
+    model, x = groom(rng)
+    model.inv_mass.assign(np.ones(model.num_particles, np.float32))
+    win = model.shape_windows(size)
+    moved, _ = launch_pass(x, model, win, variant, stiffness=0.6)
+    x, moved = x.astype(np.float64), moved.astype(np.float64)
+    start = model.strand_start_np
+    for a, b in zip(start[:-1], start[1:]):
+        before, after = x[a:b], moved[a:b]
+        assert np.abs(after - before).max() > 1e-4
+        np.testing.assert_allclose(after.mean(0), before.mean(0), atol=2e-7)
+        if variant == 1:
+            c = before.mean(0)
+            torque = np.cross(before - c, after - before).sum(0)
+            assert np.linalg.norm(torque) < 1e-3 * np.abs(before - c).max() * np.abs(after - before).max()

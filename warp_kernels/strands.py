@@ -541,7 +541,7 @@ def window_frame(q: wp.quat, centroid: wp.vec3, rest_centroid: wp.vec3):
 
     Its goal for a particle, c + R (X - C0) with X the particle's rest position and C0 the window's
     rest centroid, is R L + t with L = X - root, the rest position from the strand's root, and
-    t = c - R (C0 - root). A particle's mean goal over its windows is then (sum R) L + sum t: the
+    t = c - R (C0 - root). A particle's goals summed over its windows are then (sum R) L + sum t: the
     windows' matrices are summed and applied once, instead of every window rotating an offset of
     its own (shape_match_step, shaped_position). Rest positions from the root, not from the world's
     origin, keep the terms that cancel in that sum no longer than a strand.
@@ -588,7 +588,10 @@ def solved_window(x: Any, first: int, stride: int, size: int, rest_local: Any, r
 @wp.func
 def full_shaped_position(p: wp.vec3, k: int, count: int, window_size: int, stiffness: float, frames: Any,
                          translations: Any, at: int, stride: int, rest_local: wp.vec3):
-    """A free particle moved toward the mean goal of the full windows holding it (window_frame).
+    """A free particle moved by the pulls (goal - p) of the full windows holding it (window_frame),
+    summed and divided by the window size: each window's pulls add to no net force or torque, so the
+    pass moves no momentum (a mean over the windows holding each particle weighted the ends more and
+    left strands on a still head swinging without end).
 
     The windows holding the k-th particle of a strand start at its k - window_size + 1 .. k, those
     inside the strand; the sums run over exactly those, with no test per window, so the matrix sum
@@ -619,7 +622,7 @@ def full_shaped_position(p: wp.vec3, k: int, count: int, window_size: int, stiff
         frame_sum += frames[at - j * stride]
         goal += translations[at - j * stride]
     goal += frame_sum * rest_local
-    return p + stiffness * (goal / float(farthest - nearest + 1) - p)
+    return p + stiffness * (goal - float(farthest - nearest + 1) * p) / float(window_size)
 
 
 @wp.kernel(module=APART)
@@ -736,7 +739,8 @@ def shape_match_step(
     x_out: wp.array(dtype=wp.vec3),
     first: int,
 ):
-    """One shape-matching pass: each free particle moves toward the average goal of its windows.
+    """One shape-matching pass: each free particle moves by its windows' pulls toward their goals,
+    summed and divided by the window size (full_shaped_position), so no momentum is moved.
 
     Jacobi: every goal is computed from x and results go to x_out. window_at[j] is the window starting
     at particle j (-1 if none); windows never cross strands, so a window starting at i - k inside this
@@ -781,8 +785,7 @@ def shape_match_step(
                     if w >= 0:
                         goal += simplified_goal(x, j, window_size, k, window_offsets, w)
                         count += 1.0
-        if count > 0.0:
-            p = p + stiffness * (goal / count - p)
+        p = p + stiffness * (goal - count * p) / float(window_size)
     else:
         # a strand's windows are numbered in order from its root
         start = strand_start[strand]
@@ -1932,8 +1935,9 @@ def shaped_position(
     stiffness: float,
     per: StrandSlots,
 ):
-    """The particle in `slot`, k-th of its strand, moved toward the mean goal of the windows that hold
-    it, once those are solved (update_window): the goals and their order of shape_match_step.
+    """The particle in `slot`, k-th of its strand, moved by the summed pulls of the windows that hold
+    it over the window size, once those are solved (update_window): the goals and their order of
+    shape_match_step.
 
     Inputs:
       p (vec3, m): the particle's position before the pass
@@ -1973,9 +1977,9 @@ def simplified_shaped_position(
     offsets: wp.array(dtype=float),
     slots: int,
 ):
-    """A free particle, k-th of its strand, moved toward the mean goal of the simplified windows that
-    hold it (shaped_position's simplified variant), the windows read from arrays (per slot) or from a
-    block's shared tiles (per lane, frame_in_block).
+    """A free particle, k-th of its strand, moved by the summed pulls of the simplified windows that
+    hold it over the window size (shaped_position's simplified variant), the windows read from arrays
+    (per slot) or from a block's shared tiles (per lane, frame_in_block).
 
     Inputs:
       p (vec3, m): the particle's position before the pass
@@ -2008,9 +2012,7 @@ def simplified_shaped_position(
                 else:
                     goal += centroids[first] + offsets[j * slots + slot - j * slot_stride] * u
                 held += 1.0
-    if held > 0.0:
-        p = p + stiffness * (goal / held - p)
-    return p
+    return p + stiffness * (goal - held * p) / float(window_size)
 
 
 @wp.func
@@ -2754,14 +2756,15 @@ def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap, listed
         or no collider: the same strands, bit for bit. Prediction, the guides' pull and the shape passes run
         a thread per run: it solves the window starting at each of its particles (simplified: its centroid
         and axis; full: its rotation, warm-started per window, and goal map), and every particle then moves
-        toward the mean goal of the windows holding it. The contact bounds are read before the length pass's
-        chain, for every particle at once, so that no step of the chain waits on them; compiled loose, every
-        thread first walks the sphere tree for its particles' lists where step_strands' walks queued ahead
-        would (list_runs_short at the substep's start, list_leaves), and the chain walks only where a
-        particle may be inside an unlisted leaf. The chain: the threads along a strand in turn each place
-        their run (follow_leader, with its collisions and contact bounds) and hand the last two placements
-        to the next; the placements go to x_out (the particles' final positions at the frame's end), which
-        the block reads back after the chain for the velocities with each child's correction.
+        by the summed pulls of the windows holding it over the window size. The contact bounds are read
+        before the length pass's chain, for every particle at once, so that no step of the chain waits on
+        them; compiled loose, every thread first walks the sphere tree for its particles' lists where
+        step_strands' walks queued ahead would (list_runs_short at the substep's start, list_leaves), and
+        the chain walks only where a particle may be inside an unlisted leaf. The chain: the threads along
+        a strand in turn each place their run (follow_leader, with its collisions and contact bounds) and
+        hand the last two placements to the next; the placements go to x_out (the particles' final
+        positions at the frame's end), which the block reads back after the chain for the velocities with
+        each child's correction.
 
         The collider is posed for every substep ahead of the frame (FramePoses): the launches between
         substeps that step_strands needs (apply_pose, contact_motion) are all made before this one.
@@ -2893,7 +2896,7 @@ def _frame_kernel(name, side, groups, run, paths, loose, simplified, cap, listed
                 if wp.static(not simplified):
                     if shapes != SHAPE_SIMPLIFIED:
                         # as update_window and shaped_position: the window at each particle solved, then every
-                        # particle moved toward the mean goal of the windows holding it
+                        # particle moved by the summed pulls of the windows holding it over the window size
                         solve = int(0)
                         if j == 0 and shape_pass == 0:
                             solve = exact
