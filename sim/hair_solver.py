@@ -180,11 +180,15 @@ class HairParams:
     wind_turbulence_scale: float = 6.0  # 1/m, spatial frequency of the gusts
     wind_turbulence_rate: float = 1.5  # 1/s, how fast the gust pattern changes
     shape_matching: str = "full"  # "full" (per-window rotation), "simplified" (the paper), "none"
-    shape_stiffness: float = 0.5  # fraction of the way to the goal per pass, (0, 1]
+    shape_stiffness: float = 0.5  # fraction of the way to the goal per pass (at stiffness_rate), (0, 1]
     shape_iterations: int = 2  # goal/apply passes per substep; more passes restore shape faster
     shape_window: int = 0  # particles per window, 2..8; 0 = 3 for simplified (the paper), 6 for full
     rotation_iterations: int = 1  # warm-started Newton steps on each window rotation per pass (full)
-    root_stiffness: float = 0.3  # pull toward the groom carried by the root frame, per substep, [0, 1]
+    root_stiffness: float = 0.3  # pull toward the groom carried by the root frame, per substep (at stiffness_rate)
+    # substeps/s at which shape_stiffness and root_stiffness are given: other substep lengths get the share
+    # that gives the same stiffness (as XPBD's compliance), so the look does not depend on the substeps (per
+    # share, 160 substeps a frame had held a strand out 7 times stiffer than 10)
+    stiffness_rate: float = 240.0
     root_hold_length: float = 0.06  # m from the root over which that pull fades to zero
     # share of a particle's follow-the-leader correction taken off its parent's velocity (dynamic FTL), [0.7, 1]:
     # 1 swings a hanging strand at its true period, 0.9 (Mueller et al.) some 5% faster but calms fast tips
@@ -215,7 +219,7 @@ class HairParams:
             raise ValueError("shape_iterations must be at least 1")
         if self.substeps < 1:
             raise ValueError("substeps must be at least 1")
-        require_positive(self, "collision_search", "max_speed")
+        require_positive(self, "collision_search", "max_speed", "stiffness_rate")
         # 100 g and a wind of 200 m/s are past any shot; beyond, a frame moved the particles kilometres
         require_length_at_most(self, "gravity", 1000.0)
         require_length_at_most(self, "wind", 200.0)
@@ -224,6 +228,17 @@ class HairParams:
 
     def as_dict(self):
         return asdict(self)
+
+    def substep_shares(self, dt):
+        """(shape share per pass, root hold share) for substeps of dt: the shares given at substeps of
+        1/stiffness_rate s, each read as a constraint of fixed compliance a (share = 1 / (1 + a / dt^2),
+        XPBD), which keeps its stiffness at any substep length. A share of 1 (rigid) stays 1."""
+        ratio = (1.0 / (self.stiffness_rate * dt)) ** 2
+
+        def share(given):
+            return given if given <= 0.0 or given >= 1.0 else 1.0 / (1.0 + (1.0 / given - 1.0) * ratio)
+
+        return share(self.shape_stiffness), share(self.root_stiffness)
 
     @property
     def window_size(self):
@@ -522,7 +537,8 @@ class HairSolver:
         lane = self._lanes
         lanes = lane.strands if lane is not None else 0
         order = lane.order if lanes else self._particle_order
-        hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
+        shape_share, hold = p.substep_shares(dt)
+        hold = hold if p.root_hold_length > 0.0 or self._waxed else 0.0
         skin = c.skin_binding(m) if bound else skinning.SkinBinding()
         if bound and hold > 0.0:
             wp.launch(strands.root_frames, r.strands,
@@ -546,7 +562,7 @@ class HairSolver:
                 exact = 0
             wp.launch(strands.shape_match_step, r.particles,
                       [src, m.inv_mass, m.particle_strand, win.at, win.size, win.offsets, win.rest_local, self.frames,
-                       self.translations, variant, p.shape_stiffness, m.strand_start, dst, r.first_particle],
+                       self.translations, variant, shape_share, m.strand_start, dst, r.first_particle],
                       device=dev)
             src, dst = dst, src
         if variant == SHAPE_MATCHING["full"] and (part is None or part is self.parts[-1]):
@@ -766,7 +782,8 @@ class HairSolver:
         mode = COLLISION[p.collision] if collider is not None else 0
         bound = m.bind_particle is not None and collider is not None
         poses = self._pose_frame(collider, times, listed, mode, bound)
-        hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
+        shape_share, hold = p.substep_shares(dt)
+        hold = hold if p.root_hold_length > 0.0 or self._waxed else 0.0
         variant = SHAPE_MATCHING[p.shape_matching]
         passes = p.shape_iterations if variant >= 0 and self.windows.count > 0 else 0
         if getattr(m, "root_local", None) is not self._slots_root_local:
@@ -790,7 +807,7 @@ class HairSolver:
                                     self.clock, poses, substeps, dt, int(bound), skin,
                                     m.particle_binding if bound else None, m.root_binding if bound else None,
                                     hold if bound else 0.0, self._pull(guides, dt), self.windows.size, variant,
-                                    passes, p.shape_stiffness, int(self._rotations_exact), p.rotation_iterations,
+                                    passes, shape_share, int(self._rotations_exact), p.rotation_iterations,
                                     self.rotations, self.slots, contact, p.ftl_damping, FUSED_LIST_SLACK,
                                     state_out.x, state_out.v, 0])
         if variant == SHAPE_MATCHING["full"] and passes > 0:
@@ -900,7 +917,8 @@ class HairSolver:
         m, p, dev = self.model, self.params, self.model.device
         mode = COLLISION[p.collision] if c is not None else 0
         bound = m.bind_particle is not None and c is not None
-        hold = p.root_stiffness if p.root_hold_length > 0.0 or self._waxed else 0.0
+        shape_share, hold = p.substep_shares(dt)
+        hold = hold if p.root_hold_length > 0.0 or self._waxed else 0.0
         if getattr(m, "root_local", None) is not self._slots_root_local:
             self.slots = self._strand_slots()  # bound to a mesh since the slots were made
         lane = self._lanes
@@ -936,7 +954,7 @@ class HairSolver:
                   [x_in, v_in, m.strand_start, m.pinned_per_strand, self._forces(), self.clock,
                    offset, dt, int(bound), c.skin_binding(m) if bound else skinning.SkinBinding(),
                    m.particle_binding if bound else None, m.root_binding if bound else None, hold if bound else 0.0,
-                   self._pull(guides, dt), self.windows.size, variant, passes, p.shape_stiffness,
+                   self._pull(guides, dt), self.windows.size, variant, passes, shape_share,
                    int(self._rotations_exact), p.rotation_iterations, self.rotations, self.slots,
                    contact, p.ftl_damping, shaped, spare, x_out, v_out, order,
                    1 - by_particle, 0 if lane is not None else r.first_strand], device=dev)
