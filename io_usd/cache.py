@@ -6,6 +6,7 @@ the crate file every few frames, so samples already written live on disk rather 
 and writes under a temporary name that is renamed onto the output only when the run completes.
 """
 
+import math
 import os
 from dataclasses import dataclass, field
 
@@ -446,6 +447,8 @@ class CacheReader:
         self.stage = open_stage(self.path)
         s = self.stage
         self.fps = s.GetTimeCodesPerSecond()
+        if not (math.isfinite(s.GetStartTimeCode()) and math.isfinite(s.GetEndTimeCode())):
+            raise ValueError(f"{self.path}: startTimeCode and endTimeCode must be finite")
         self.start_frame = int(round(s.GetStartTimeCode()))
         self.end_frame = int(round(s.GetEndTimeCode()))
         self.up_axis = str(UsdGeom.GetStageUpAxis(s))
@@ -493,7 +496,9 @@ class CacheReader:
 
     @property
     def complete(self):
-        return bool(self.metadata.get("cfx:complete", True))
+        """False for an interrupted run's cache (cfx:complete false, or anything but true: a string
+        "false" read as true); true for a stage no engine wrote."""
+        return self.metadata.get("cfx:complete", True) is True
 
     def frames(self, name=None):
         """Time codes with point samples: of prim `name`, or of any prim. A prim with static points

@@ -2,7 +2,10 @@
 
 import argparse
 import os
+import signal
 import sys
+
+from .errors import Stopped  # noqa: F401 (cli.Stopped: what SIGTERM and SIGHUP raise)
 
 EXIT_INPUT = 2
 EXIT_SIMULATION = 3
@@ -160,10 +163,15 @@ def cmd_run(args, config=None):
         else:
             config = sim.load_scene(args.scene, _overrides(args))
     result = sim.run_scene(config, args.output, progress=not args.quiet, stage=stage)
+    _written.append(result.path)
     _report(result, config)
     if args.preview:
         _preview(result.path, args.preview, frames=None, quiet=args.quiet)
     return 0
+
+
+# caches a command has committed, so a stop in its preview afterwards says the cache is there
+_written = []
 
 
 def cmd_demo(args):
@@ -214,6 +222,7 @@ def cmd_lipsync(args):
     try:
         config = _build_config(LIPSYNC_SOURCE, data, None)
         result = sim.run_scene(config, args.output, progress=not args.quiet)
+        _written.append(result.path)
     except InputError as err:  # the scene is built from the options: name the option, not the scene key
         if err.source != LIPSYNC_SOURCE or err.key not in LIPSYNC_OPTIONS:
             raise
@@ -325,7 +334,7 @@ def cmd_cache(args):
 
 def cmd_info(args):
     from io_usd.cache import CacheReader
-    from io_usd.validate import validation_errors
+    from io_usd.validate import cache_errors, validation_errors
 
     reader = CacheReader(args.cache)
     frames = reader.frames() if reader.prims else []
@@ -352,10 +361,11 @@ def cmd_info(args):
             shapes = [p for p in Usd.PrimRange(prim) if p.IsA(UsdSkel.BlendShape)]
             print(f"  {str(prim.GetPath()):24s} UsdSkel rig, {len(shapes)} blend shapes (invisible: retarget it)")
     stats = reader.metadata.get("cfx:stats")
-    if stats:
-        print("  stats: " + ", ".join(f"{k}={v:.6g}" for k, v in stats.items()))
+    if isinstance(stats, dict) and stats:  # another tool's layer may hold anything under the key
+        print("  stats: " + ", ".join(f"{k}={v:.6g}" if isinstance(v, (int, float)) else f"{k}={v}"
+                                      for k, v in stats.items()))
     if args.validate:
-        errors = validation_errors(args.cache)
+        errors = validation_errors(args.cache) + cache_errors(reader)
         print(f"  UsdValidation: {len(errors)} errors")
         for e in errors:
             print(f"    {e}")
@@ -479,34 +489,31 @@ def _version():
     return f"warp-cfx {__version__}"
 
 
-class Stopped(KeyboardInterrupt):
-    """SIGTERM or SIGHUP (a farm's cancel, a closed terminal) raised in the main thread, so a run
-    stops the way Ctrl-C stops it: the partial output discarded, an existing one left as it was."""
-
-    def __init__(self, signum):
-        super().__init__(signum)
-        self.signum = signum
-
-
 def _raise_stopped(signum, _frame):
+    from .errors import record_stop
+
+    record_stop(signum)
+    if signum == signal.SIGINT:
+        raise KeyboardInterrupt
     raise Stopped(signum)
 
 
 def _stop_on_signals():
-    """Install _raise_stopped for SIGTERM and SIGHUP; returns the handlers it replaced."""
-    import signal
+    """Install _raise_stopped for SIGINT, SIGTERM and SIGHUP; returns the handlers it replaced."""
     import threading
 
     if threading.current_thread() is not threading.main_thread():
         return {}
-    names = [n for n in ("SIGTERM", "SIGHUP") if hasattr(signal, n)]
+    names = [n for n in ("SIGINT", "SIGTERM", "SIGHUP") if hasattr(signal, n)]
     return {getattr(signal, n): signal.signal(getattr(signal, n), _raise_stopped) for n in names}
 
 
 def main(argv=None):
-    import signal
+    from .errors import clear_stops
 
     args = build_parser().parse_args(argv)
+    clear_stops()
+    _written.clear()
     replaced = _stop_on_signals()
     try:
         return _run(args)
@@ -516,10 +523,17 @@ def main(argv=None):
 
 
 def _run(args):
-    from .errors import InputError, SimulationError
+    from .errors import InputError, SimulationError, stop_requested
 
     try:
-        return args.func(args)
+        try:
+            return args.func(args)
+        except Exception:
+            # a signal's exception raised inside a lock's release or a pool becomes another error
+            if stop_requested() is None:
+                raise
+            signum = stop_requested()
+            raise (KeyboardInterrupt() if signum == signal.SIGINT else Stopped(signum)) from None
     except InputError as err:
         return _fail(str(err), EXIT_INPUT)
     except (FileNotFoundError, IsADirectoryError) as err:
@@ -530,12 +544,10 @@ def _run(args):
         return _fail(str(err), EXIT_INPUT)
     except SimulationError as err:
         return _fail(f"simulation failed: {err}", EXIT_SIMULATION)
-    except Stopped as err:
-        import signal
-
-        return _fail(f"stopped by {signal.Signals(err.signum).name}; no output was written", 128 + err.signum)
-    except KeyboardInterrupt:
-        return _fail("interrupted; no output was written", 130)
+    except (Stopped, KeyboardInterrupt) as err:
+        what = f"stopped by {signal.Signals(err.signum).name}" if isinstance(err, Stopped) else "interrupted"
+        kept = f"; {_written[-1]} is complete, the preview was not written" if _written else "; no output was written"
+        return _fail(what + kept, 128 + err.signum if isinstance(err, Stopped) else 130)
 
 
 if __name__ == "__main__":

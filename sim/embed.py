@@ -13,6 +13,8 @@ between frames), so a host and the command line agree to float rounding on the s
 kernels underneath are documented in docs/kernels.md for hosts that launch them directly.
 """
 
+import threading
+
 import numpy as np
 
 from .errors import InputError
@@ -66,6 +68,13 @@ class HostFrame:
         return out
 
 
+# Simulations stepped from several threads take turns: two scenes advancing at once share Warp's launch
+# state and recorded CPU graphs, and crashed the process (std::bad_alloc, a segfault)
+_TURNS = threading.RLock()
+# collider frames a Simulation keeps: a step interpolates between the last two
+MOTION_FRAMES_KEPT = 4
+
+
 class Simulation:
     """Hair and a garment against an animated collider, driven one frame at a time from NumPy.
 
@@ -84,7 +93,7 @@ class Simulation:
                  garment_pinned=None, settings=None, up_axis="Y", meters_per_unit=1.0, device="cpu",
                  source="<host>"):
         from .garment import checked_garment
-        from .scene import PointCacheMotion, Scene, SceneAssets, quiet_warp
+        from .scene import PointCacheMotion, Scene, SceneAssets, check_collider_frames, quiet_warp
 
         self.source = source
         try:
@@ -97,12 +106,24 @@ class Simulation:
             raise InputError(source, "collider_faces", f"expected (F, 3) triangles, got shape {faces.shape}")
         if faces.min() < 0 or faces.max() >= len(vertices):
             raise InputError(source, "collider_faces", f"indices must lie in [0, {len(vertices)})")
+        if np.asarray(collider_faces).dtype.kind not in "iu":
+            raise InputError(source, "collider_faces", "expected integer vertex indices")
+        check_collider_frames(source, "collider_vertices", "the collider", vertices[None], faces)
         hair = garment = None
         if hair_points is not None:
             if hair_counts is None:
                 raise InputError(source, "hair_counts", "hair_points need the vertex count of each strand")
-            hair = (self._points(hair_points, "hair_points"), np.asarray(hair_counts, np.int64),
-                    None if hair_widths is None else np.asarray(hair_widths, np.float64) * self.frame_space.meters_per_unit)
+            points = self._points(hair_points, "hair_points")
+            counts = np.asarray(hair_counts)
+            if counts.ndim != 1 or counts.dtype.kind not in "iuf" or not np.all(counts == np.round(counts)):
+                raise InputError(source, "hair_counts", "expected a 1-D array of whole vertex counts per strand")
+            widths = None
+            if hair_widths is not None:
+                widths = np.asarray(hair_widths, np.float64).reshape(-1)
+                if len(widths) != len(points) or not (np.all(np.isfinite(widths)) and widths.min() >= 0.0):
+                    raise InputError(source, "hair_widths", f"expected {len(points)} finite widths, zero or positive")
+                widths = widths * self.frame_space.meters_per_unit
+            hair = (points, counts.astype(np.int64), widths)
         if garment_vertices is not None:
             if garment_face_counts is None or garment_face_indices is None:
                 raise InputError(source, "garment_face_counts", "a garment needs its polygons (counts and indices)")
@@ -111,12 +132,13 @@ class Simulation:
                                       None if garment_pinned is None else np.asarray(garment_pinned, np.int64))
         config = scene_config(source, settings, fps, device, hair is not None, garment is not None, self.frame_space)
         self.fps = config.timing.fps
-        self._motion = PointCacheMotion([vertices], self.fps)
+        self._motion = PointCacheMotion([vertices], self.fps, keep=MOTION_FRAMES_KEPT)
         quiet_warp()
-        self.scene = Scene(config, SceneAssets("collider", faces, self._motion, hair, garment))
-        self.frame = 0
-        if config.timing.preroll > 0.0:
-            self.scene.advance(config.timing.preroll, animate=False)
+        with _TURNS:
+            self.scene = Scene(config, SceneAssets("collider", faces, self._motion, hair, garment))
+            self.frame = 0
+            if config.timing.preroll > 0.0:
+                self.scene.advance(config.timing.preroll, animate=False)
 
     def _points(self, values, key):
         points = np.asarray(values, np.float64)
@@ -133,7 +155,8 @@ class Simulation:
             raise InputError(self.source, "collider_points",
                              f"expected {len(self._motion.frames[0])} positions, got {len(points)}")
         self._motion.append(points)
-        self.scene.advance(1.0 / self.fps, detail=True)
+        with _TURNS:
+            self.scene.advance(1.0 / self.fps, detail=True)
         self.frame += 1
         bad = self.scene.solver.report_unhealthy if self.scene.model is not None else None
         if bad is not None:

@@ -25,7 +25,7 @@ from .collider import Collider
 from .detail import ClothDetail, DetailParams, pn_surface_points
 from .config import LIMITS, from_table, load_toml, require_positive, require_within
 from .graphs import AsyncReadback, FrameGraphs, cpu_cores, run_parallel, run_side_by_side
-from .errors import InputError
+from .errors import InputError, raise_if_stopped
 from .asset_cache import cached_arrays
 from .capture_rig import CaptureConfig
 from .face import SKIN, FaceAnimation, FaceConfig, FaceRig, builtin_face, face_from_file, parse_expressions
@@ -292,7 +292,7 @@ def _load_head(config):
             raise InputError(config.source, "head.mesh", f"cannot read {h.mesh}: {err}") from None
         if len(mesh.faces) == 0 or not np.all(np.isfinite(mesh.vertices)):
             raise InputError(config.source, "head.mesh", f"{h.mesh} has no faces or non-finite vertices")
-        _check_collider_frames(config, "head.mesh", h.mesh, np.asarray(mesh.vertices)[None], mesh.faces)
+        check_collider_frames(config.source, "head.mesh", h.mesh, np.asarray(mesh.vertices)[None], mesh.faces)
         if not mesh.is_watertight:
             raise InputError(config.source, "head.mesh",
                              f"{h.mesh} is not closed (watertight); collisions need an inside and an outside")
@@ -887,16 +887,23 @@ class PointCacheMotion:
     """A collider animated by per-frame vertex positions, linearly interpolated between frames.
     Frames can be appended as a host application delivers them (sim.embed)."""
 
-    def __init__(self, frames, fps):
+    def __init__(self, frames, fps, keep=None):
+        """keep: frames held back (the latest ones; earlier times read the oldest kept), for a host
+        that appends frames without end (sim.embed kept every frame: +562 MB over 600 frames of a
+        41k-vertex collider); None keeps all."""
         self.frames = [np.asarray(f, np.float64) for f in frames]
         self.fps = float(fps)
+        self.keep, self.first = keep, 0  # first: the frame number of frames[0]
 
     def append(self, points):
         self.frames.append(np.asarray(points, np.float64))
+        if self.keep is not None and len(self.frames) > self.keep:
+            del self.frames[0]
+            self.first += 1
 
     def points(self, times):
         n = len(self.frames)
-        f = np.clip(np.asarray(times) * self.fps, 0.0, n - 1)
+        f = np.clip(np.asarray(times) * self.fps - self.first, 0.0, n - 1)
         i = np.minimum(np.floor(f).astype(int), n - 2) if n > 1 else np.zeros(len(f), int)
         w = f - i if n > 1 else np.zeros(len(f))
         j = np.minimum(i + 1, n - 1)
@@ -938,9 +945,10 @@ def _load_body(config):
                                  f"expected finite (frames, {len(vertices)}, 3) positions, got {frames.shape}")
     if len(faces) == 0 or not np.all(np.isfinite(vertices)):
         raise InputError(config.source, "body.mesh", f"{b.mesh} has no faces or non-finite points")
+    key = "body.points" if b.points else "body.mesh"
     if len(frames) == 0:
-        raise InputError(config.source, "body.points" if b.points else "body.mesh", "holds no frames")
-    _check_collider_frames(config, "body.points" if b.points else "body.mesh", b.points or b.mesh, frames, faces)
+        raise InputError(config.source, key, "holds no frames")
+    check_collider_frames(config.source, key, b.points or b.mesh, frames, faces)
     h = config.head
     if config.hair.enabled and not (h.scalp_faces or h.roots):
         raise InputError(config.source, "head.scalp_faces", "hair on a body from a file needs head.scalp_faces or "
@@ -976,22 +984,22 @@ COLLIDER_SPAN = 10.0
 ROOT_REACH = 0.05
 
 
-def _check_collider_frames(config, key, name, frames, faces):
+def check_collider_frames(source, key, name, frames, faces):
     """InputError unless every frame (F, V, 3) of a head or body mesh indexes its points, has a face
     with area, and spans at most COLLIDER_SPAN (all points at one spot, or a scale of 0, exploded the
     hair; a mesh in centimetres flung it off)."""
     faces = np.asarray(faces, np.int64)
     if faces.min() < 0 or faces.max() >= frames.shape[1]:
-        raise InputError(config.source, key, f"{name}: face indices must lie in [0, {frames.shape[1]})")
+        raise InputError(source, key, f"{name}: face indices must lie in [0, {frames.shape[1]})")
     span = float(np.max(frames.max(axis=1) - frames.min(axis=1)))
     if span > COLLIDER_SPAN:
-        raise InputError(config.source, key, f"{name} spans {span:.3g} m; meshes are read in metres (at most "
+        raise InputError(source, key, f"{name} spans {span:.3g} m; meshes are read in metres (at most "
                                              f"{COLLIDER_SPAN:g} m): scale one in centimetres by 0.01")
     a, b, c = (frames[:, faces[:, k]] for k in range(3))
     area = np.linalg.norm(np.cross(b - a, c - a), axis=2).max(axis=1)
     if not np.all(area > 0.0):
         first = int(np.argmin(area > 0.0))
-        raise InputError(config.source, key, f"{name}: no face has any area in frame index {first} (every point in "
+        raise InputError(source, key, f"{name}: no face has any area in frame index {first} (every point in "
                                              "one spot?)")
 
 
@@ -1077,15 +1085,15 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
     larger_is_worse = ("max_stretch", "root_distance_max", "inside_1mm", "cloth_stretch_p99", "cloth_stretch_max",
                        "cloth_inside_2mm", "detail_inside_2mm", "detail_queries", "detail_bvh")
     bar = _progress(t.frames, progress)
-    if stage is not None:
-        opened = stage.cache_writer(out_path, settings=config.settings(), engine_version=__version__)
-    else:
-        opened = CacheWriter(out_path, t.fps, t.start_frame, end_frame, settings=config.settings(),
-                             engine_version=__version__)
     hair_prim, cloth_prim = "/World/hair", "/World/cloth"
     if stage is not None:
         hair_prim = ", ".join(p.path for p in stage.hair)
         cloth_prim = ", ".join(p.path for p in stage.cloth) or cloth_prim
+    if stage is not None:  # entered at once: a stop in between left the partial file behind
+        opened = stage.cache_writer(out_path, settings=config.settings(), engine_version=__version__)
+    else:
+        opened = CacheWriter(out_path, t.fps, t.start_frame, end_frame, settings=config.settings(),
+                             engine_version=__version__)
     with opened as writer:
         if stage is None:
             _add_prims(writer, scene)
@@ -1139,6 +1147,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
             bar.update(1)
 
         for i in range(t.frames):
+            raise_if_stopped()
             frame = t.start_frame + i
             if i > 0:
                 if config.haircut:  # a comb in the hair moves to where the timeline has it at this frame
@@ -1170,6 +1179,7 @@ def run_scene(config, out_path, progress=True, on_frame=None, stage=None):
             worst["cloth_substeps"] = scene.cloth_substeps
             worst["cloth_stable_dt"] = scene.cloth_model.stable_dt
         writer.set_metadata("cfx:stats", worst)
+        raise_if_stopped()  # a stop swallowed on the way is still a stop: no cache is committed
     strands = scene.model.num_strands if scene.model is not None else 0
     particles = scene.model.num_particles if scene.model is not None else 0
     cloth = scene.cloth_model.num_particles if scene.cloth_model is not None else 0

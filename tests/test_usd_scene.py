@@ -411,6 +411,42 @@ def test_embedding_rejects_bad_arrays():
         sim.step(bad)
 
 
+def test_embedding_checks_widths_and_counts_keeps_few_frames_and_takes_turns_across_threads():
+    """From a QA pass: NaN, negative or too few hair_widths and fractional hair_counts were taken (the
+    counts truncated); every collider frame was kept (+562 MB over 600 frames of a 41k-vertex
+    collider); two Simulations stepped in two threads crashed the process."""
+    import threading
+
+    v, faces = _sphere()
+    points, counts = _strands()
+    for widths in ([1e-4] * 3, np.full(len(points), np.nan), np.full(len(points), -1e-4)):
+        with pytest.raises(InputError, match="hair_widths"):
+            Simulation(v + CENTRE, faces, hair_points=points, hair_counts=counts, hair_widths=widths, up_axis="Z")
+    with pytest.raises(InputError, match="hair_counts"):
+        Simulation(v + CENTRE, faces, hair_points=points, hair_counts=counts + 0.5, up_axis="Z")
+    sims = [Simulation(v + CENTRE, faces, hair_points=points, hair_counts=counts, up_axis="Z",
+                       settings={"scene": {"preroll": 0.0}}) for _ in range(3)]
+    errors = []
+
+    def drive(sim):
+        try:
+            for k in range(1, 13):
+                sim.step(v + CENTRE + [0.002 * k, 0.0, 0.0])
+        except Exception as err:  # noqa: BLE001 (reported below)
+            errors.append(err)
+
+    threads = [threading.Thread(target=drive, args=(sim,)) for sim in sims[:2]]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    drive(sims[2])
+    assert not errors
+    np.testing.assert_array_equal(sims[0].hair_points(), sims[2].hair_points())  # the same as alone
+    np.testing.assert_array_equal(sims[1].hair_points(), sims[2].hair_points())
+    assert len(sims[0]._motion.frames) <= 4 and sims[0]._motion.first == 12 - 3
+
+
 def test_several_garments_simulate_as_one_and_write_back_to_their_prims(tmp_path):
     """A second cape on the other side of the head: both prims get their own points back, both sets
     of pins ride the collider, and the detail surface spans both, under the stage's default prim (so a
