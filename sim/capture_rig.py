@@ -770,6 +770,10 @@ def run_synth(args):
                              f"expected WIDTHxHEIGHT, e.g. 1920x1080, got {args.size!r}") from None
         capture.update(width=width, height=height)
     scene_config, capture_config = load_capture_scene(args.scene, {"scene": scene}, capture)
+    out = os.path.realpath(args.output) + os.sep
+    if os.path.realpath(args.scene).startswith(out):  # the capture folder is replaced whole
+        raise InputError(args.output, None, f"holds the scene file {args.scene}, which replacing the capture would "
+                                            "delete; choose another output")
     result = synthesize(scene_config, capture_config, args.output, progress=not args.quiet)
     print(f"wrote {result.path}: {result.frames} frames from {result.cameras} cameras, {result.guides} guides with "
           f"{result.stripes} stripes; simulated in {result.simulate_seconds:.1f} s, rendered {result.images} images "

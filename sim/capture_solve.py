@@ -37,6 +37,7 @@ import json
 import math
 import os
 import sys
+import zipfile
 from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
@@ -130,8 +131,8 @@ def load_capture(capture_dir, check_images=True):
     try:
         with open(source, encoding="utf-8") as f:
             doc = json.load(f)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
-        raise InputError(source, None, f"cannot read JSON: {err}") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise InputError(source, None, f"cannot read JSON: {str(err) or type(err).__name__}") from None
     if not isinstance(doc, dict):
         raise InputError(source, None, "expected a JSON object")
     unknown = sorted(set(doc) - CAPTURE_KEYS)
@@ -258,11 +259,13 @@ def _load_truth(capture_dir, frames, guides, max_stripes, cameras):
     try:
         with np.load(path) as data:
             truth = {k: np.array(data[k]) for k in data.files}
-    except (OSError, ValueError) as err:
-        raise InputError(path, None, f"cannot read: {err}") from None
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:  # a truncated .npz is a bad zip
+        raise InputError(path, None, f"cannot read: {str(err) or type(err).__name__}") from None
     if "stripe_centres" not in truth:
         raise InputError(path, "stripe_centres", "missing")
     centres = truth["stripe_centres"]
+    if centres.dtype.kind != "f":  # NaN marks a stripe a guide does not have
+        raise InputError(path, "stripe_centres", f"expected floating-point positions, got {centres.dtype}")
     if centres.ndim != 4 or centres.shape[:2] != (frames, guides) or centres.shape[2] < max_stripes \
             or centres.shape[3] != 3:
         raise InputError(path, "stripe_centres", f"expected ({frames}, {guides}, >= {max_stripes}, 3), "
@@ -317,8 +320,9 @@ def read_image(path, size=None):
 
     try:
         image = iio.imread(path)
-    except (OSError, ValueError) as err:
-        raise InputError(path, None, f"cannot read image: {err}") from None
+    except (OSError, ValueError, SyntaxError) as err:  # Pillow raises SyntaxError for a broken PNG
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise InputError(path, None, f"cannot read image: {first}") from None
     if image.ndim == 2:
         image = np.repeat(image[..., None], 3, axis=2)
     if image.ndim != 3 or image.shape[2] < 3:
@@ -1566,13 +1570,18 @@ def add_solve_arguments(parser):
 
 def run_solve(args):
     """`cfx capture solve`: returns the exit status; bad input raises InputError (exit status 2)."""
-    for flag, value, least in (("--strands-between", args.strands_between, 0), ("--layers", args.layers, 0),
-                               ("--vertices", args.vertices, 2)):
-        if value < least:
-            raise InputError("command line", flag, f"expected at least {least}, got {value}")
-    for flag, value in (("--card-width", args.card_width), ("--max-jump", args.max_jump)):
-        if not value > 0:
-            raise InputError("command line", flag, f"expected a positive number, got {value}")
+    # the most a solve can hold: 1e8 strands between guides or vertices ran out of memory, 1e8 layers hung
+    for flag, value, least, most in (("--strands-between", args.strands_between, 0, 64),
+                                     ("--layers", args.layers, 0, 16), ("--vertices", args.vertices, 2, 1024)):
+        if not least <= value <= most:
+            raise InputError("command line", flag, f"expected {least} to {most}, got {value}")
+    for flag, value, most in (("--card-width", args.card_width, 1.0), ("--max-jump", args.max_jump, 1e5)):
+        if not 0 < value <= most:
+            raise InputError("command line", flag, f"expected a number above 0 and at most {most:g}, got {value}")
+    for name in ("capture.json", "truth.npz", "simulation.usdc"):  # the cache would replace an input
+        given = os.path.join(args.capture, name)
+        if os.path.exists(given) and os.path.realpath(given) == os.path.realpath(args.output):
+            raise InputError(args.output, None, f"is the capture's {name}: choose another output")
     params = SolveParams(track=replace(TrackParams(), max_jump_px=args.max_jump, first_frame_px=args.max_jump),
                          method=args.method, vertices=args.vertices, strands_between=args.strands_between,
                          layers=args.layers, card_width=args.card_width)

@@ -900,8 +900,8 @@ def _options(args):
         raise InputError("--size", None, f"expected WIDTHxHEIGHT, got {args.size!r}") from None
     if width < 16 or height < 16 or width % 2 or height % 2:
         raise InputError("--size", None, f"width and height must be even and at least 16 (MP4), got {width}x{height}")
-    if not (math.isfinite(args.latency) and args.latency >= 0.0):
-        raise InputError("--latency", None, f"must be a non-negative number of seconds, got {args.latency}")
+    if not (math.isfinite(args.latency) and 0.0 <= args.latency <= 10.0):  # 1e300 failed far down the line
+        raise InputError("--latency", None, f"must be from 0 to 10 seconds, got {args.latency}")
     if args.frames is not None and args.frames < 1:
         raise InputError("--frames", None, f"must be at least 1, got {args.frames}")
     if not (math.isfinite(args.fps) and args.fps > 0.0):
@@ -911,6 +911,18 @@ def _options(args):
         check_output_path(args.sheet, (".png",), "the contact sheet")
     if args.save_track:
         check_output_path(args.save_track, (".json",), "the saved track")
+        same = args.track and os.path.exists(args.track) and os.path.samefile(args.track, args.save_track) \
+            if os.path.exists(args.save_track) else False
+        if same:
+            raise InputError(args.save_track, None, "is the track read (--save-track would rewrite it, rounded); "
+                                                    "choose another file")
+    # the most a run can hold: a billion frames or a 100,000-pixel-wide projector ran out of memory
+    if args.frames is not None and args.frames > 100_000:
+        raise InputError("--frames", None, f"at most 100,000, got {args.frames}")
+    if max(width, height) > 8192:
+        raise InputError("--size", None, f"at most 8192 pixels a side, got {width}x{height}")
+    if args.fps < 1.0 or args.fps > 1000.0:
+        raise InputError("--fps", None, f"must be from 1 to 1000 frames a second, got {args.fps:g}")
     return MaskOptions((width, height), float(args.latency), args.frames or 0, float(args.fps), args.output)
 
 
@@ -944,9 +956,6 @@ def run_mask(args):
 
         def infrared(k):
             return camera_frame(rig, rig.camera_points(motion.poses(track.times[k]))[0], seed=(args.seed, k))
-    if args.save_track:
-        write_whole(args.save_track, lambda tmp: write_track(tmp, track))
-
     measured = track.leds[:, :4]
     predicted = predict_track(track, opts.latency, args.model)
     shown = measured if args.no_predict else predicted
@@ -977,6 +986,8 @@ def run_mask(args):
             sheet = _sheet(picks, track, infrared, {"predicted": predicted, "not predicted": measured},
                            truth, true_camera, draw_face, opts.latency, (width, height))
             write_whole(args.sheet, lambda tmp: sheet.save(tmp, format="PNG"))
+        if args.save_track:  # last: a run that fails leaves no track behind either
+            write_whole(args.save_track, lambda tmp: write_track(tmp, track))
     finally:
         progress.close()
         if face is not None:

@@ -709,3 +709,34 @@ def test_the_segmentation_benchmark_finds_the_same_blobs_both_ways(solved, capsy
     row = capsys.readouterr().out.strip().splitlines()[-1].split("|")
     assert row[1].strip() == "segment_image with the background" and int(row[2]) > 0
     assert row[-2].strip() == "yes" and float(row[5]) > 0.0
+
+
+def test_a_solve_refuses_damaged_inputs_and_its_own_inputs_as_output(tmp_path, capsys):
+    """From a QA pass: a cut-off truth.npz or PNG raised tracebacks, --vertices 1e8 ran out of memory,
+    and `-o CAP/simulation.usdc` replaced the capture's own simulation."""
+    import shutil
+
+    from sim.cli import main
+
+    make_capture(str(tmp_path / "cap"), frames=3)
+    cap = tmp_path / "cap"
+    (cap / "simulation.usdc").write_bytes(b"kept")
+    assert main(["capture", "solve", str(cap), "-o", str(cap / "simulation.usdc"), "-q"]) == 2
+    assert "is the capture's simulation.usdc" in capsys.readouterr().err
+    assert (cap / "simulation.usdc").read_bytes() == b"kept"
+    (cap / "simulation.usdc").unlink()
+    assert main(["capture", "solve", str(cap), "-o", str(tmp_path / "x.usdc"), "--vertices", "100000000", "-q"]) == 2
+    assert "--vertices: expected 2 to 1024" in capsys.readouterr().err
+    images = sorted(p for p in (cap / "images").rglob("*.png"))
+    shutil.copy(images[0], tmp_path / "whole.png")
+    images[0].write_bytes((tmp_path / "whole.png").read_bytes()[:40])
+    assert main(["capture", "solve", str(cap), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot read image" in err and err.count("\n") == 1, err
+    shutil.copy(tmp_path / "whole.png", images[0])
+    truth = cap / "truth.npz"
+    truth.write_bytes(truth.read_bytes()[:200])
+    assert main(["capture", "solve", str(cap), "-o", str(tmp_path / "x.usdc"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "truth.npz: cannot read" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x.usdc").exists()

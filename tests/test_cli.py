@@ -539,3 +539,18 @@ def test_info_validate_fails_what_usds_validators_let_through(tmp_path, capsys):
         stage.GetRootLayer().Save()
         assert main(["info", bad, "--validate"]) == 1, name
         assert said in capsys.readouterr().out, name
+
+
+def test_mask_and_capture_synth_never_replace_their_own_inputs(tmp_path, capsys):
+    """From a QA pass: `mask T.json --save-track T.json` rewrote the track read (rounded), and
+    `capture synth CAP/scene.toml -o CAP` deleted the scene file with the capture folder it replaced."""
+    track = tmp_path / "t.json"
+    track.write_text("{}")
+    assert main(["mask", str(track), "--save-track", str(track), "-o", str(tmp_path / "m.mp4"), "-q"]) == 2
+    assert "is the track read" in capsys.readouterr().err and track.read_text() == "{}"
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    (cap / "capture.json").write_text("{}")
+    scene = write(cap, SMALL + "[capture]\n")
+    assert main(["capture", "synth", scene, "-o", str(cap), "-q"]) == 2
+    assert "holds the scene file" in capsys.readouterr().err and os.path.exists(scene)
