@@ -472,12 +472,15 @@ class CacheReader:
                 values = np.array(dc.Get(), np.float32)
                 if dc.GetInterpolation() == UsdGeom.Tokens.vertex:
                     vertex_colors = values
-                else:
-                    color = tuple(float(c) for c in values[0])
+                elif len(values):  # an empty array leaves the default colour
+                    color = tuple(float(c) for c in values.reshape(-1, 3)[0])
             if prim.IsA(UsdGeom.BasisCurves):
                 c = UsdGeom.BasisCurves(prim)
                 start = Usd.TimeCode(self.start_frame)
-                counts = np.array(c.GetCurveVertexCountsAttr().Get(start), np.int32)
+                counts = c.GetCurveVertexCountsAttr().Get(start)
+                if counts is None:
+                    raise ValueError(f"{self.path}: {prim.GetPath()}.curveVertexCounts: not authored")
+                counts = np.array(counts, np.int32)
                 widths = np.array(c.GetWidthsAttr().Get(start) or [], np.float32)
                 source = prim.GetAttribute(INTERPOLATED_FROM)
                 self.prims[name] = CachePrim(name, str(prim.GetPath()), role, "curves", int(counts.sum()),
@@ -487,8 +490,11 @@ class CacheReader:
                                              else None)
             elif prim.IsA(UsdGeom.Mesh):
                 m = UsdGeom.Mesh(prim)
-                counts = np.array(m.GetFaceVertexCountsAttr().Get(), np.int32)
-                indices = np.array(m.GetFaceVertexIndicesAttr().Get(), np.int32)
+                counts, indices = m.GetFaceVertexCountsAttr().Get(), m.GetFaceVertexIndicesAttr().Get()
+                if counts is None or indices is None:
+                    raise ValueError(f"{self.path}: {prim.GetPath()}: faceVertexCounts or faceVertexIndices not "
+                                     "authored")
+                counts, indices = np.array(counts, np.int32), np.array(indices, np.int32)
                 pts = m.GetPointsAttr().Get(Usd.TimeCode(self.start_frame))
                 self.prims[name] = CachePrim(name, str(prim.GetPath()), role, "mesh",
                                              0 if pts is None else len(pts), counts, indices=indices, color=color,

@@ -17,8 +17,29 @@ WINDOW = (960, 720)
 
 
 def has_display():
-    """pyglet opens windows through X11 (XWayland included, which sets DISPLAY) or Cocoa."""
-    return sys.platform == "darwin" or bool(os.environ.get("DISPLAY"))
+    """pyglet opens windows through X11 (XWayland included, which sets DISPLAY) or Cocoa. A local X
+    display (":N") must also answer on its socket: DISPLAY=:99 with no server behind it left cfx view
+    hanging after a thread's traceback."""
+    if sys.platform == "darwin":
+        return True
+    display = os.environ.get("DISPLAY", "")
+    if not display:
+        return False
+    host, _, number = display.partition(":")
+    if host not in ("", "unix") or not number.split(".")[0].isdigit():
+        return True  # a remote or unusual display: pyglet will say what is wrong
+    import socket
+
+    path = f"/tmp/.X11-unix/X{number.split('.')[0]}"
+    for address in (path, "\0" + path):  # the file, or Linux's abstract socket of the same name
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+            probe.settimeout(1.0)
+            try:
+                probe.connect(address)
+                return True
+            except OSError:
+                continue
+    return False
 
 
 def _onscreen_pyrender():

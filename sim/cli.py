@@ -257,8 +257,8 @@ def cmd_studio(args):
     from .studio import Session, StudioWindow
 
     if not has_display():
-        return _fail("cfx studio needs a display (DISPLAY is not set); script the same edits as [[haircut]] "
-                     "tables in the scene file and use cfx run", EXIT_INPUT)
+        return _fail("cfx studio needs a display (DISPLAY is unset or has no X server); script the same edits as "
+                     "[[haircut]] tables in the scene file and use cfx run", EXIT_INPUT)
     for path in (args.cache, args.script):
         if path and os.path.abspath(path) == os.path.abspath(args.scene):
             return _fail(f"{path}: would overwrite the scene file", EXIT_INPUT)
@@ -302,7 +302,8 @@ def cmd_view(args):
     from io_usd.viewer import has_display, view
 
     if not has_display():
-        return _fail("cfx view needs a display (set DISPLAY); use cfx preview for images and movies", EXIT_INPUT)
+        return _fail("cfx view needs a display (DISPLAY is unset or has no X server); use cfx preview for images "
+                     "and movies", EXIT_INPUT)
     try:
         view(args.cache)
     except Stopped:

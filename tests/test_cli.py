@@ -146,6 +146,11 @@ def test_view_without_a_display_exits_2(tmp_path, monkeypatch, capsys):
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     assert main(["view", out]) == 2
     assert "display" in capsys.readouterr().err
+    # a DISPLAY with no X server behind it hung cfx view after a thread's traceback (a QA pass)
+    free = next(n for n in range(500, 600) if not os.path.exists(f"/tmp/.X11-unix/X{n}"))
+    monkeypatch.setenv("DISPLAY", f":{free}")
+    assert main(["view", out]) == 2 and main(["studio", scene]) == 2
+    assert capsys.readouterr().err.count("has no X server") == 2
 
 
 @pytest.mark.parametrize("text,where,reason", [
@@ -554,3 +559,21 @@ def test_mask_and_capture_synth_never_replace_their_own_inputs(tmp_path, capsys)
     scene = write(cap, SMALL + "[capture]\n")
     assert main(["capture", "synth", scene, "-o", str(cap), "-q"]) == 2
     assert "holds the scene file" in capsys.readouterr().err and os.path.exists(scene)
+
+
+def test_info_names_a_role_prim_without_its_topology(tmp_path, capsys):
+    """A tagged BasisCurves without curveVertexCounts, or a Mesh without faces, raised tracebacks in
+    info, view and preview; an empty displayColor an IndexError (a QA pass)."""
+    from pxr import Sdf, Usd, UsdGeom
+
+    for name, define, said in (("curves", UsdGeom.BasisCurves.Define, "/W/p.curveVertexCounts: not authored"),
+                               ("mesh", UsdGeom.Mesh.Define, "/W/p: faceVertexCounts or faceVertexIndices")):
+        path = str(tmp_path / f"{name}.usda")
+        stage = Usd.Stage.CreateNew(path)
+        prim = define(stage, "/W/p")
+        prim.GetPrim().CreateAttribute("cfx:role", Sdf.ValueTypeNames.Token, custom=True).Set("hair")
+        prim.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set([])
+        stage.GetRootLayer().Save()
+        assert main(["info", path]) == 2
+        err = capsys.readouterr().err
+        assert said in err and err.count("\n") == 1, err
