@@ -96,12 +96,19 @@ class Simulation:
         from .scene import PointCacheMotion, Scene, SceneAssets, check_collider_frames, quiet_warp
 
         self.source = source
+        if isinstance(meters_per_unit, bool) or not isinstance(meters_per_unit, (int, float, np.number)) \
+                or not np.isfinite(meters_per_unit):
+            raise InputError(source, "meters_per_unit", f"expected a finite number, got {meters_per_unit!r}")
         try:
             self.frame_space = HostFrame(up_axis, meters_per_unit)
         except ValueError as err:
             raise InputError(source, "up_axis" if "up_axis" in str(err) else "meters_per_unit", str(err)) from None
         vertices = self._points(collider_vertices, "collider_vertices")
-        faces = np.asarray(collider_faces, np.int64)
+        try:
+            faces = np.asarray(collider_faces, np.int64)
+        except (TypeError, ValueError):
+            given = repr(collider_faces)[:60]
+            raise InputError(source, "collider_faces", f"expected (F, 3) integer triangles, got {given}") from None
         if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
             raise InputError(source, "collider_faces", f"expected (F, 3) triangles, got shape {faces.shape}")
         if faces.min() < 0 or faces.max() >= len(vertices):
@@ -190,10 +197,16 @@ def scene_config(source, settings, fps, device, hair, cloth, frame_space, frames
     scene file's, with hair and cloth switched on where given. Vector settings arrive in host axes."""
     from .scene import _build_config
 
+    if settings is not None and not isinstance(settings, dict):
+        raise InputError(source, "settings", f"expected a dict of tables, got {type(settings).__name__}")
     settings = {k: dict(v) if isinstance(v, dict) else v for k, v in (settings or {}).items()}
-    for table in settings:
+    for table, value in settings.items():
         if table not in HOST_TABLES:
             raise InputError(source, f"[{table}]", f"not a setting the host passes (known: {', '.join(HOST_TABLES)})")
+        if not isinstance(value, dict):
+            raise InputError(source, f"[{table}]", f"expected a table (dict), got {type(value).__name__}")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float, np.number)):
+        raise InputError(source, "fps", f"expected a number, got {fps!r}")
     scene = {"fps": float(fps), "frames": int(frames), "device": device, **settings.get("scene", {})}
     data = {"scene": scene, "hair": {"enabled": bool(hair)}}
     solver = dict(settings.get("solver", {}))
@@ -206,6 +219,8 @@ def scene_config(source, settings, fps, device, hair, cloth, frame_space, frames
     for table in (solver, cloth_solver):
         for key in ("gravity", "wind"):
             value = table.get(key)
+            if isinstance(value, np.ndarray):  # a host's vectors are often arrays
+                value = value.tolist()
             if isinstance(value, (list, tuple)) and len(value) == 3:
                 table[key] = list(frame_space.direction_to_engine(value))
     if solver:

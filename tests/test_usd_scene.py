@@ -424,6 +424,12 @@ def test_embedding_checks_widths_and_counts_keeps_few_frames_and_takes_turns_acr
             Simulation(v + CENTRE, faces, hair_points=points, hair_counts=counts, hair_widths=widths, up_axis="Z")
     with pytest.raises(InputError, match="hair_counts"):
         Simulation(v + CENTRE, faces, hair_points=points, hair_counts=counts + 0.5, up_axis="Z")
+    for kwargs, key in (({"settings": [1]}, "settings"), ({"settings": {"scene": 5}}, r"\[scene\]"),
+                        ({"fps": None}, "fps"), ({"meters_per_unit": "0.01"}, "meters_per_unit")):
+        with pytest.raises(InputError, match=key):  # AttributeError and TypeError before
+            Simulation(v + CENTRE, faces, hair_points=points, hair_counts=counts, up_axis="Z", **kwargs)
+    with pytest.raises(InputError, match="collider_faces"):
+        Simulation(v + CENTRE, None)
     sims = [Simulation(v + CENTRE, faces, hair_points=points, hair_counts=counts, up_axis="Z",
                        settings={"scene": {"preroll": 0.0}}) for _ in range(3)]
     errors = []
