@@ -327,6 +327,8 @@ def _world_points(path, prim, frame_space, time):
 
 def _triangles(path, prim, mesh, time, points):
     """The collider's faces as triangles, checked against its points (engine metres)."""
+    from sim.scene import check_collider_frames
+
     from .cache import fan_triangles
 
     counts, indices = mesh.GetFaceVertexCountsAttr().Get(time), mesh.GetFaceVertexIndicesAttr().Get(time)
@@ -338,9 +340,8 @@ def _triangles(path, prim, mesh, time, points):
     if indices.min() < 0 or indices.max() >= len(points):
         raise InputError(path, f"{prim.path}.faceVertexIndices", f"must lie in [0, {len(points)})")
     tri = fan_triangles(counts, indices)
-    a, b, c = (points[tri[:, k]] for k in range(3))
-    if not np.linalg.norm(np.cross(b - a, c - a), axis=1).max() > 0.0:  # a zero scale, or every face collapsed
-        raise InputError(path, prim.path, f"no face has any area at time {time.GetValue():g}: nothing to collide with")
+    # a zero scale or every face collapsed (exploded the hair), a span of kilometres: as for mesh files
+    check_collider_frames(path, prim.path, prim.geometry.GetName(), points[None], tri)
     return tri
 
 
