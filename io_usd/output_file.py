@@ -36,6 +36,12 @@ def check_output_path(path, extensions, what="the output"):
     return path
 
 
+def is_input(output, given):
+    """Whether writing `output` would replace the existing file `given` (the same path, or a link
+    to it): a command's output must never be one of its own inputs."""
+    return os.path.exists(given) and os.path.realpath(given) == os.path.realpath(output)
+
+
 def check_output_folder(path):
     """Return `path` if a folder may be made there (or an existing one filled), else raise
     InputError(path, None, reason): the path is not a file and the nearest existing folder at or

@@ -1578,9 +1578,11 @@ def run_solve(args):
     for flag, value, most in (("--card-width", args.card_width, 1.0), ("--max-jump", args.max_jump, 1e5)):
         if not 0 < value <= most:
             raise InputError("command line", flag, f"expected a number above 0 and at most {most:g}, got {value}")
+    from io_usd.output_file import is_input
+
     for name in ("capture.json", "truth.npz", "simulation.usdc"):  # the cache would replace an input
         given = os.path.join(args.capture, name)
-        if os.path.exists(given) and os.path.realpath(given) == os.path.realpath(args.output):
+        if is_input(args.output, given):
             raise InputError(args.output, None, f"is the capture's {name}: choose another output")
     params = SolveParams(track=replace(TrackParams(), max_jump_px=args.max_jump, first_frame_px=args.max_jump),
                          method=args.method, vertices=args.vertices, strands_between=args.strands_between,

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from io_usd.output_file import check_output_path, write_whole
+from io_usd.output_file import check_output_path, is_input, write_whole
 
 from .errors import InputError
 
@@ -911,9 +911,7 @@ def _options(args):
         check_output_path(args.sheet, (".png",), "the contact sheet")
     if args.save_track:
         check_output_path(args.save_track, (".json",), "the saved track")
-        same = args.track and os.path.exists(args.track) and os.path.samefile(args.track, args.save_track) \
-            if os.path.exists(args.save_track) else False
-        if same:
+        if args.track and is_input(args.save_track, args.track):
             raise InputError(args.save_track, None, "is the track read (--save-track would rewrite it, rounded); "
                                                     "choose another file")
     # the most a run can hold: a billion frames or a 100,000-pixel-wide projector ran out of memory

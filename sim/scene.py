@@ -1055,9 +1055,10 @@ def _check_not_an_input(config, out_path):
             value = getattr(getattr(config, SECTIONS[section][0]), key, None)
             if isinstance(value, str) and value and value != "builtin":
                 inputs[f"{section}.{key}"] = os.path.join(base, value)
-    out = os.path.realpath(out_path)
+    from io_usd.output_file import is_input
+
     for key, path in inputs.items():
-        if os.path.exists(path) and os.path.realpath(path) == out:
+        if is_input(out_path, path):
             raise InputError(out_path, None, f"is the scene's {key} input: the cache would replace it; "
                                              "choose another output")
 
