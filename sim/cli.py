@@ -521,6 +521,7 @@ def main(argv=None):
     finally:
         for signum, handler in replaced.items():
             signal.signal(signum, handler)
+        clear_stops()  # a stop ends this command only, not later runs of the Python API in this process
 
 
 def _run(args):
