@@ -187,7 +187,7 @@ class HairParams:
     root_stiffness: float = 0.3  # pull toward the groom carried by the root frame, per substep (at stiffness_rate)
     # substeps/s at which shape_stiffness and root_stiffness are given: other substep lengths get the share
     # that gives the same stiffness (as XPBD's compliance), so the look does not depend on the substeps (per
-    # share, 160 substeps a frame had held a strand out 7 times stiffer than 10)
+    # share, 160 substeps a frame had held a strand out 5-7 times stiffer than 10)
     stiffness_rate: float = 240.0
     root_hold_length: float = 0.06  # m from the root over which that pull fades to zero
     # share of a particle's follow-the-leader correction taken off its parent's velocity (dynamic FTL), [0.7, 1]:
