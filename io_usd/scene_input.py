@@ -69,8 +69,9 @@ class UsdScene:
 
     def cache_writer(self, out_path, settings=None, engine_version=None):
         from .cache import CacheWriter
+        from .output_file import is_input
 
-        if os.path.realpath(out_path) == os.path.realpath(self.path):  # a link to it too
+        if is_input(out_path, self.path):  # a link to it too
             raise InputError(out_path, None, "the cache would overwrite the scene it sublayers; choose another output")
         t = self.config.timing
         if settings is not None:  # recorded as the stage gave them

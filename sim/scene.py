@@ -331,12 +331,20 @@ def _load_face_mask(config, face_count):
     return mask
 
 
+def _read_array(path, delimiter=None):
+    """A .npy file, or a text table (whitespace or `delimiter` separated) as a 2-D array; the caller
+    checks the shape. NumPy's warning on an empty text file is left to that check's one line."""
+    if path.endswith(".npy"):
+        return np.load(path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return np.loadtxt(path, delimiter=delimiter, ndmin=2)
+
+
 def _load_roots(config):
     path = _resolve(config, config.head.roots)
     try:
-        with warnings.catch_warnings():  # an empty file is reported below, in one line
-            warnings.simplefilter("ignore")
-            roots = np.load(path) if path.endswith(".npy") else np.loadtxt(path, ndmin=2)
+        roots = _read_array(path)
     except (OSError, ValueError) as err:
         raise InputError(config.source, "head.roots", f"cannot read {config.head.roots}: {err}") from None
     if roots.ndim != 2 or roots.shape[1] != 3 or len(roots) == 0 or not np.all(np.isfinite(roots)):
@@ -1253,9 +1261,7 @@ def _mouth_track(config):
     if f.mouth:
         path = _resolve(config, f.mouth)
         try:
-            with warnings.catch_warnings():  # an empty file is reported below, in one line
-                warnings.simplefilter("ignore")
-                track = np.load(path) if path.endswith(".npy") else np.loadtxt(path, delimiter=",", ndmin=2)
+            track = _read_array(path, delimiter=",")
         except (OSError, ValueError) as err:
             raise InputError(config.source, "face.mouth", f"cannot read {f.mouth}: {err}") from None
         if track.ndim != 2 or track.shape[1] != 13 or not np.all(np.isfinite(track)):
